@@ -1,0 +1,116 @@
+//! Fresnel reflection at a planar interface (seed Sec. 2.5, MODEL.md section 2).
+//!
+//! The incidence medium is air (index 1). The second medium has complex index `N = n + ik`
+//! (`k = 0` for a dielectric). Amplitudes follow the convention of MODEL.md:
+//!
+//! * `rs = (cos ti - w) / (cos ti + w)`, `rp = (N^2 cos ti - w) / (N^2 cos ti + w)`,
+//!   `w = sqrt(N^2 - sin^2 ti)` (principal branch, `Re w >= 0`, `Im w >= 0`), seed Eqs. 2.27-2.28
+//!   written for complex `N`;
+//! * at normal incidence `rp = -rs`: the p basis vector of each ray is `k × s`, so it flips with
+//!   the propagation direction. The Mueller element `M22 = Re(rs rp*)` is then `-R` at normal
+//!   incidence, consistent with the mirror-image frame of the reflected ray.
+//!
+//! The complex form has no `tan ti` and is exact at grazing incidence (`rs = rp = -1`). The seed's
+//! real-valued conductor formulas (Eqs. 2.31-2.36) are used only as a test oracle.
+
+use crate::error::ModelError;
+use num_complex::Complex64;
+use serde::{Deserialize, Serialize};
+
+/// Complex refractive index `n + ik` of the reflecting medium, relative to the incidence medium.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RefractiveIndex {
+    /// Real part `n`, in `(0, 100]`.
+    pub n: f64,
+    /// Extinction coefficient `k`, in `[0, 100]` (0 for a dielectric).
+    #[serde(default)]
+    pub k: f64,
+}
+
+impl RefractiveIndex {
+    /// Largest `n` and `k` accepted; far beyond any optical material, small enough that `N^2` and
+    /// every intermediate stay well inside f64.
+    pub const MAX: f64 = 100.0;
+
+    /// Validates and builds an index. Errors name `n` or `k` and the allowed range.
+    pub fn new(n: f64, k: f64) -> Result<Self, ModelError> {
+        if !(n.is_finite() && n > 0.0 && n <= Self::MAX) {
+            return Err(ModelError::OutOfRange {
+                field: "n",
+                value: n,
+                allowed: "(0, 100]",
+            });
+        }
+        ModelError::check_range("k", k, 0.0, Self::MAX, "[0, 100]")?;
+        Ok(RefractiveIndex { n, k })
+    }
+
+    /// `N^2 = (n + ik)^2`, the relative permittivity.
+    pub fn permittivity(&self) -> Complex64 {
+        let nn = Complex64::new(self.n, self.k);
+        nn * nn
+    }
+
+    /// Brewster angle `atan(n)` of a dielectric (where `Rp = 0`); for a conductor this is only an
+    /// approximation of the pseudo-Brewster angle (minimum of `Rp`).
+    pub fn brewster_angle_rad(&self) -> f64 {
+        self.n.atan()
+    }
+}
+
+/// Complex Fresnel amplitude reflection coefficients for one angle of incidence.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FresnelAmplitudes {
+    /// s (TE, perpendicular) amplitude coefficient.
+    pub rs: Complex64,
+    /// p (TM, parallel) amplitude coefficient, basis `k × s` on both rays.
+    pub rp: Complex64,
+}
+
+impl FresnelAmplitudes {
+    /// Power reflectance `Rs = |rs|^2`.
+    pub fn rs_power(&self) -> f64 {
+        self.rs.norm_sqr()
+    }
+
+    /// Power reflectance `Rp = |rp|^2`.
+    pub fn rp_power(&self) -> f64 {
+        self.rp.norm_sqr()
+    }
+
+    /// `Re(rs rp*)`, the retardance-carrying Mueller element `M22` of Eq. 3.5.
+    pub fn re_rs_rp_conj(&self) -> f64 {
+        (self.rs * self.rp.conj()).re
+    }
+}
+
+/// Fresnel amplitudes for a precomputed permittivity `eps = N^2` and `cos ti`.
+///
+/// `cos_ti` is clamped to `[0, 1]`; the result is finite for every `eps` with `Re N > 0`
+/// (see the module documentation for why neither denominator can vanish then). The only
+/// 0/0 is `N = 1` at exact grazing incidence (no interface), which returns zero amplitudes.
+#[inline]
+pub fn amplitudes_eps(eps: Complex64, cos_ti: f64) -> FresnelAmplitudes {
+    let c = cos_ti.clamp(0.0, 1.0);
+    let sin2 = (1.0 - c * c).max(0.0);
+    let w = (eps - sin2).sqrt();
+    let ds = c + w;
+    let dp = eps * c + w;
+    let zero = Complex64::new(0.0, 0.0);
+    FresnelAmplitudes {
+        rs: if ds == zero { zero } else { (c - w) / ds },
+        rp: if dp == zero { zero } else { (eps * c - w) / dp },
+    }
+}
+
+/// Fresnel amplitudes at incidence angle `theta_i_rad` in `[0, pi/2]`.
+pub fn amplitudes(index: &RefractiveIndex, theta_i_rad: f64) -> Result<FresnelAmplitudes, ModelError> {
+    let ti = ModelError::check_range(
+        "theta_i",
+        theta_i_rad,
+        0.0,
+        std::f64::consts::FRAC_PI_2,
+        "[0, 90] deg",
+    )?;
+    Ok(amplitudes_eps(index.permittivity(), ti.cos()))
+}

@@ -1,0 +1,30 @@
+//! End-to-end analytical model of polarimetric imaging.
+//!
+//! This crate is pure physics: no I/O, no async, no clock, no device types. It follows the
+//! conventions of `shared/design/MODEL.md` section 0 (binding for the whole workspace):
+//!
+//! * linear Stokes vectors `S = [S0, S1, S2]`, `S1 > 0` along the frame's x axis, `S2 > 0` at +45 deg;
+//! * an ideal analyzer at `psi` transmits `I = m(psi)^T S`, `m = 0.5 [1, cos 2psi, sin 2psi]`;
+//! * angles are radians inside the code, degrees only at the user boundary (`_deg` names);
+//! * zenith angles from the surface normal; relative azimuth `phi` between the towards-source and
+//!   towards-sensor directions, so the specular direction is `theta_r = theta_i, phi = 180 deg`.
+//!
+//! Modules, in the order of the imaging chain:
+//!
+//! * [`polarization`]: Stokes and Mueller types, DoLP, AoP, polarizer, frame rotation.
+//! * [`fresnel`]: dielectric and conductor Fresnel amplitudes and reflectances.
+//! * [`pbrdf`]: the microfacet polarimetric BRDF (seed Eqs. 3.4-3.18) and the vegetation model (Eq. 3.19).
+//! * [`material`]: a small library of materials at 550 nm, TOML in and out.
+//! * [`analyzer`]: measurement matrices of analyzer sets, reconstruction, conditioning and noise gains.
+//! * [`quadrature`]: the adaptive Gauss-Kronrod rule the model's integrals use, with error estimates.
+#![warn(missing_docs)]
+
+pub mod analyzer;
+pub mod error;
+pub mod fresnel;
+pub mod material;
+pub mod pbrdf;
+pub mod polarization;
+pub mod quadrature;
+
+pub use error::ModelError;
