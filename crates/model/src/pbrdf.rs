@@ -108,7 +108,7 @@ impl Geometry {
                 });
             }
         }
-        Geometry::from_angles(
+        let mut g = Geometry::from_angles(
             theta_i_deg.to_radians(),
             theta_r_deg.to_radians(),
             phi_deg.to_radians(),
@@ -118,7 +118,20 @@ impl Geometry {
             ModelError::OutOfRange { field: "theta_r", .. } => rename(e, "theta_r_deg"),
             ModelError::OutOfRange { field: "phi", .. } => rename(e, "phi_deg"),
             _ => e,
-        })
+        })?;
+        // Exact trigonometry at multiples of 90 deg, so that 90 deg is exactly grazing and
+        // 180 deg exactly in the plane of incidence (sin(pi) in radians is 1.2e-16, which at
+        // grazing incidence is as large as cos theta itself).
+        let (sin_ti, cos_ti) = sin_cos_deg(theta_i_deg);
+        let (sin_tr, cos_tr) = sin_cos_deg(theta_r_deg);
+        let (sin_phi, cos_phi) = sin_cos_deg(phi_deg);
+        g.sin_ti = sin_ti;
+        g.cos_ti = cos_ti.max(COS_FLOOR);
+        g.sin_tr = sin_tr;
+        g.cos_tr = cos_tr.max(COS_FLOOR);
+        g.sin_phi = sin_phi;
+        g.cos_phi = cos_phi;
+        Ok(g)
     }
 
     /// `cos ti` (floored at [`COS_FLOOR`]).
@@ -139,6 +152,20 @@ impl Geometry {
     /// Unit towards-sensor direction `omega_r`.
     pub fn omega_r(&self) -> Vector3<f64> {
         Vector3::new(self.sin_tr * self.cos_phi, self.sin_tr * self.sin_phi, self.cos_tr)
+    }
+}
+
+/// `(sin, cos)` of an angle in degrees, exact at every multiple of 90 deg: the argument is reduced
+/// to `[-45, 45]` deg in degrees (exact in f64 for `|x| <= 720`) before converting to radians.
+pub fn sin_cos_deg(x_deg: f64) -> (f64, f64) {
+    let q = (x_deg / 90.0).round();
+    let r = (x_deg - 90.0 * q).to_radians();
+    let (s, c) = r.sin_cos();
+    match (q as i64).rem_euclid(4) {
+        0 => (s, c),
+        1 => (c, -s),
+        2 => (-s, -c),
+        _ => (-c, s),
     }
 }
 
