@@ -231,7 +231,7 @@ mod tests {
     #[test]
     fn nested_gaussian_matches_closed_form_within_reported_error() {
         // int_0^1 int_0^2 exp(-x y) dy dx = int_0^1 (1 - exp(-2x)) / x dx = Ein(2)
-        // Ein(2) = sum_{k>=1} (-1)^(k+1) 2^k / (k k!) = 1.3179021514544038...
+        // Ein(2) = sum_{k>=1} (-1)^(k+1) 2^k / (k k!) = 1.3192633561695...; 1e-15 for rounding.
         let exact: f64 = (1..40)
             .map(|k| {
                 let kf = k as f64;
@@ -241,7 +241,7 @@ mod tests {
             .sum();
         let r = integrate_2d(|x, y| (-x * y).exp(), (0.0, 1.0), (0.0, 2.0), Tolerance::absolute(1e-10));
         assert!(r.converged);
-        assert!((r.value - exact).abs() <= r.error, "{r:?} vs {exact}");
+        assert!((r.value - exact).abs() <= r.error + 1e-15, "{r:?} vs {exact}");
     }
 
     #[test]
