@@ -1,1 +1,187 @@
-fn main() {}
+//! `polarimeter`: the instrument controller's command line. This part: `model`
+//! (evaluate the analytical model, one call or a JSON-lines batch) and `report figures`.
+
+use anyhow::Context;
+use clap::error::{ContextKind, ContextValue, ErrorKind};
+use clap::{Parser, Subcommand};
+use polar_cli::batch::{self, Kind};
+use polar_cli::commands::{self, DiffuseCache};
+use std::io::{BufRead, BufReader, Write};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Rotating-analyzer polarimetry: model, plan and run a division-of-time polarimeter.
+#[derive(Debug, Parser)]
+#[command(name = "polarimeter", version, about, propagate_version = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Evaluate the analytical model; JSON on stdout.
+    Model {
+        #[command(subcommand)]
+        command: ModelCommand,
+    },
+    /// Generate reports.
+    Report {
+        #[command(subcommand)]
+        command: ReportCommand,
+    },
+}
+
+/// Input for a model command: its flags, or `--batch FILE` (`-` for stdin) with one JSON object
+/// per line whose keys are the flag names with underscores. Batch exit status: 0 if every line
+/// succeeded, 1 if any line produced an error object (all lines are still processed).
+#[derive(Debug, Subcommand)]
+enum ModelCommand {
+    /// Fresnel amplitudes rs, rp and reflectances Rs, Rp.
+    Fresnel {
+        #[command(flatten)]
+        args: commands::FresnelArgs,
+        /// JSON-lines input file, `-` for stdin.
+        #[arg(long)]
+        batch: Option<PathBuf>,
+    },
+    /// Polarimetric BRDF Mueller matrix (seed Eqs. 3.4-3.19), sr^-1.
+    Pbrdf {
+        #[command(flatten)]
+        args: commands::PbrdfArgs,
+        /// JSON-lines input file, `-` for stdin.
+        #[arg(long)]
+        batch: Option<PathBuf>,
+    },
+    /// Least-squares Stokes vector, DoLP and AoP from analyzer intensities.
+    Stokes {
+        #[command(flatten)]
+        args: commands::StokesArgs,
+        /// JSON-lines input file, `-` for stdin.
+        #[arg(long)]
+        batch: Option<PathBuf>,
+    },
+    /// Condition number, EWV, singular values and pseudo-inverse of an analyzer set.
+    Polarimeter {
+        #[command(flatten)]
+        args: commands::PolarimeterArgs,
+        /// JSON-lines input file, `-` for stdin.
+        #[arg(long)]
+        batch: Option<PathBuf>,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum ReportCommand {
+    /// Draw the seed's Figs. 2.1, 3.6 and 3.7 analogues (PNG + CSV).
+    Figures {
+        /// Output directory.
+        #[arg(long, default_value = "docs/figures")]
+        out: PathBuf,
+    },
+}
+
+/// A clap parse error as one line naming the flag, the value and what is allowed.
+fn one_line_error(e: &clap::Error) -> String {
+    let arg = match e.get(ContextKind::InvalidArg) {
+        Some(ContextValue::String(s)) => s.clone(),
+        _ => String::new(),
+    };
+    let value = match e.get(ContextKind::InvalidValue) {
+        Some(ContextValue::String(s)) => s.clone(),
+        _ => String::new(),
+    };
+    let field = arg
+        .trim_start_matches('-')
+        .split([' ', '<', '='])
+        .next()
+        .unwrap_or("")
+        .replace('-', "_");
+    let first = e.to_string().lines().next().unwrap_or("invalid arguments").to_string();
+    match (batch::allowed(&field), value.is_empty()) {
+        (Some(allowed), false) => format!("error: {arg} = {value:?} is invalid: allowed {allowed}"),
+        (Some(allowed), true) => format!("{first}; allowed {allowed}"),
+        (None, _) => format!("{first} (see --help)"),
+    }
+}
+
+fn run_batch(kind: Kind, path: &PathBuf) -> anyhow::Result<ExitCode> {
+    let stdout = std::io::stdout().lock();
+    let out = std::io::BufWriter::new(stdout);
+    let input: Box<dyn BufRead> = if path.as_os_str() == "-" {
+        Box::new(std::io::stdin().lock())
+    } else {
+        let f = std::fs::File::open(path).with_context(|| format!("--batch {}: cannot open", path.display()))?;
+        Box::new(BufReader::new(f))
+    };
+    let summary = batch::run(kind, input, out).context("batch I/O")?;
+    if summary.errors > 0 {
+        eprintln!("polarimeter: {} of {} lines failed", summary.errors, summary.lines);
+        return Ok(ExitCode::from(1));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn print_json(result: Result<serde_json::Value, commands::CommandError>) -> ExitCode {
+    match result {
+        Ok(v) => {
+            if let Some(w) = v.get("warnings").and_then(|w| w.as_array()) {
+                for warning in w {
+                    eprintln!("warning: {}", warning.as_str().unwrap_or_default());
+                }
+            }
+            let mut out = std::io::stdout().lock();
+            let ok = serde_json::to_writer(&mut out, &v).is_ok() && writeln!(out).is_ok();
+            if ok {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
+            }
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) if matches!(e.kind(), ErrorKind::DisplayHelp | ErrorKind::DisplayVersion | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand) => {
+            let _ = e.print();
+            return if e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand { ExitCode::from(2) } else { ExitCode::SUCCESS };
+        }
+        Err(e) => {
+            eprintln!("{}", one_line_error(&e));
+            return ExitCode::from(2);
+        }
+    };
+    let result = match cli.command {
+        Command::Model { command } => match command {
+            ModelCommand::Fresnel { batch: Some(p), .. } => run_batch(Kind::Fresnel, &p),
+            ModelCommand::Fresnel { args, batch: None } => Ok(print_json(commands::fresnel(&args))),
+            ModelCommand::Pbrdf { batch: Some(p), .. } => run_batch(Kind::Pbrdf, &p),
+            ModelCommand::Pbrdf { args, batch: None } => Ok(print_json(commands::pbrdf(&args, &mut DiffuseCache::default()))),
+            ModelCommand::Stokes { batch: Some(p), .. } => run_batch(Kind::Stokes, &p),
+            ModelCommand::Stokes { args, batch: None } => Ok(print_json(commands::stokes(&args))),
+            ModelCommand::Polarimeter { batch: Some(p), .. } => run_batch(Kind::Polarimeter, &p),
+            ModelCommand::Polarimeter { args, batch: None } => Ok(print_json(commands::polarimeter(&args))),
+        },
+        Command::Report { command: ReportCommand::Figures { out } } => polar_cli::figures::draw_all(&out)
+            .map(|files| {
+                for f in files {
+                    println!("{}", f.display());
+                }
+                ExitCode::SUCCESS
+            })
+            .map_err(anyhow::Error::from),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

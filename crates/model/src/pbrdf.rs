@@ -41,7 +41,7 @@
 use crate::error::ModelError;
 use crate::fresnel::{amplitudes_eps, RefractiveIndex};
 use crate::polarization::{cos_sin_2eta, Mueller};
-use crate::quadrature::{integrate_2d, Integral, Tolerance};
+use crate::quadrature::{integrate_2d, integrate_2d_split, Integral, Tolerance};
 use nalgebra::{Matrix3, Vector3};
 use num_complex::Complex64;
 use std::f64::consts::{FRAC_PI_2, PI};
@@ -304,18 +304,24 @@ impl Microfacet {
     /// leaves upwards. The integrand is bounded by 2 and continuous (G vanishes where the
     /// reflected ray or the facet reaches the horizon), and the narrow lobe of a smooth surface
     /// is absorbed into the Gaussian weight, so the cost does not grow as `sigma -> 0`.
-    /// Polar slope coordinates with `u = rho^2 / (2 sigma^2)`, `v = 1 - exp(-u)` map it to the
-    /// unit square; mirror symmetry about the plane of incidence halves the azimuth range.
+    /// Polar slope coordinates `rho = sigma sqrt(2) t` make the weight `2 t exp(-t^2)`, integrated
+    /// over `t in [0, 6.5]` (the neglected tail, `< 1e-18`, is added to the error); mirror
+    /// symmetry about the plane of incidence halves the azimuth range.
     pub fn specular_albedo(&self, theta_i_rad: f64, tol: Tolerance) -> Result<Integral, ModelError> {
         let ti = ModelError::check_range("theta_i", theta_i_rad, 0.0, FRAC_PI_2, "[0, 90] deg")?;
         let (sti, cti) = ti.sin_cos();
         let cti = cti.max(COS_FLOOR);
         let sigma = self.sigma;
         let eps = self.eps;
-        let f = |psi: f64, v: f64| -> f64 {
-            let u = -(-v).ln_1p();
-            let rho = sigma * (2.0 * u).sqrt();
-            let (sp, cp) = psi.sin_cos();
+        // Polar slope coordinates rho = sigma sqrt(2) t: the Gaussian measure is 2 t exp(-t^2) dt
+        // dpsi / (2 pi), smooth at t = 0 (a substitution through u = t^2 would leave a square-root
+        // singularity there, since the integrand is linear in the slope near the origin).
+        // Truncation at T: the neglected mass is exp(-T^2) and the integrand is at most 2.
+        const T: f64 = 6.5;
+        let truncation = 2.0 * (-T * T).exp();
+        let f = |psi: f64, t: f64| -> f64 {
+            let rho = sigma * std::f64::consts::SQRT_2 * t;
+            let cp = psi.cos();
             // Facet normal h = (-x, -y, 1) / sqrt(1 + rho^2), slope (x, y) = rho (cos psi, sin psi).
             let inv = 1.0 / (1.0 + rho * rho).sqrt();
             let cos_alpha = inv;
@@ -327,18 +333,32 @@ impl Microfacet {
             if cos_tr <= 0.0 {
                 return 0.0;
             }
-            let _ = sp;
             let r = amplitudes_eps(eps, cos_beta);
             let m00 = 0.5 * (r.rs_power() + r.rp_power());
             let g_cb_over_cti = (cos_beta / cti)
                 .min(2.0 * cos_alpha)
                 .min(2.0 * cos_alpha * cos_tr / cti);
-            m00 * g_cb_over_cti
+            2.0 * t * (-t * t).exp() * m00 * g_cb_over_cti
         };
-        let r = integrate_2d(f, (0.0, PI), (0.0, 1.0), tol.scaled(PI));
+        // Kinks of the integrand along t at fixed psi, in slope rho (k = cos psi sin ti):
+        // facet turning away (cos beta = 0): rho = cos ti / k; reflected ray at the horizon
+        // (cos tr = 0): cos ti rho^2 + 2 k rho - cos ti = 0; the shadowing min switching
+        // branches: rho = -cos ti / k (cos beta = 2 cos a cos ti) and rho = -k / cos ti
+        // (cos tr = cos ti). The remaining switch (a cubic) is left to adaptivity.
+        let breaks = |psi: f64, out: &mut Vec<f64>| {
+            let k = psi.cos() * sti;
+            let to_t = 1.0 / (sigma * std::f64::consts::SQRT_2);
+            if k != 0.0 {
+                out.push(cti / k * to_t);
+                out.push(-cti / k * to_t);
+            }
+            out.push(-k / cti * to_t);
+            out.push((-k + k.hypot(cti)) / cti * to_t);
+        };
+        let r = integrate_2d_split(f, (0.0, PI), (0.0, T), breaks, tol.scaled(PI));
         Ok(Integral {
             value: r.value / PI,
-            error: r.error / PI,
+            error: r.error / PI + truncation,
             ..r
         })
     }

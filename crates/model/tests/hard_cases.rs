@@ -244,3 +244,30 @@ fn degree_trigonometry_is_exact_at_quadrants() {
         assert!((s - rs).abs() < 1e-15 && (c - rc).abs() < 1e-15, "{d}");
     }
 }
+
+/// The slope-space albedo (Eq. 3.18's integral) equals the direct hemisphere integral of the
+/// specular Mueller element, `int f00_s cos tr dOmega_r` over `(cos tr, phi)`: two independent
+/// parametrisations and code paths. Tolerance 1e-7: both quadratures run at 1e-9.
+#[test]
+fn slope_space_albedo_equals_direct_hemisphere_integral() {
+    use polar_model::quadrature::integrate_2d;
+    let idx = RefractiveIndex::new(1.52, 0.0).unwrap();
+    for (sigma, ti_deg) in [(0.3, 30.0), (0.5, 60.0), (1.0, 80.0), (10.0, 89.0), (0.5, 0.0)] {
+        let s = Surface::microfacet(idx, sigma, 1.0).unwrap();
+        let slope = s.diffuse(f64::to_radians(ti_deg), Tolerance::absolute(1e-10)).unwrap().specular_albedo;
+        let direct = integrate_2d(
+            |phi, mu: f64| {
+                let g = Geometry::from_angles(f64::to_radians(ti_deg), mu.clamp(0.0, 1.0).acos(), phi).unwrap();
+                s.specular(&g).0[(0, 0)] * mu
+            },
+            (0.0, std::f64::consts::PI),
+            (0.0, 1.0),
+            Tolerance { abs: 1e-10, rel: 1e-12, max_intervals: 2000 },
+        );
+        let direct_value = 2.0 * direct.value;
+        assert!(
+            (slope.value - direct_value).abs() < 1e-7,
+            "sigma {sigma} ti {ti_deg}: slope {slope:?} direct {direct_value} ({direct:?})"
+        );
+    }
+}

@@ -1,0 +1,264 @@
+//! The `model` subcommands: argument structs shared by the command line (clap) and the JSON-lines
+//! batch mode (serde), and their evaluation to JSON.
+//!
+//! Field names are the flag names with underscores. Every range check is the model's own, so a
+//! bad value gets the same message (field, value, allowed range) from a flag and from a batch line.
+
+use clap::Args;
+use polar_model::analyzer::{AnalyzerModel, AnalyzerSet};
+use polar_model::fresnel::{amplitudes, RefractiveIndex};
+use polar_model::pbrdf::{DiffuseTerm, Geometry, Surface};
+use polar_model::quadrature::Tolerance;
+use polar_model::ModelError;
+use serde::Deserialize;
+use serde_json::{json, Value};
+use std::collections::HashMap;
+
+/// A failure of one evaluation: the message names the field, the value and the allowed range.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct CommandError(pub String);
+
+impl From<ModelError> for CommandError {
+    fn from(e: ModelError) -> Self {
+        CommandError(e.to_string())
+    }
+}
+
+fn required<T>(value: Option<T>, field: &str, allowed: &str) -> Result<T, CommandError> {
+    value.ok_or_else(|| CommandError(format!("{field} is missing: allowed {allowed}")))
+}
+
+fn deg_to_rad(field: &'static str, deg: f64, lo: f64, hi: f64, allowed: &'static str) -> Result<f64, CommandError> {
+    Ok(ModelError::check_range(field, deg, lo, hi, allowed)?.to_radians())
+}
+
+/// `polarimeter model fresnel`: Fresnel amplitudes and reflectances at one angle.
+#[derive(Debug, Clone, Default, Args, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FresnelArgs {
+    /// Real part of the refractive index, (0, 100].
+    #[arg(long)]
+    pub n: Option<f64>,
+    /// Extinction coefficient, [0, 100] (0 for a dielectric).
+    #[arg(long, default_value_t = 0.0)]
+    #[serde(default)]
+    pub k: f64,
+    /// Angle of incidence from the normal, degrees, [0, 90].
+    #[arg(long)]
+    pub theta_i_deg: Option<f64>,
+}
+
+/// Evaluates [`FresnelArgs`].
+pub fn fresnel(a: &FresnelArgs) -> Result<Value, CommandError> {
+    let idx = RefractiveIndex::new(required(a.n, "n", "(0, 100]")?, a.k)?;
+    let ti = deg_to_rad("theta_i_deg", required(a.theta_i_deg, "theta_i_deg", "[0, 90]")?, 0.0, 90.0, "[0, 90]")?;
+    let r = amplitudes(&idx, ti)?;
+    Ok(json!({
+        "rs": [r.rs.re, r.rs.im],
+        "rp": [r.rp.re, r.rp.im],
+        "Rs": r.rs_power(),
+        "Rp": r.rp_power(),
+        "re_rs_rp_conj": r.re_rs_rp_conj(),
+        "brewster_deg": idx.brewster_angle_rad().to_degrees(),
+    }))
+}
+
+/// `polarimeter model pbrdf`: the full pBRDF Mueller matrix at one geometry.
+#[derive(Debug, Clone, Args, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PbrdfArgs {
+    /// Real part of the refractive index, (0, 100].
+    #[arg(long)]
+    pub n: Option<f64>,
+    /// Extinction coefficient, [0, 100].
+    #[arg(long, default_value_t = 0.0)]
+    #[serde(default)]
+    pub k: f64,
+    /// Facet-slope roughness sigma_h / l, [1e-6, 10] (not used with --vegetation).
+    #[arg(long)]
+    pub sigma: Option<f64>,
+    /// Directional-hemispherical reflectance, [0, 1]. With --vegetation the diffuse term is dhr/pi
+    /// (the seed's vegetation: --n 1.5 --dhr 0.04).
+    #[arg(long)]
+    pub dhr: Option<f64>,
+    /// Incident (sun) zenith angle, degrees, [0, 90].
+    #[arg(long)]
+    pub theta_i_deg: Option<f64>,
+    /// View zenith angle, degrees, [0, 90].
+    #[arg(long)]
+    pub theta_r_deg: Option<f64>,
+    /// Relative azimuth between source and view directions, degrees, [-360, 360]; 180 is specular.
+    #[arg(long)]
+    pub phi_deg: Option<f64>,
+    /// Use the vegetation model (seed Eq. 3.19) instead of the microfacet model.
+    #[arg(long)]
+    #[serde(default)]
+    pub vegetation: bool,
+    /// Absolute error target of the specular-albedo quadrature, [1e-14, 1e-2].
+    #[arg(long, default_value_t = 1e-9)]
+    #[serde(default = "default_tolerance")]
+    pub tolerance: f64,
+}
+
+fn default_tolerance() -> f64 {
+    1e-9
+}
+
+impl PbrdfArgs {
+    fn surface(&self) -> Result<Surface, CommandError> {
+        let idx = RefractiveIndex::new(required(self.n, "n", "(0, 100]")?, self.k)?;
+        let dhr = required(self.dhr, "dhr", "[0, 1]")?;
+        if self.vegetation {
+            ModelError::check_range("dhr", dhr, 0.0, 1.0, "[0, 1]")?;
+            Ok(Surface::vegetation(idx, dhr / std::f64::consts::PI)?)
+        } else {
+            Ok(Surface::microfacet(idx, required(self.sigma, "sigma", "[1e-6, 10]")?, dhr)?)
+        }
+    }
+}
+
+/// Caches diffuse terms across evaluations that share material and incidence angle (a batch of
+/// view directions under one sun integrates the specular albedo once).
+#[derive(Debug, Default)]
+pub struct DiffuseCache {
+    map: HashMap<[u64; 6], DiffuseTerm>,
+}
+
+impl DiffuseCache {
+    /// Number of distinct diffuse terms computed.
+    pub fn len(&self) -> usize {
+        self.map.len()
+    }
+
+    /// Whether nothing has been cached yet.
+    pub fn is_empty(&self) -> bool {
+        self.map.is_empty()
+    }
+}
+
+/// Evaluates [`PbrdfArgs`], reusing diffuse terms from `cache`.
+pub fn pbrdf(a: &PbrdfArgs, cache: &mut DiffuseCache) -> Result<Value, CommandError> {
+    let surface = a.surface()?;
+    let ti = required(a.theta_i_deg, "theta_i_deg", "[0, 90]")?;
+    let tr = required(a.theta_r_deg, "theta_r_deg", "[0, 90]")?;
+    let phi = required(a.phi_deg, "phi_deg", "[-360, 360]")?;
+    let g = Geometry::from_deg(ti, tr, phi)?;
+    let tol = ModelError::check_range("tolerance", a.tolerance, 1e-14, 1e-2, "[1e-14, 1e-2]")?;
+    let key = [
+        a.n.unwrap_or(0.0).to_bits(),
+        a.k.to_bits(),
+        if a.vegetation { u64::MAX } else { a.sigma.unwrap_or(0.0).to_bits() },
+        a.dhr.unwrap_or(0.0).to_bits(),
+        ti.to_bits(),
+        tol.to_bits(),
+    ];
+    let diffuse = match cache.map.get(&key) {
+        Some(d) => *d,
+        None => {
+            let d = surface.diffuse(ti.to_radians(), Tolerance::absolute(tol))?;
+            cache.map.insert(key, d);
+            d
+        }
+    };
+    let f = surface.mueller_with(&g, &diffuse);
+    let out = f.response_to_unpolarized();
+    let mut warnings = Vec::new();
+    if let Some(w) = diffuse.clamped {
+        warnings.push(w.to_string());
+    }
+    if !diffuse.specular_albedo.converged {
+        warnings.push(format!(
+            "specular albedo quadrature did not reach tolerance {tol:e}: error estimate {:e}",
+            diffuse.specular_albedo.error
+        ));
+    }
+    let m = f.0;
+    Ok(json!({
+        "f": [[m[(0, 0)], m[(0, 1)], m[(0, 2)]], [m[(1, 0)], m[(1, 1)], m[(1, 2)]], [m[(2, 0)], m[(2, 1)], m[(2, 2)]]],
+        "dolp": out.dolp().unwrap_or(0.0),
+        "aop_deg": out.aop_rad().map(f64::to_degrees),
+        "f00_diffuse": diffuse.f00,
+        "specular_albedo": diffuse.specular_albedo.value,
+        "specular_albedo_error": diffuse.specular_albedo.error,
+        "quadrature_evaluations": diffuse.specular_albedo.evaluations,
+        "warnings": warnings,
+    }))
+}
+
+/// `polarimeter model stokes`: least-squares Stokes reconstruction from analyzer intensities.
+#[derive(Debug, Clone, Default, Args, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StokesArgs {
+    /// Analyzer angles, degrees, comma-separated; at least 3 distinct modulo 180.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    #[serde(default)]
+    pub angles_deg: Vec<f64>,
+    /// Measured intensities, one per angle, comma-separated.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    #[serde(default)]
+    pub intensities: Vec<f64>,
+}
+
+fn analyzer_set(angles_deg: &[f64], model: &AnalyzerModel) -> Result<AnalyzerSet, CommandError> {
+    if let Some(bad) = angles_deg.iter().find(|a| !a.is_finite() || a.abs() > 3600.0) {
+        return Err(CommandError(format!("angles_deg contains {bad}: allowed finite values in [-3600, 3600]")));
+    }
+    let rad: Vec<f64> = angles_deg.iter().map(|a| a.to_radians()).collect();
+    Ok(AnalyzerSet::new(&rad, model)?)
+}
+
+/// Evaluates [`StokesArgs`].
+pub fn stokes(a: &StokesArgs) -> Result<Value, CommandError> {
+    let set = analyzer_set(&a.angles_deg, &AnalyzerModel::IDEAL)?;
+    let s = set.reconstruct(&a.intensities)?;
+    let predicted = set.intensities(&s);
+    let n = a.intensities.len() as f64;
+    let rss: f64 = predicted.iter().zip(&a.intensities).map(|(p, i)| (p - i).powi(2)).sum();
+    Ok(json!({
+        "s": [s.0[0], s.0[1], s.0[2]],
+        "dolp": s.dolp(),
+        "aop_deg": s.aop_rad().map(f64::to_degrees),
+        "residual_rms": (rss / n).sqrt(),
+    }))
+}
+
+/// `polarimeter model polarimeter`: conditioning and noise gains of an analyzer set.
+#[derive(Debug, Clone, Args, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PolarimeterArgs {
+    /// Analyzer angles, degrees, comma-separated; at least 3 distinct modulo 180.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    #[serde(default)]
+    pub angles_deg: Vec<f64>,
+    /// Analyzer extinction ratio k1/k2, > 1 (inf: ideal).
+    #[arg(long, default_value_t = f64::INFINITY)]
+    #[serde(default = "infinite")]
+    pub extinction_ratio: f64,
+    /// Analyzer angle offset added to every angle, degrees, [-180, 180].
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    #[serde(default)]
+    pub offset_deg: f64,
+}
+
+fn infinite() -> f64 {
+    f64::INFINITY
+}
+
+/// Evaluates [`PolarimeterArgs`].
+pub fn polarimeter(a: &PolarimeterArgs) -> Result<Value, CommandError> {
+    ModelError::check_range("offset_deg", a.offset_deg, -180.0, 180.0, "[-180, 180]")?;
+    let model = AnalyzerModel::from_extinction_ratio(a.extinction_ratio, a.offset_deg.to_radians())?;
+    let set = analyzer_set(&a.angles_deg, &model)?;
+    let rows = |m: &nalgebra::DMatrix<f64>| -> Vec<Vec<f64>> {
+        (0..m.nrows()).map(|i| m.row(i).iter().copied().collect()).collect()
+    };
+    Ok(json!({
+        "cond2": set.cond2(),
+        "ewv": set.ewv(),
+        "singular_values": set.singular_values(),
+        "pinv": rows(set.stokes_from_intensities()),
+        "w": rows(set.intensities_from_stokes()),
+        "noise_gains": set.noise_gains(),
+    }))
+}

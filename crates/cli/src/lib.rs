@@ -1,0 +1,7 @@
+//! Library half of the `polarimeter` command: the model subcommands, the JSON-lines batch mode
+//! and the report figures, kept out of `main.rs` so benchmarks and tests can call them.
+#![warn(missing_docs)]
+
+pub mod batch;
+pub mod commands;
+pub mod figures;
