@@ -60,7 +60,9 @@ fn parse<T: DeserializeOwned>(line: &str) -> Result<T, CommandError> {
 /// Evaluates one batch line.
 pub fn eval_line(kind: Kind, line: &str, cache: &mut DiffuseCache) -> Result<Value, CommandError> {
     if line.trim().is_empty() {
-        return Err(CommandError("empty line: allowed one JSON object per line".into()));
+        return Err(CommandError(
+            "empty line: allowed one JSON object per line".into(),
+        ));
     }
     match kind {
         Kind::Fresnel => commands::fresnel(&parse(line)?),
@@ -131,12 +133,22 @@ mod tests {
         ]
         .join("\n");
         let (v, s) = run_str(Kind::Fresnel, &text);
-        assert_eq!(s, Summary { lines: 7, errors: 5 });
+        assert_eq!(
+            s,
+            Summary {
+                lines: 7,
+                errors: 5
+            }
+        );
         assert_eq!(v.len(), 7);
         // Glass at 60 deg: Rs = 0.183438 (REFERENCE_VALUES.md).
         assert!((v[0]["Rs"].as_f64().unwrap() - 0.183438).abs() < 6e-7);
         let e = |i: usize| v[i]["error"].as_str().unwrap().to_string();
-        assert!(e(1).contains("theta_i_deg") && e(1).contains("95") && e(1).contains("[0, 90]"), "{}", e(1));
+        assert!(
+            e(1).contains("theta_i_deg") && e(1).contains("95") && e(1).contains("[0, 90]"),
+            "{}",
+            e(1)
+        );
         assert!(e(2).contains("n:") && e(2).contains("(0, 100]"), "{}", e(2));
         assert!(e(3).contains("theta_i"), "{}", e(3));
         assert!(e(4).contains("empty"), "{}", e(4));
@@ -150,13 +162,24 @@ mod tests {
     fn pbrdf_batch_reuses_the_diffuse_term() {
         let mut cache = DiffuseCache::default();
         for phi in [0.0, 90.0, 180.0] {
-            let line = format!(r#"{{"n":1.52,"sigma":0.1,"dhr":0.1,"theta_i_deg":60,"theta_r_deg":60,"phi_deg":{phi}}}"#);
+            let line = format!(
+                r#"{{"n":1.52,"sigma":0.1,"dhr":0.1,"theta_i_deg":60,"theta_r_deg":60,"phi_deg":{phi}}}"#
+            );
             let v = eval_line(Kind::Pbrdf, &line, &mut cache).unwrap();
             // f00_d = 0.002309 (REFERENCE_VALUES.md) whatever the view direction.
             assert!((v["f00_diffuse"].as_f64().unwrap() - 0.002309).abs() < 6e-7);
         }
         assert_eq!(cache.len(), 1);
-        let v = eval_line(Kind::Stokes, r#"{"angles_deg":[0,45,90],"intensities":[1,2]}"#, &mut cache).unwrap_err();
-        assert!(v.0.contains("intensities") && v.0.contains("one per angle"), "{}", v.0);
+        let v = eval_line(
+            Kind::Stokes,
+            r#"{"angles_deg":[0,45,90],"intensities":[1,2]}"#,
+            &mut cache,
+        )
+        .unwrap_err();
+        assert!(
+            v.0.contains("intensities") && v.0.contains("one per angle"),
+            "{}",
+            v.0
+        );
     }
 }

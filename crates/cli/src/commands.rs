@@ -29,7 +29,13 @@ fn required<T>(value: Option<T>, field: &str, allowed: &str) -> Result<T, Comman
     value.ok_or_else(|| CommandError(format!("{field} is missing: allowed {allowed}")))
 }
 
-fn deg_to_rad(field: &'static str, deg: f64, lo: f64, hi: f64, allowed: &'static str) -> Result<f64, CommandError> {
+fn deg_to_rad(
+    field: &'static str,
+    deg: f64,
+    lo: f64,
+    hi: f64,
+    allowed: &'static str,
+) -> Result<f64, CommandError> {
     Ok(ModelError::check_range(field, deg, lo, hi, allowed)?.to_radians())
 }
 
@@ -52,7 +58,13 @@ pub struct FresnelArgs {
 /// Evaluates [`FresnelArgs`].
 pub fn fresnel(a: &FresnelArgs) -> Result<Value, CommandError> {
     let idx = RefractiveIndex::new(required(a.n, "n", "(0, 100]")?, a.k)?;
-    let ti = deg_to_rad("theta_i_deg", required(a.theta_i_deg, "theta_i_deg", "[0, 90]")?, 0.0, 90.0, "[0, 90]")?;
+    let ti = deg_to_rad(
+        "theta_i_deg",
+        required(a.theta_i_deg, "theta_i_deg", "[0, 90]")?,
+        0.0,
+        90.0,
+        "[0, 90]",
+    )?;
     let r = amplitudes(&idx, ti)?;
     Ok(json!({
         "rs": [r.rs.re, r.rs.im],
@@ -113,7 +125,11 @@ impl PbrdfArgs {
             ModelError::check_range("dhr", dhr, 0.0, 1.0, "[0, 1]")?;
             Ok(Surface::vegetation(idx, dhr / std::f64::consts::PI)?)
         } else {
-            Ok(Surface::microfacet(idx, required(self.sigma, "sigma", "[1e-6, 10]")?, dhr)?)
+            Ok(Surface::microfacet(
+                idx,
+                required(self.sigma, "sigma", "[1e-6, 10]")?,
+                dhr,
+            )?)
         }
     }
 }
@@ -148,7 +164,11 @@ pub fn pbrdf(a: &PbrdfArgs, cache: &mut DiffuseCache) -> Result<Value, CommandEr
     let key = [
         a.n.unwrap_or(0.0).to_bits(),
         a.k.to_bits(),
-        if a.vegetation { u64::MAX } else { a.sigma.unwrap_or(0.0).to_bits() },
+        if a.vegetation {
+            u64::MAX
+        } else {
+            a.sigma.unwrap_or(0.0).to_bits()
+        },
         a.dhr.unwrap_or(0.0).to_bits(),
         ti.to_bits(),
         tol.to_bits(),
@@ -201,8 +221,13 @@ pub struct StokesArgs {
 }
 
 fn analyzer_set(angles_deg: &[f64], model: &AnalyzerModel) -> Result<AnalyzerSet, CommandError> {
-    if let Some(bad) = angles_deg.iter().find(|a| !a.is_finite() || a.abs() > 3600.0) {
-        return Err(CommandError(format!("angles_deg contains {bad}: allowed finite values in [-3600, 3600]")));
+    if let Some(bad) = angles_deg
+        .iter()
+        .find(|a| !a.is_finite() || a.abs() > 3600.0)
+    {
+        return Err(CommandError(format!(
+            "angles_deg contains {bad}: allowed finite values in [-3600, 3600]"
+        )));
     }
     let rad: Vec<f64> = angles_deg.iter().map(|a| a.to_radians()).collect();
     Ok(AnalyzerSet::new(&rad, model)?)
@@ -214,7 +239,11 @@ pub fn stokes(a: &StokesArgs) -> Result<Value, CommandError> {
     let s = set.reconstruct(&a.intensities)?;
     let predicted = set.intensities(&s);
     let n = a.intensities.len() as f64;
-    let rss: f64 = predicted.iter().zip(&a.intensities).map(|(p, i)| (p - i).powi(2)).sum();
+    let rss: f64 = predicted
+        .iter()
+        .zip(&a.intensities)
+        .map(|(p, i)| (p - i).powi(2))
+        .sum();
     Ok(json!({
         "s": [s.0[0], s.0[1], s.0[2]],
         "dolp": s.dolp(),
@@ -248,10 +277,13 @@ fn infinite() -> f64 {
 /// Evaluates [`PolarimeterArgs`].
 pub fn polarimeter(a: &PolarimeterArgs) -> Result<Value, CommandError> {
     ModelError::check_range("offset_deg", a.offset_deg, -180.0, 180.0, "[-180, 180]")?;
-    let model = AnalyzerModel::from_extinction_ratio(a.extinction_ratio, a.offset_deg.to_radians())?;
+    let model =
+        AnalyzerModel::from_extinction_ratio(a.extinction_ratio, a.offset_deg.to_radians())?;
     let set = analyzer_set(&a.angles_deg, &model)?;
     let rows = |m: &nalgebra::DMatrix<f64>| -> Vec<Vec<f64>> {
-        (0..m.nrows()).map(|i| m.row(i).iter().copied().collect()).collect()
+        (0..m.nrows())
+            .map(|i| m.row(i).iter().copied().collect())
+            .collect()
     };
     Ok(json!({
         "cond2": set.cond2(),

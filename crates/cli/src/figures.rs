@@ -65,13 +65,16 @@ fn write_csv(path: &Path, text: &str) -> Result<(), FigureError> {
     std::fs::write(path, text).map_err(draw_err(path))
 }
 
+/// A named curve: label, colour, points.
+type Series = (String, RGBColor, Vec<(f64, f64)>);
+
 /// Fig. 2.1: Rs and Rp of glass (n = 1.52) and copper (1.02 + 2.577i) against incidence angle.
 fn fig_2_1(out: &Path) -> Result<Vec<PathBuf>, FigureError> {
     let png = out.join("fig2_1_fresnel.png");
     let csv = out.join("fig2_1_fresnel.csv");
     let glass = RefractiveIndex::new(1.52, 0.0)?;
     let copper = RefractiveIndex::new(1.02, 2.577)?;
-    let mut series: Vec<(String, RGBColor, Vec<(f64, f64)>)> = vec![
+    let mut series: Vec<Series> = vec![
         ("glass Rs".into(), RGBColor(31, 119, 180), vec![]),
         ("glass Rp".into(), RGBColor(31, 119, 180), vec![]),
         ("copper Rs".into(), RGBColor(214, 95, 14), vec![]),
@@ -124,13 +127,20 @@ fn fig_2_1(out: &Path) -> Result<Vec<PathBuf>, FigureError> {
                 .draw_series(DashedLineSeries::new(pts, 8, 5, style))
                 .map_err(&e)?
                 .label(name)
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], legend_color.mix(0.6).stroke_width(2)));
+                .legend(move |(x, y)| {
+                    PathElement::new(
+                        vec![(x, y), (x + 20, y)],
+                        legend_color.mix(0.6).stroke_width(2),
+                    )
+                });
         } else {
             chart
                 .draw_series(LineSeries::new(pts, style))
                 .map_err(&e)?
                 .label(name)
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], legend_color.stroke_width(3)));
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], legend_color.stroke_width(3))
+                });
         }
     }
     let brewster = glass.brewster_angle_rad().to_degrees();
@@ -164,23 +174,42 @@ struct PolarMap {
 
 /// Renders polar DoLP maps on a grid of panels with a shared colour bar; returns the CSV text
 /// (a coarse 5-deg grid of the values drawn).
-fn polar_panels(path: &Path, rows: usize, cols: usize, caption: &str, maps: &[PolarMap]) -> Result<String, FigureError> {
+fn polar_panels(
+    path: &Path,
+    rows: usize,
+    cols: usize,
+    caption: &str,
+    maps: &[PolarMap],
+) -> Result<String, FigureError> {
     let e = draw_err(path);
     let panel = 330u32;
     let (w, h) = (cols as u32 * panel + 110, rows as u32 * panel + 60);
     let root = BitMapBackend::new(path, (w, h)).into_drawing_area();
     root.fill(&WHITE).map_err(&e)?;
     let (top, body) = root.split_vertically(50);
-    top.draw_text(caption, &(FONT, 20).into_text_style(&top), (15, 15)).map_err(&e)?;
+    top.draw_text(caption, &(FONT, 18).into_text_style(&top), (15, 6))
+        .map_err(&e)?;
+    top.draw_text(
+        "radius: view zenith theta_r (rings at 30, 60, 90 deg); angle: relative azimuth phi, 180 deg (specular) at right",
+        &(FONT, 12).into_text_style(&top),
+        (15, 30),
+    )
+    .map_err(&e)?;
     let (grid, bar) = body.split_horizontally(cols as u32 * panel);
     let cells = grid.split_evenly((rows, cols));
     let cmap = ViridisRGB;
     let mut csv = String::from("panel,theta_i_deg,theta_r_deg,phi_deg,dolp\n");
     for (cell, map) in cells.iter().zip(maps) {
-        let diffuse = map.surface.diffuse(map.theta_i_deg.to_radians(), Tolerance::absolute(1e-9))?;
+        let diffuse = map
+            .surface
+            .diffuse(map.theta_i_deg.to_radians(), Tolerance::absolute(1e-9))?;
         let dolp_at = |tr: f64, phi: f64| -> Result<f64, FigureError> {
             let g = Geometry::from_deg(map.theta_i_deg, tr, phi)?;
-            Ok(map.surface.mueller_with(&g, &diffuse).dolp_unpolarized().unwrap_or(0.0))
+            Ok(map
+                .surface
+                .mueller_with(&g, &diffuse)
+                .dolp_unpolarized()
+                .unwrap_or(0.0))
         };
         let (pw, ph) = cell.dim_in_pixel();
         let radius = (pw.min(ph) as f64 - 70.0) / 2.0;
@@ -195,7 +224,8 @@ fn polar_panels(path: &Path, rows: usize, cols: usize, caption: &str, maps: &[Po
                 // phi = 180 deg points right (+x): phi = 180 - atan2(dy, dx).
                 let phi = (180.0 - dy.atan2(dx).to_degrees()).rem_euclid(360.0);
                 let d = dolp_at(r * 90.0, phi)?.clamp(0.0, 1.0);
-                cell.draw_pixel((px as i32, py as i32), &cmap.get_color(d as f32)).map_err(&e)?;
+                cell.draw_pixel((px as i32, py as i32), &cmap.get_color(d as f32))
+                    .map_err(&e)?;
             }
         }
         // Rings every 30 deg of view zenith and spokes every 45 deg of azimuth.
@@ -207,18 +237,33 @@ fn polar_panels(path: &Path, rows: usize, cols: usize, caption: &str, maps: &[Po
                     ((cx + rr * a.cos()) as i32, (cy - rr * a.sin()) as i32)
                 })
                 .collect();
-            cell.draw(&PathElement::new(pts, WHITE.mix(0.6))).map_err(&e)?;
+            cell.draw(&PathElement::new(pts, WHITE.mix(0.6)))
+                .map_err(&e)?;
         }
         for (phi, label) in [(0.0, "0"), (90.0, "90"), (180.0, "180"), (270.0, "270")] {
             let a = (180.0f64 - phi).to_radians();
-            let (x, y) = (cx + (radius + 16.0) * a.cos(), cy - (radius + 16.0) * a.sin());
-            cell.draw_text(label, &(FONT, 13).into_text_style(cell), ((x - 10.0) as i32, (y - 6.0) as i32))
-                .map_err(&e)?;
+            let (x, y) = (
+                cx + (radius + 16.0) * a.cos(),
+                cy - (radius + 16.0) * a.sin(),
+            );
+            cell.draw_text(
+                label,
+                &(FONT, 13).into_text_style(cell),
+                ((x - 10.0) as i32, (y - 6.0) as i32),
+            )
+            .map_err(&e)?;
         }
-        cell.draw_text(&map.title, &(FONT, 16).into_text_style(cell), (8, 4)).map_err(&e)?;
+        cell.draw_text(&map.title, &(FONT, 16).into_text_style(cell), (8, 4))
+            .map_err(&e)?;
         for tr in (0..=90).step_by(5) {
             for phi in (0..360).step_by(5) {
-                let _ = writeln!(csv, "{},{},{tr},{phi},{:.6}", map.title, map.theta_i_deg, dolp_at(tr as f64, phi as f64)?);
+                let _ = writeln!(
+                    csv,
+                    "{},{},{tr},{phi},{:.6}",
+                    map.title,
+                    map.theta_i_deg,
+                    dolp_at(tr as f64, phi as f64)?
+                );
             }
         }
     }
@@ -228,14 +273,21 @@ fn polar_panels(path: &Path, rows: usize, cols: usize, caption: &str, maps: &[Po
     for y in y0..y1 {
         let v = 1.0 - (y - y0) as f64 / (y1 - y0) as f64;
         for x in x0..x0 + 22 {
-            bar.draw_pixel((x, y), &cmap.get_color(v as f32)).map_err(&e)?;
+            bar.draw_pixel((x, y), &cmap.get_color(v as f32))
+                .map_err(&e)?;
         }
     }
     for v in [0.0, 0.25, 0.5, 0.75, 1.0] {
         let y = y0 + ((1.0 - v) * (y1 - y0) as f64) as i32;
-        bar.draw_text(&format!("{v:.2}"), &(FONT, 13).into_text_style(&bar), (x0 + 28, y - 6)).map_err(&e)?;
+        bar.draw_text(
+            &format!("{v:.2}"),
+            &(FONT, 13).into_text_style(&bar),
+            (x0 + 28, y - 6),
+        )
+        .map_err(&e)?;
     }
-    bar.draw_text("DoLP", &(FONT, 15).into_text_style(&bar), (x0, 12)).map_err(&e)?;
+    bar.draw_text("DoLP", &(FONT, 15).into_text_style(&bar), (x0, 12))
+        .map_err(&e)?;
     let _ = bw;
     root.present().map_err(&e)?;
     Ok(csv)
@@ -260,7 +312,7 @@ fn fig_3_6(out: &Path) -> Result<Vec<PathBuf>, FigureError> {
         &png,
         2,
         2,
-        "Glass (n = 1.52, DHR = 0.1) DoLP, theta_i = 60 deg; radius theta_r 0-90 deg, phi = 180 right",
+        "Glass DoLP for unpolarised light, n = 1.52, DHR = 0.1, theta_i = 60 deg",
         &maps,
     )?;
     write_csv(&csv, &text)?;
@@ -291,7 +343,7 @@ fn fig_3_7(out: &Path) -> Result<Vec<PathBuf>, FigureError> {
         &png,
         3,
         2,
-        "DoLP: glass (sigma 0.1) vs vegetation (Eq. 3.19); theta_r 0-90 deg radial, phi = 180 right",
+        "DoLP: glass (sigma 0.1, DHR 0.1) vs vegetation (Eq. 3.19)",
         &maps,
     )?;
     write_csv(&csv, &text)?;

@@ -97,7 +97,12 @@ fn one_line_error(e: &clap::Error) -> String {
         .next()
         .unwrap_or("")
         .replace('-', "_");
-    let first = e.to_string().lines().next().unwrap_or("invalid arguments").to_string();
+    let first = e
+        .to_string()
+        .lines()
+        .next()
+        .unwrap_or("invalid arguments")
+        .to_string();
     match (batch::allowed(&field), value.is_empty()) {
         (Some(allowed), false) => format!("error: {arg} = {value:?} is invalid: allowed {allowed}"),
         (Some(allowed), true) => format!("{first}; allowed {allowed}"),
@@ -111,12 +116,16 @@ fn run_batch(kind: Kind, path: &PathBuf) -> anyhow::Result<ExitCode> {
     let input: Box<dyn BufRead> = if path.as_os_str() == "-" {
         Box::new(std::io::stdin().lock())
     } else {
-        let f = std::fs::File::open(path).with_context(|| format!("--batch {}: cannot open", path.display()))?;
+        let f = std::fs::File::open(path)
+            .with_context(|| format!("--batch {}: cannot open", path.display()))?;
         Box::new(BufReader::new(f))
     };
     let summary = batch::run(kind, input, out).context("batch I/O")?;
     if summary.errors > 0 {
-        eprintln!("polarimeter: {} of {} lines failed", summary.errors, summary.lines);
+        eprintln!(
+            "polarimeter: {} of {} lines failed",
+            summary.errors, summary.lines
+        );
         return Ok(ExitCode::from(1));
     }
     Ok(ExitCode::SUCCESS)
@@ -148,9 +157,20 @@ fn print_json(result: Result<serde_json::Value, commands::CommandError>) -> Exit
 fn main() -> ExitCode {
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,
-        Err(e) if matches!(e.kind(), ErrorKind::DisplayHelp | ErrorKind::DisplayVersion | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand) => {
+        Err(e)
+            if matches!(
+                e.kind(),
+                ErrorKind::DisplayHelp
+                    | ErrorKind::DisplayVersion
+                    | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand
+            ) =>
+        {
             let _ = e.print();
-            return if e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand { ExitCode::from(2) } else { ExitCode::SUCCESS };
+            return if e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand {
+                ExitCode::from(2)
+            } else {
+                ExitCode::SUCCESS
+            };
         }
         Err(e) => {
             eprintln!("{}", one_line_error(&e));
@@ -162,13 +182,20 @@ fn main() -> ExitCode {
             ModelCommand::Fresnel { batch: Some(p), .. } => run_batch(Kind::Fresnel, &p),
             ModelCommand::Fresnel { args, batch: None } => Ok(print_json(commands::fresnel(&args))),
             ModelCommand::Pbrdf { batch: Some(p), .. } => run_batch(Kind::Pbrdf, &p),
-            ModelCommand::Pbrdf { args, batch: None } => Ok(print_json(commands::pbrdf(&args, &mut DiffuseCache::default()))),
+            ModelCommand::Pbrdf { args, batch: None } => Ok(print_json(commands::pbrdf(
+                &args,
+                &mut DiffuseCache::default(),
+            ))),
             ModelCommand::Stokes { batch: Some(p), .. } => run_batch(Kind::Stokes, &p),
             ModelCommand::Stokes { args, batch: None } => Ok(print_json(commands::stokes(&args))),
             ModelCommand::Polarimeter { batch: Some(p), .. } => run_batch(Kind::Polarimeter, &p),
-            ModelCommand::Polarimeter { args, batch: None } => Ok(print_json(commands::polarimeter(&args))),
+            ModelCommand::Polarimeter { args, batch: None } => {
+                Ok(print_json(commands::polarimeter(&args)))
+            }
         },
-        Command::Report { command: ReportCommand::Figures { out } } => polar_cli::figures::draw_all(&out)
+        Command::Report {
+            command: ReportCommand::Figures { out },
+        } => polar_cli::figures::draw_all(&out)
             .map(|files| {
                 for f in files {
                     println!("{}", f.display());

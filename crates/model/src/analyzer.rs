@@ -35,7 +35,10 @@ impl AnalyzerModel {
 
     /// An analyzer of extinction ratio `k1/k2 > 1` (infinite for ideal) with `k1 = 1`.
     /// Errors name `extinction_ratio` or `offset_deg`.
-    pub fn from_extinction_ratio(extinction_ratio: f64, offset_rad: f64) -> Result<Self, ModelError> {
+    pub fn from_extinction_ratio(
+        extinction_ratio: f64,
+        offset_rad: f64,
+    ) -> Result<Self, ModelError> {
         if extinction_ratio.is_nan() || extinction_ratio <= 1.0 {
             return Err(ModelError::OutOfRange {
                 field: "extinction_ratio",
@@ -43,7 +46,13 @@ impl AnalyzerModel {
                 allowed: "> 1 (inf for an ideal analyzer)",
             });
         }
-        ModelError::check_range("offset_deg", offset_rad.to_degrees(), -180.0, 180.0, "[-180, 180]")?;
+        ModelError::check_range(
+            "offset_deg",
+            offset_rad.to_degrees(),
+            -180.0,
+            180.0,
+            "[-180, 180]",
+        )?;
         Ok(AnalyzerModel {
             k1: 1.0,
             k2: 1.0 / extinction_ratio,
@@ -100,7 +109,11 @@ impl AnalyzerSet {
         }
         let w = DMatrix::from_fn(n, 3, |i, j| analyzer.row(angles_rad[i])[j]);
         let svd = w.clone().svd(true, true);
-        let mut sv = [svd.singular_values[0], svd.singular_values[1], svd.singular_values[2]];
+        let mut sv = [
+            svd.singular_values[0],
+            svd.singular_values[1],
+            svd.singular_values[2],
+        ];
         sv.sort_by(|a, b| b.total_cmp(a));
         // Rank test at the conventional numerical threshold (as numpy.linalg.matrix_rank).
         let threshold = sv[0] * f64::EPSILON * n as f64;

@@ -84,19 +84,53 @@ impl FresnelAmplitudes {
     }
 }
 
+/// Principal square root `sqrt(z)` (`Re >= 0`, and `Im` with the sign of `Im z`), in algebraic
+/// form: one `hypot` and one `sqrt`, no trigonometry (num-complex's `sqrt` goes through polar
+/// form). Exact for `z = 0`; on the negative real axis returns `+i sqrt(|z|)` for `Im z = +0`.
+/// `|z|` is formed without `hypot`: the model's permittivities (`|N| <= 100 sqrt(2)`) cannot
+/// overflow it.
+#[inline]
+pub fn csqrt(z: Complex64) -> Complex64 {
+    let (a, b) = (z.re, z.im);
+    if a == 0.0 && b == 0.0 {
+        return Complex64::new(0.0, b);
+    }
+    let t = (0.5 * (a.abs() + (a * a + b * b).sqrt())).sqrt();
+    if a >= 0.0 {
+        Complex64::new(t, b / (2.0 * t))
+    } else {
+        Complex64::new(b.abs() / (2.0 * t), t.copysign(b))
+    }
+}
+
 /// Fresnel amplitudes for a precomputed permittivity `eps = N^2` and `cos ti`.
 ///
 /// `cos_ti` is clamped to `[0, 1]`; the result is finite for every `eps` with `Re N > 0`
 /// (see the module documentation for why neither denominator can vanish then). The only
 /// 0/0 is `N = 1` at exact grazing incidence (no interface), which returns zero amplitudes.
+/// A dielectric below its critical angle takes a real-arithmetic path.
 #[inline]
 pub fn amplitudes_eps(eps: Complex64, cos_ti: f64) -> FresnelAmplitudes {
     let c = cos_ti.clamp(0.0, 1.0);
     let sin2 = (1.0 - c * c).max(0.0);
-    let w = (eps - sin2).sqrt();
+    let zero = Complex64::new(0.0, 0.0);
+    if eps.im == 0.0 && eps.re >= sin2 {
+        let w = (eps.re - sin2).sqrt();
+        let (ds, dp) = (c + w, eps.re * c + w);
+        let rs = if ds == 0.0 { 0.0 } else { (c - w) / ds };
+        let rp = if dp == 0.0 {
+            0.0
+        } else {
+            (eps.re * c - w) / dp
+        };
+        return FresnelAmplitudes {
+            rs: Complex64::new(rs, 0.0),
+            rp: Complex64::new(rp, 0.0),
+        };
+    }
+    let w = csqrt(eps - sin2);
     let ds = c + w;
     let dp = eps * c + w;
-    let zero = Complex64::new(0.0, 0.0);
     FresnelAmplitudes {
         rs: if ds == zero { zero } else { (c - w) / ds },
         rp: if dp == zero { zero } else { (eps * c - w) / dp },
@@ -104,7 +138,10 @@ pub fn amplitudes_eps(eps: Complex64, cos_ti: f64) -> FresnelAmplitudes {
 }
 
 /// Fresnel amplitudes at incidence angle `theta_i_rad` in `[0, pi/2]`.
-pub fn amplitudes(index: &RefractiveIndex, theta_i_rad: f64) -> Result<FresnelAmplitudes, ModelError> {
+pub fn amplitudes(
+    index: &RefractiveIndex,
+    theta_i_rad: f64,
+) -> Result<FresnelAmplitudes, ModelError> {
     let ti = ModelError::check_range(
         "theta_i",
         theta_i_rad,

@@ -179,7 +179,16 @@ mod tests {
     #[test]
     fn builtin_has_the_eight_materials_and_round_trips() {
         let lib = MaterialLibrary::from_toml_str(BUILTIN_TOML).unwrap();
-        for name in ["glass", "black_paint", "asphalt", "vegetation", "aluminium", "copper", "gold", "silver"] {
+        for name in [
+            "glass",
+            "black_paint",
+            "asphalt",
+            "vegetation",
+            "aluminium",
+            "copper",
+            "gold",
+            "silver",
+        ] {
             let m = lib.get(name).unwrap();
             assert_eq!(m.wavelength_nm, 550.0, "{name}");
             assert!(!m.source.trim().is_empty(), "{name} cites no source");
@@ -200,10 +209,17 @@ sigma = 0.3
 dhr = 1.7
 source = "test"
 "#;
-        let e = MaterialLibrary::from_toml_str(text).unwrap_err().to_string();
-        assert!(e.contains("dhr") && e.contains("1.7") && e.contains("[0, 1]"), "{e}");
+        let e = MaterialLibrary::from_toml_str(text)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("dhr") && e.contains("1.7") && e.contains("[0, 1]"),
+            "{e}"
+        );
         let dup = format!("{text}{text}").replace("1.7", "0.1");
-        let e = MaterialLibrary::from_toml_str(&dup).unwrap_err().to_string();
+        let e = MaterialLibrary::from_toml_str(&dup)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("more than once"), "{e}");
         let unknown = text.replace("source", "colour = \"red\"\nsource");
         assert!(MaterialLibrary::from_toml_str(&unknown).is_err());

@@ -68,7 +68,11 @@ impl Geometry {
     /// Builds a geometry from incident zenith, view zenith (both `[0, pi/2]`) and relative azimuth
     /// (`[-2 pi, 2 pi]`), radians. Errors name `theta_i`, `theta_r` or `phi` with the range in
     /// degrees.
-    pub fn from_angles(theta_i_rad: f64, theta_r_rad: f64, phi_rad: f64) -> Result<Self, ModelError> {
+    pub fn from_angles(
+        theta_i_rad: f64,
+        theta_r_rad: f64,
+        phi_rad: f64,
+    ) -> Result<Self, ModelError> {
         let ti = ModelError::check_range("theta_i", theta_i_rad, 0.0, FRAC_PI_2, "[0, 90] deg")?;
         let tr = ModelError::check_range("theta_r", theta_r_rad, 0.0, FRAC_PI_2, "[0, 90] deg")?;
         let phi = ModelError::check_range("phi", phi_rad, -2.0 * PI, 2.0 * PI, "[-360, 360] deg")?;
@@ -104,7 +108,11 @@ impl Geometry {
                 return Err(ModelError::OutOfRange {
                     field,
                     value: v,
-                    allowed: if field == "phi_deg" { "[-360, 360]" } else { "[0, 90]" },
+                    allowed: if field == "phi_deg" {
+                        "[-360, 360]"
+                    } else {
+                        "[0, 90]"
+                    },
                 });
             }
         }
@@ -114,8 +122,12 @@ impl Geometry {
             phi_deg.to_radians(),
         )
         .map_err(|e| match &e {
-            ModelError::OutOfRange { field: "theta_i", .. } => rename(e, "theta_i_deg"),
-            ModelError::OutOfRange { field: "theta_r", .. } => rename(e, "theta_r_deg"),
+            ModelError::OutOfRange {
+                field: "theta_i", ..
+            } => rename(e, "theta_i_deg"),
+            ModelError::OutOfRange {
+                field: "theta_r", ..
+            } => rename(e, "theta_r_deg"),
             ModelError::OutOfRange { field: "phi", .. } => rename(e, "phi_deg"),
             _ => e,
         })?;
@@ -132,6 +144,53 @@ impl Geometry {
         g.sin_phi = sin_phi;
         g.cos_phi = cos_phi;
         Ok(g)
+    }
+
+    /// Builds a geometry from unit direction vectors in the surface frame (normal `+z`), without
+    /// trigonometry: the towards-source `omega_i` and towards-sensor `omega_r`. The pair is turned
+    /// about the normal so that `omega_i` has azimuth 0. Both must be unit vectors (to 1e-9) with
+    /// `z >= 0`; errors name `omega_i` or `omega_r`. At exactly normal incidence the incident
+    /// azimuth is taken as 0, at exactly normal view the relative azimuth as 0 (the frame limits
+    /// of the module docs).
+    pub fn from_directions(
+        omega_i: &Vector3<f64>,
+        omega_r: &Vector3<f64>,
+    ) -> Result<Self, ModelError> {
+        for (field, v) in [("omega_i", omega_i), ("omega_r", omega_r)] {
+            let n2 = v.norm_squared();
+            if !(n2.is_finite() && (n2 - 1.0).abs() <= 2e-9 && v.z >= 0.0) {
+                return Err(ModelError::Invalid {
+                    field,
+                    reason: format!(
+                        "({}, {}, {}) must be a unit vector (|v| = 1 within 1e-9) with z >= 0",
+                        v.x, v.y, v.z
+                    ),
+                });
+            }
+        }
+        // Unit vectors: no overflow, so a plain square root (hypot is several times slower).
+        let sin_ti = (omega_i.x * omega_i.x + omega_i.y * omega_i.y).sqrt();
+        let (ca, sa) = if sin_ti > 0.0 {
+            (omega_i.x / sin_ti, omega_i.y / sin_ti)
+        } else {
+            (1.0, 0.0)
+        };
+        let x = ca * omega_r.x + sa * omega_r.y;
+        let y = -sa * omega_r.x + ca * omega_r.y;
+        let sin_tr = (x * x + y * y).sqrt();
+        let (cos_phi, sin_phi) = if sin_tr > 0.0 {
+            (x / sin_tr, y / sin_tr)
+        } else {
+            (1.0, 0.0)
+        };
+        Ok(Geometry {
+            cos_ti: omega_i.z.clamp(COS_FLOOR, 1.0),
+            sin_ti: sin_ti.min(1.0),
+            cos_tr: omega_r.z.clamp(COS_FLOOR, 1.0),
+            sin_tr: sin_tr.min(1.0),
+            cos_phi,
+            sin_phi,
+        })
     }
 
     /// `cos ti` (floored at [`COS_FLOOR`]).
@@ -151,7 +210,11 @@ impl Geometry {
 
     /// Unit towards-sensor direction `omega_r`.
     pub fn omega_r(&self) -> Vector3<f64> {
-        Vector3::new(self.sin_tr * self.cos_phi, self.sin_tr * self.sin_phi, self.cos_tr)
+        Vector3::new(
+            self.sin_tr * self.cos_phi,
+            self.sin_tr * self.sin_phi,
+            self.cos_tr,
+        )
     }
 }
 
@@ -203,7 +266,11 @@ impl FacetGeometry {
         // k_i × h is proportional to omega_r × omega_i.
         let cross = omega_r.cross(&omega_i);
         let cross_norm = cross.norm();
-        let s_f = if cross_norm > 0.0 { cross / cross_norm } else { s_i };
+        let s_f = if cross_norm > 0.0 {
+            cross / cross_norm
+        } else {
+            s_i
+        };
         FacetGeometry {
             cos_beta,
             cos_alpha,
@@ -307,7 +374,11 @@ impl Microfacet {
     /// Polar slope coordinates `rho = sigma sqrt(2) t` make the weight `2 t exp(-t^2)`, integrated
     /// over `t in [0, 6.5]` (the neglected tail, `< 1e-18`, is added to the error); mirror
     /// symmetry about the plane of incidence halves the azimuth range.
-    pub fn specular_albedo(&self, theta_i_rad: f64, tol: Tolerance) -> Result<Integral, ModelError> {
+    pub fn specular_albedo(
+        &self,
+        theta_i_rad: f64,
+        tol: Tolerance,
+    ) -> Result<Integral, ModelError> {
         let ti = ModelError::check_range("theta_i", theta_i_rad, 0.0, FRAC_PI_2, "[0, 90] deg")?;
         let (sti, cti) = ti.sin_cos();
         let cti = cti.max(COS_FLOOR);
@@ -409,7 +480,11 @@ impl VegetationLobe {
 
     /// `int f00 cos tr dOmega_r` of the polarising term over the hemisphere, integrated over
     /// `(phi, cos tr)` (the integrand is smooth and bounded by 1/4).
-    pub fn specular_albedo(&self, theta_i_rad: f64, tol: Tolerance) -> Result<Integral, ModelError> {
+    pub fn specular_albedo(
+        &self,
+        theta_i_rad: f64,
+        tol: Tolerance,
+    ) -> Result<Integral, ModelError> {
         let ti = ModelError::check_range("theta_i", theta_i_rad, 0.0, FRAC_PI_2, "[0, 90] deg")?;
         let (sti, cti) = ti.sin_cos();
         let cti = cti.max(COS_FLOOR);
@@ -501,7 +576,8 @@ impl Surface {
 
     /// A vegetation surface; errors name `f00_diffuse`.
     pub fn vegetation(index: RefractiveIndex, f00_diffuse: f64) -> Result<Self, ModelError> {
-        let f00_diffuse = ModelError::check_range("f00_diffuse", f00_diffuse, 0.0, 1.0 / PI, "[0, 1/pi]")?;
+        let f00_diffuse =
+            ModelError::check_range("f00_diffuse", f00_diffuse, 0.0, 1.0 / PI, "[0, 1/pi]")?;
         Ok(Surface::Vegetation {
             lobe: VegetationLobe::new(index),
             f00_diffuse,

@@ -61,7 +61,11 @@ impl Stokes {
         }
         let a = 0.5 * s2.atan2(s1);
         // atan2(-0.0, negative) = -pi: fold the excluded end of the interval onto +pi/2.
-        Some(if a <= -FRAC_PI_2 { a + std::f64::consts::PI } else { a })
+        Some(if a <= -FRAC_PI_2 {
+            a + std::f64::consts::PI
+        } else {
+            a
+        })
     }
 }
 

@@ -299,9 +299,17 @@ mod tests {
                 (-1f64).powi(k + 1) * 2f64.powi(k) / (kf * fact)
             })
             .sum();
-        let r = integrate_2d(|x, y| (-x * y).exp(), (0.0, 1.0), (0.0, 2.0), Tolerance::absolute(1e-10));
+        let r = integrate_2d(
+            |x, y| (-x * y).exp(),
+            (0.0, 1.0),
+            (0.0, 2.0),
+            Tolerance::absolute(1e-10),
+        );
         assert!(r.converged);
-        assert!((r.value - exact).abs() <= r.error + 1e-15, "{r:?} vs {exact}");
+        assert!(
+            (r.value - exact).abs() <= r.error + 1e-15,
+            "{r:?} vs {exact}"
+        );
     }
 
     #[test]

@@ -1,7 +1,11 @@
 //! The classic reconstruction methods of seed Sec. 2.4 are special cases of `W^+`; noise gains
 //! and the real-analyzer model.
 
-use polar_model::analyzer::{modified_pickering, pickering, three_angle_0_60_120, AnalyzerModel, AnalyzerSet};
+#![allow(clippy::unwrap_used)] // tests panic on failure by design
+
+use polar_model::analyzer::{
+    modified_pickering, pickering, three_angle_0_60_120, AnalyzerModel, AnalyzerSet,
+};
 use polar_model::polarization::Stokes;
 use proptest::prelude::*;
 
@@ -38,7 +42,11 @@ fn noise_gains_match_closed_forms() {
     for (angles, want) in cases {
         let g = set(angles).noise_gains();
         for k in 0..3 {
-            assert!((g[k] - want[k]).abs() < 1e-12, "{angles:?}: gain {k} = {}", g[k]);
+            assert!(
+                (g[k] - want[k]).abs() < 1e-12,
+                "{angles:?}: gain {k} = {}",
+                g[k]
+            );
         }
     }
 }
@@ -50,18 +58,30 @@ fn noise_gains_match_closed_forms() {
 #[test]
 fn real_analyzer_model() {
     let real = AnalyzerModel::from_extinction_ratio(100.0, 2f64.to_radians()).unwrap();
-    let angles: Vec<f64> = [0.0f64, 45.0, 90.0, 135.0].iter().map(|a| a.to_radians()).collect();
+    let angles: Vec<f64> = [0.0f64, 45.0, 90.0, 135.0]
+        .iter()
+        .map(|a| a.to_radians())
+        .collect();
     let real_set = AnalyzerSet::new(&angles, &real).unwrap();
     let s = Stokes::new(2.0, 0.6, -0.3);
     let i: Vec<f64> = real_set.intensities(&s).iter().copied().collect();
     let back = real_set.reconstruct(&i).unwrap();
     assert!((back.0 - s.0).norm() < 1e-12);
-    let naive = AnalyzerSet::ideal(&angles).unwrap().reconstruct(&i).unwrap();
+    let naive = AnalyzerSet::ideal(&angles)
+        .unwrap()
+        .reconstruct(&i)
+        .unwrap();
     let ratio = naive.dolp().unwrap() / s.dolp().unwrap();
     // The ideal-model S0 is (k1 + k2) S0 = 1.01 S0, the polarised part (k1 - k2) p = 0.99 p.
     assert!((ratio - 0.99 / 1.01).abs() < 1e-12, "{ratio}");
     let d_aop = naive.aop_rad().unwrap() - s.aop_rad().unwrap();
-    assert!((d_aop + 2f64.to_radians()).abs() < 1e-12, "{}", d_aop.to_degrees());
-    let e = AnalyzerModel::from_extinction_ratio(1.0, 0.0).unwrap_err().to_string();
+    assert!(
+        (d_aop + 2f64.to_radians()).abs() < 1e-12,
+        "{}",
+        d_aop.to_degrees()
+    );
+    let e = AnalyzerModel::from_extinction_ratio(1.0, 0.0)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("extinction_ratio") && e.contains("> 1"), "{e}");
 }

@@ -2,6 +2,8 @@
 //! arc-cosine rotation angles (Eqs. 3.9-3.10) in the interior of the domain, and a 3-D Jones
 //! calculation of the facet reflection that shares no code with the Mueller path.
 
+#![allow(clippy::unwrap_used)] // tests panic on failure by design
+
 use nalgebra::{Matrix2, Matrix4, Vector3};
 use num_complex::Complex64 as C;
 use polar_model::fresnel::{amplitudes, amplitudes_eps, RefractiveIndex};
@@ -23,7 +25,16 @@ fn seed_conductor(n: f64, k: f64, ti: f64) -> (f64, f64) {
 #[test]
 fn complex_fresnel_agrees_with_seed_real_formulas_to_1e12() {
     // Copper, gold, silver, aluminium, a dielectric through the k = 0 limit, and k up to 10.
-    let materials = [(1.02, 2.577), (0.43, 2.455), (0.06, 3.586), (0.9671, 6.4617), (1.52, 0.0), (1.52, 1e-9), (0.3, 10.0), (5.0, 10.0)];
+    let materials = [
+        (1.02, 2.577),
+        (0.43, 2.455),
+        (0.06, 3.586),
+        (0.9671, 6.4617),
+        (1.52, 0.0),
+        (1.52, 1e-9),
+        (0.3, 10.0),
+        (5.0, 10.0),
+    ];
     let mut worst = 0f64;
     for (n, k) in materials {
         let idx = RefractiveIndex::new(n, k).unwrap();
@@ -33,7 +44,9 @@ fn complex_fresnel_agrees_with_seed_real_formulas_to_1e12() {
             let ti = (step as f64 * 0.1).to_radians();
             let (rs, rp) = seed_conductor(n, k, ti);
             let a = amplitudes(&idx, ti).unwrap();
-            worst = worst.max((a.rs_power() - rs).abs()).max((a.rp_power() - rp).abs());
+            worst = worst
+                .max((a.rs_power() - rs).abs())
+                .max((a.rp_power() - rp).abs());
         }
     }
     assert!(worst < 1e-12, "largest |complex - seed| = {worst:e}");
@@ -46,7 +59,10 @@ fn dielectric_limit_of_conductor_is_continuous() {
         let ti = f64::to_radians(ti_deg);
         let a = amplitudes(&RefractiveIndex::new(1.52, 0.0).unwrap(), ti).unwrap();
         let b = amplitudes(&RefractiveIndex::new(1.52, 1e-12).unwrap(), ti).unwrap();
-        assert!((a.rs - b.rs).norm() < 1e-11 && (a.rp - b.rp).norm() < 1e-11, "ti {ti_deg}");
+        assert!(
+            (a.rs - b.rs).norm() < 1e-11 && (a.rp - b.rp).norm() < 1e-11,
+            "ti {ti_deg}"
+        );
     }
 }
 
@@ -69,7 +85,11 @@ fn vector_rotation_angles_match_seed_arccos_in_the_interior() {
     for ti_deg in [10.0, 25.0, 40.0, 60.0, 75.0, 85.0] {
         for tr_deg in [5.0, 20.0, 45.0, 70.0, 88.0] {
             for phi_deg in [10.0, 45.0, 90.0, 135.0, 170.0, 200.0, 300.0] {
-                let (ti, tr, phi) = (f64::to_radians(ti_deg), f64::to_radians(tr_deg), f64::to_radians(phi_deg));
+                let (ti, tr, phi) = (
+                    f64::to_radians(ti_deg),
+                    f64::to_radians(tr_deg),
+                    f64::to_radians(phi_deg),
+                );
                 let fg = FacetGeometry::new(&Geometry::from_angles(ti, tr, phi).unwrap());
                 let (ci, cr) = seed_cos_eta(ti, tr, phi);
                 worst = worst
@@ -102,7 +122,11 @@ fn mueller_path_matches_3d_jones_reflection() {
     for ti_deg in [5.0, 30.0, 60.0, 85.0] {
         for tr_deg in [3.0, 30.0, 50.0, 89.0] {
             for phi_deg in [0.0, 37.0, 90.0, 150.0, 179.0, 181.0, 250.0, 359.0] {
-                let (ti, tr, phi) = (f64::to_radians(ti_deg), f64::to_radians(tr_deg), f64::to_radians(phi_deg));
+                let (ti, tr, phi) = (
+                    f64::to_radians(ti_deg),
+                    f64::to_radians(tr_deg),
+                    f64::to_radians(phi_deg),
+                );
                 let w_i = Vector3::new(ti.sin(), 0.0, ti.cos());
                 let w_r = Vector3::new(tr.sin() * phi.cos(), tr.sin() * phi.sin(), tr.cos());
                 let n = Vector3::z();
@@ -130,4 +154,23 @@ fn mueller_path_matches_3d_jones_reflection() {
         }
     }
     assert!(worst < 1e-12, "largest |Mueller - Jones| = {worst:e}");
+}
+
+/// The algebraic complex square root agrees with num-complex's polar-form `sqrt` on the branch
+/// Fresnel needs (upper half plane and both real half-axes), to 4 ulp relative.
+#[test]
+fn algebraic_csqrt_matches_polar_sqrt() {
+    use polar_model::fresnel::csqrt;
+    let mut worst = 0f64;
+    for i in -60..=60 {
+        for j in 0..=60 {
+            let z = C::new(i as f64 * 0.37 - 0.01, j as f64 * 0.29);
+            let (a, b) = (csqrt(z), z.sqrt());
+            worst = worst.max((a - b).norm() / b.norm().max(1e-300));
+            assert!(a.re >= 0.0 && a.im >= 0.0);
+        }
+    }
+    assert!(worst < 1e-15, "{worst:e}");
+    assert_eq!(csqrt(C::new(-4.0, 0.0)), C::new(0.0, 2.0));
+    assert_eq!(csqrt(C::new(0.0, 0.0)), C::new(0.0, 0.0));
 }

@@ -1,5 +1,7 @@
 //! Property tests (proptest) of physical identities that must hold for every input in the domain.
 
+#![allow(clippy::unwrap_used)] // tests panic on failure by design
+
 use nalgebra::Vector3;
 use polar_model::analyzer::AnalyzerSet;
 use polar_model::fresnel::{amplitudes, RefractiveIndex};
@@ -15,7 +17,8 @@ fn index() -> impl Strategy<Value = RefractiveIndex> {
 
 fn surface() -> impl Strategy<Value = Surface> {
     prop_oneof![
-        (index(), 1e-3f64..1.0, 0.0f64..1.0).prop_map(|(i, s, d)| Surface::microfacet(i, s, d).unwrap()),
+        (index(), 1e-3f64..1.0, 0.0f64..1.0)
+            .prop_map(|(i, s, d)| Surface::microfacet(i, s, d).unwrap()),
         (index(), 0.0f64..0.3).prop_map(|(i, f)| Surface::vegetation(i, f).unwrap()),
     ]
 }

@@ -2,6 +2,10 @@
 //! sections. Tolerances follow the digits printed there (half a unit of the last digit, plus
 //! float slack), so each assertion fails if the physics or a convention changes.
 
+// The table values are the printed digits of REFERENCE_VALUES.md, kept as printed on purpose.
+#![allow(clippy::approx_constant, clippy::type_complexity)]
+#![allow(clippy::unwrap_used)] // tests panic on failure by design
+
 use polar_model::analyzer::AnalyzerSet;
 use polar_model::fresnel::{amplitudes, RefractiveIndex};
 use polar_model::pbrdf::{Geometry, Surface};
@@ -47,8 +51,16 @@ fn copper_fresnel_table_and_pseudo_brewster() {
     ];
     for (ti, rs, rp) in rows {
         let a = amplitudes(&cu, rad(ti)).unwrap();
-        assert!((a.rs_power() - rs).abs() < 6e-7, "Rs({ti}) = {}", a.rs_power());
-        assert!((a.rp_power() - rp).abs() < 6e-7, "Rp({ti}) = {}", a.rp_power());
+        assert!(
+            (a.rs_power() - rs).abs() < 6e-7,
+            "Rs({ti}) = {}",
+            a.rs_power()
+        );
+        assert!(
+            (a.rp_power() - rp).abs() < 6e-7,
+            "Rp({ti}) = {}",
+            a.rp_power()
+        );
     }
     // Pseudo-Brewster angle (minimum of Rp) 68.454 deg: golden-section search to 1e-6 deg.
     let rp = |t: f64| amplitudes(&cu, rad(t)).unwrap().rp_power();
@@ -62,7 +74,10 @@ fn copper_fresnel_table_and_pseudo_brewster() {
             lo = a
         }
     }
-    assert!((0.5 * (lo + hi) - 68.454).abs() < 6e-4, "pseudo-Brewster {lo}");
+    assert!(
+        (0.5 * (lo + hi) - 68.454).abs() < 6e-4,
+        "pseudo-Brewster {lo}"
+    );
 }
 
 #[test]
@@ -73,13 +88,21 @@ fn glass_pbrdf_reference_at_sigma_0_1() {
     assert!(d.specular_albedo.converged);
     assert!(d.specular_albedo.error < 1e-9, "{:?}", d.specular_albedo);
     // Specular albedo 0.09275 (5 decimals), f00_d 0.002309 (6 decimals).
-    assert!((d.specular_albedo.value - 0.09275).abs() < 6e-6, "{:?}", d.specular_albedo);
+    assert!(
+        (d.specular_albedo.value - 0.09275).abs() < 6e-6,
+        "{:?}",
+        d.specular_albedo
+    );
     assert!((d.f00 - 0.002309).abs() < 6e-7, "f00_d = {}", d.f00);
     assert!(d.clamped.is_none());
 
     let g = Geometry::from_deg(60.0, 60.0, 180.0).unwrap();
     let fs = glass.specular(&g);
-    assert!((fs.0[(0, 0)] - 1.47191).abs() < 6e-6, "f00_s = {}", fs.0[(0, 0)]);
+    assert!(
+        (fs.0[(0, 0)] - 1.47191).abs() < 6e-6,
+        "f00_s = {}",
+        fs.0[(0, 0)]
+    );
     let pol = fs.0[(1, 0)].hypot(fs.0[(2, 0)]);
     assert!((pol - 1.44760).abs() < 6e-6, "polarised = {pol}");
     let f = glass.mueller_with(&g, &d);
@@ -93,9 +116,27 @@ fn glass_pbrdf_reference_at_sigma_0_1() {
 fn polarimeter_matrix_table() {
     // angles, singular values (6 decimals, empty when not printed), cond2, trace((W^T W)^-1)
     let rows: [(&[f64], &[f64], f64, f64, f64); 4] = [
-        (&[0.0, 45.0, 90.0], &[0.923880, 0.707107, 0.382683], 2.414214, 10.0, 6e-7),
-        (&[0.0, 60.0, 120.0], &[0.866025, 0.612372, 0.612372], 1.414214, 6.666667, 6e-7),
-        (&[0.0, 45.0, 90.0, 135.0], &[1.0, 0.707107, 0.707107], 1.414214, 5.0, 6e-7),
+        (
+            &[0.0, 45.0, 90.0],
+            &[0.923880, 0.707107, 0.382683],
+            2.414214,
+            10.0,
+            6e-7,
+        ),
+        (
+            &[0.0, 60.0, 120.0],
+            &[0.866025, 0.612372, 0.612372],
+            1.414214,
+            6.666667,
+            6e-7,
+        ),
+        (
+            &[0.0, 45.0, 90.0, 135.0],
+            &[1.0, 0.707107, 0.707107],
+            1.414214,
+            5.0,
+            6e-7,
+        ),
         (&[0.0, 20.0, 40.0], &[], 15.5726, 193.88, 6e-3),
     ];
     for (angles, sv, cond, ewv, tol) in rows {
@@ -104,12 +145,22 @@ fn polarimeter_matrix_table() {
         for (got, want) in set.singular_values().iter().zip(sv) {
             assert!((got - want).abs() < 6e-7, "{angles:?}: sv {got} vs {want}");
         }
-        assert!((set.cond2() - cond).abs() < tol.max(6e-5), "{angles:?}: cond {}", set.cond2());
-        assert!((set.ewv() - ewv).abs() < tol * 10.0, "{angles:?}: ewv {}", set.ewv());
+        assert!(
+            (set.cond2() - cond).abs() < tol.max(6e-5),
+            "{angles:?}: cond {}",
+            set.cond2()
+        );
+        assert!(
+            (set.ewv() - ewv).abs() < tol * 10.0,
+            "{angles:?}: ewv {}",
+            set.ewv()
+        );
     }
     // N equally spaced angles: W^T W = (N/4) diag(1, 1/2, 1/2), cond2 = sqrt(2).
     for n in 3..12 {
-        let rad: Vec<f64> = (0..n).map(|k| std::f64::consts::PI * k as f64 / n as f64).collect();
+        let rad: Vec<f64> = (0..n)
+            .map(|k| std::f64::consts::PI * k as f64 / n as f64)
+            .collect();
         let set = AnalyzerSet::ideal(&rad).unwrap();
         let wtw = set.intensities_from_stokes().transpose() * set.intensities_from_stokes();
         let q = n as f64 / 4.0;
