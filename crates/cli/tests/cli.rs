@@ -1,0 +1,254 @@
+//! The `polarimeter` binary end to end: exit statuses, one-line errors, JSON fields, batch, and
+//! that the figures show what the seed describes (checked on the CSVs written beside the PNGs).
+#![allow(clippy::unwrap_used)] // tests panic on failure by design
+
+use std::io::Write;
+use std::process::{Command, Stdio};
+
+fn polarimeter(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_polarimeter"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn json_fields_of_each_model_command() {
+    let cases: [(&[&str], &[&str]); 4] = [
+        (
+            &["model", "fresnel", "--n", "1.52", "--theta-i-deg", "60"],
+            &["rs", "rp", "Rs", "Rp"],
+        ),
+        (
+            &[
+                "model",
+                "pbrdf",
+                "--n",
+                "1.52",
+                "--sigma",
+                "0.3",
+                "--dhr",
+                "0.1",
+                "--theta-i-deg",
+                "60",
+                "--theta-r-deg",
+                "30",
+                "--phi-deg",
+                "180",
+            ],
+            &[
+                "f",
+                "dolp",
+                "f00_diffuse",
+                "specular_albedo",
+                "specular_albedo_error",
+            ],
+        ),
+        (
+            &[
+                "model",
+                "stokes",
+                "--angles-deg",
+                "0,45,90,135",
+                "--intensities",
+                "0.55,0.35,0.45,0.65",
+            ],
+            &["s", "dolp", "aop_deg"],
+        ),
+        (
+            &["model", "polarimeter", "--angles-deg", "0,60,120"],
+            &["cond2", "ewv", "singular_values", "pinv"],
+        ),
+    ];
+    for (args, fields) in cases {
+        let out = polarimeter(args);
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        for f in fields {
+            assert!(v.get(f).is_some(), "{args:?} lacks {f}: {v}");
+        }
+    }
+    // The stokes example: S = (1, 0.1, -0.3) exactly (modified Pickering on these intensities).
+    let out = polarimeter(cases[2].0);
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let s: Vec<f64> = v["s"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect();
+    assert!((s[0] - 1.0).abs() < 1e-12 && (s[1] - 0.1).abs() < 1e-12 && (s[2] + 0.3).abs() < 1e-12);
+}
+
+#[test]
+fn bad_flags_exit_2_with_one_line_naming_field_value_and_range() {
+    for (args, must) in [
+        (
+            &["model", "fresnel", "--n", "abc", "--theta-i-deg", "60"][..],
+            &["--n", "abc", "(0, 100]"][..],
+        ),
+        (
+            &["model", "fresnel", "--n", "1.5", "--theta-i-deg", "100"],
+            &["theta_i_deg", "100", "[0, 90]"],
+        ),
+        (
+            &[
+                "model",
+                "pbrdf",
+                "--n",
+                "1.5",
+                "--sigma",
+                "0",
+                "--dhr",
+                "0.1",
+                "--theta-i-deg",
+                "10",
+                "--theta-r-deg",
+                "10",
+                "--phi-deg",
+                "0",
+            ],
+            &["sigma", "0", "[1e-6, 10]"],
+        ),
+        (
+            &[
+                "model",
+                "stokes",
+                "--angles-deg",
+                "0,0,90",
+                "--intensities",
+                "1,1,1",
+            ],
+            &["angles_deg", "distinct"],
+        ),
+        (
+            &[
+                "model",
+                "polarimeter",
+                "--angles-deg",
+                "0,60,120",
+                "--extinction-ratio",
+                "0.5",
+            ],
+            &["extinction_ratio", "0.5", "> 1"],
+        ),
+    ] {
+        let out = polarimeter(args);
+        assert_eq!(out.status.code(), Some(2), "{args:?}");
+        let err = String::from_utf8(out.stderr).unwrap();
+        assert_eq!(err.trim_end().lines().count(), 1, "{args:?}: {err}");
+        for m in must {
+            assert!(err.contains(m), "{args:?}: {err:?} lacks {m}");
+        }
+        assert!(out.stdout.is_empty());
+    }
+}
+
+#[test]
+fn batch_from_stdin_keeps_order_and_survives_bad_lines() {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_polarimeter"))
+        .args(["model", "polarimeter", "--batch", "-"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(
+            b"{\"angles_deg\":[0,45,90]}\n{\"angles_deg\":[0,0]}\n{\"angles_deg\":[0,45,90,135]}\n",
+        )
+        .unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let lines: Vec<serde_json::Value> = String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 3);
+    // EWV of 0/45/90 is 10, of 0/45/90/135 is 5 (REFERENCE_VALUES.md).
+    assert!((lines[0]["ewv"].as_f64().unwrap() - 10.0).abs() < 1e-9);
+    assert!(lines[1]["error"].as_str().unwrap().contains("angles_deg"));
+    assert!((lines[2]["ewv"].as_f64().unwrap() - 5.0).abs() < 1e-9);
+}
+
+fn read_csv(path: &std::path::Path) -> Vec<Vec<String>> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(str::to_string).collect())
+        .collect()
+}
+
+#[test]
+fn figures_show_what_the_seed_describes() {
+    let dir = std::env::temp_dir().join(format!("polarimeter-figures-{}", std::process::id()));
+    let out = polarimeter(&["report", "figures", "--out", dir.to_str().unwrap()]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for png in [
+        "fig2_1_fresnel.png",
+        "fig3_6_glass_dolp_roughness.png",
+        "fig3_7_glass_vs_vegetation.png",
+    ] {
+        let bytes = std::fs::read(dir.join(png)).unwrap();
+        assert_eq!(&bytes[1..4], b"PNG", "{png}");
+    }
+    // Fig. 3.6: for the smooth surfaces (sigma 0.1, 0.3) the DoLP maximum lies in the specular
+    // plane (phi = 180); for all four it lies on the forward side within 30 deg of it (rough
+    // surfaces reach facets at Brewster's angle slightly off the plane); the peak weakens and the
+    // lobe spreads (more of the hemisphere above DoLP 0.2) as sigma grows.
+    let rows = read_csv(&dir.join("fig3_6_glass_dolp_roughness.csv"));
+    let (mut spread, mut peaks) = (Vec::new(), Vec::new());
+    for sigma in ["sigma = 0.1", "sigma = 0.3", "sigma = 0.5", "sigma = 0.7"] {
+        let panel: Vec<&Vec<String>> = rows.iter().filter(|r| r[0] == sigma).collect();
+        let dolp = |r: &Vec<String>| r[4].parse::<f64>().unwrap();
+        let best = panel
+            .iter()
+            .max_by(|a, b| dolp(a).total_cmp(&dolp(b)))
+            .unwrap();
+        let phi: f64 = best[3].parse().unwrap();
+        if sigma == "sigma = 0.1" || sigma == "sigma = 0.3" {
+            assert_eq!(phi, 180.0, "{sigma}: max DoLP at phi {phi}");
+        }
+        assert!(
+            (phi - 180.0).abs() <= 30.0,
+            "{sigma}: max DoLP at phi {phi}"
+        );
+        let peak = dolp(best);
+        peaks.push(peak);
+        spread.push(panel.iter().filter(|r| dolp(r) > 0.5 * peak).count());
+    }
+    assert!(
+        spread[1] > spread[0] && spread[2] > spread[1] && spread[3] > 2 * spread[0],
+        "spread {spread:?}"
+    );
+    assert!(peaks.windows(2).all(|w| w[1] < w[0]), "peaks {peaks:?}");
+    // Fig. 3.7: glass is most polarised at 60 deg incidence (near Brewster, 56.7 deg).
+    let rows = read_csv(&dir.join("fig3_7_glass_vs_vegetation.csv"));
+    let peak = |ti: &str| {
+        rows.iter()
+            .filter(|r| r[0].starts_with("glass") && r[1] == ti)
+            .map(|r| r[4].parse::<f64>().unwrap())
+            .fold(0.0, f64::max)
+    };
+    assert!(
+        peak("60") > peak("40") && peak("40") > peak("20"),
+        "{} {} {}",
+        peak("20"),
+        peak("40"),
+        peak("60")
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
