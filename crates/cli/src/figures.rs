@@ -260,7 +260,7 @@ fn polar_panels(
                 let _ = writeln!(
                     csv,
                     "{},{},{tr},{phi},{:.6}",
-                    map.title,
+                    map.title.replace(',', ";"),
                     map.theta_i_deg,
                     dolp_at(tr as f64, phi as f64)?
                 );
