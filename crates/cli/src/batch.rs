@@ -36,6 +36,7 @@ pub fn allowed(field: &str) -> Option<&'static str> {
         "intensities" => "a list of finite numbers, one per angle",
         "extinction_ratio" => "a number > 1",
         "offset_deg" => "a number in [-180, 180]",
+        "material" => "a built-in material name (polarimeter model materials)",
         _ => return None,
     })
 }

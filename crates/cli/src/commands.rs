@@ -7,6 +7,7 @@
 use clap::Args;
 use polar_model::analyzer::{AnalyzerModel, AnalyzerSet};
 use polar_model::fresnel::{amplitudes, RefractiveIndex};
+use polar_model::material::{MaterialLibrary, MaterialModel};
 use polar_model::pbrdf::{DiffuseTerm, Geometry, Surface};
 use polar_model::quadrature::Tolerance;
 use polar_model::ModelError;
@@ -83,10 +84,16 @@ pub struct PbrdfArgs {
     /// Real part of the refractive index, (0, 100].
     #[arg(long)]
     pub n: Option<f64>,
-    /// Extinction coefficient, [0, 100].
-    #[arg(long, default_value_t = 0.0)]
+    /// Extinction coefficient, [0, 100] (default 0, or the material's).
+    #[arg(long)]
     #[serde(default)]
-    pub k: f64,
+    pub k: Option<f64>,
+    /// A built-in material (glass, black_paint, asphalt, vegetation, aluminium, copper, gold,
+    /// silver; see `polarimeter model materials`) supplying n, k, sigma, dhr and the model;
+    /// explicit flags override its values.
+    #[arg(long)]
+    #[serde(default)]
+    pub material: Option<String>,
     /// Facet-slope roughness sigma_h / l, [1e-6, 10] (not used with --vegetation).
     #[arg(long)]
     pub sigma: Option<f64>,
@@ -118,8 +125,33 @@ fn default_tolerance() -> f64 {
 }
 
 impl PbrdfArgs {
+    /// Fills unset parameters from `--material` (explicit flags win).
+    fn resolved(&self) -> Result<PbrdfArgs, CommandError> {
+        let Some(name) = &self.material else {
+            return Ok(self.clone());
+        };
+        let lib = MaterialLibrary::builtin();
+        let m = lib
+            .get(name)
+            .map_err(|e| CommandError(format!("material: {e}")))?;
+        let vegetation = self.vegetation || m.model == MaterialModel::Vegetation;
+        Ok(PbrdfArgs {
+            n: self.n.or(Some(m.n)),
+            k: self.k.or(Some(m.k)),
+            sigma: self.sigma.or(m.sigma),
+            // The vegetation model's diffuse term is dhr / pi.
+            dhr: self
+                .dhr
+                .or(m.dhr)
+                .or(m.f00_diffuse.map(|f| f * std::f64::consts::PI)),
+            vegetation,
+            material: None,
+            ..self.clone()
+        })
+    }
+
     fn surface(&self) -> Result<Surface, CommandError> {
-        let idx = RefractiveIndex::new(required(self.n, "n", "(0, 100]")?, self.k)?;
+        let idx = RefractiveIndex::new(required(self.n, "n", "(0, 100]")?, self.k.unwrap_or(0.0))?;
         let dhr = required(self.dhr, "dhr", "[0, 1]")?;
         if self.vegetation {
             ModelError::check_range("dhr", dhr, 0.0, 1.0, "[0, 1]")?;
@@ -155,6 +187,7 @@ impl DiffuseCache {
 
 /// Evaluates [`PbrdfArgs`], reusing diffuse terms from `cache`.
 pub fn pbrdf(a: &PbrdfArgs, cache: &mut DiffuseCache) -> Result<Value, CommandError> {
+    let a = &a.resolved()?;
     let surface = a.surface()?;
     let ti = required(a.theta_i_deg, "theta_i_deg", "[0, 90]")?;
     let tr = required(a.theta_r_deg, "theta_r_deg", "[0, 90]")?;
@@ -163,7 +196,7 @@ pub fn pbrdf(a: &PbrdfArgs, cache: &mut DiffuseCache) -> Result<Value, CommandEr
     let tol = ModelError::check_range("tolerance", a.tolerance, 1e-14, 1e-2, "[1e-14, 1e-2]")?;
     let key = [
         a.n.unwrap_or(0.0).to_bits(),
-        a.k.to_bits(),
+        a.k.unwrap_or(0.0).to_bits(),
         if a.vegetation {
             u64::MAX
         } else {

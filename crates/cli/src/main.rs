@@ -61,6 +61,8 @@ enum ModelCommand {
         #[arg(long)]
         batch: Option<PathBuf>,
     },
+    /// Print the built-in material library as TOML (save it, edit it, cite its sources).
+    Materials,
     /// Condition number, EWV, singular values and pseudo-inverse of an analyzer set.
     Polarimeter {
         #[command(flatten)]
@@ -186,6 +188,18 @@ fn main() -> ExitCode {
                 &args,
                 &mut DiffuseCache::default(),
             ))),
+            ModelCommand::Materials => Ok(
+                match polar_model::material::MaterialLibrary::builtin().to_toml_string() {
+                    Ok(text) => {
+                        print!("{text}");
+                        ExitCode::SUCCESS
+                    }
+                    Err(e) => {
+                        eprintln!("error: {e}");
+                        ExitCode::FAILURE
+                    }
+                },
+            ),
             ModelCommand::Stokes { batch: Some(p), .. } => run_batch(Kind::Stokes, &p),
             ModelCommand::Stokes { args, batch: None } => Ok(print_json(commands::stokes(&args))),
             ModelCommand::Polarimeter { batch: Some(p), .. } => run_batch(Kind::Polarimeter, &p),

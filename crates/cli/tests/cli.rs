@@ -252,3 +252,86 @@ fn figures_show_what_the_seed_describes() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `--material` supplies the built-in parameters: glass reproduces the seed's reference numbers
+/// (f00_d = 0.002309, DoLP 0.98195 in the specular direction at 60 deg), explicit flags override
+/// them, and `model materials` prints a library that parses back.
+#[test]
+fn built_in_materials_from_the_command_line() {
+    let out = polarimeter(&[
+        "model",
+        "pbrdf",
+        "--material",
+        "glass",
+        "--theta-i-deg",
+        "60",
+        "--theta-r-deg",
+        "60",
+        "--phi-deg",
+        "180",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!((v["f00_diffuse"].as_f64().unwrap() - 0.002309).abs() < 6e-7);
+    assert!((v["dolp"].as_f64().unwrap() - 0.98195).abs() < 6e-6);
+    let out = polarimeter(&[
+        "model",
+        "pbrdf",
+        "--material",
+        "glass",
+        "--sigma",
+        "0.3",
+        "--theta-i-deg",
+        "60",
+        "--theta-r-deg",
+        "60",
+        "--phi-deg",
+        "180",
+    ]);
+    let rough: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    // A rougher surface has a lower specular peak.
+    assert!(rough["f"][0][0].as_f64().unwrap() < v["f"][0][0].as_f64().unwrap());
+    let out = polarimeter(&[
+        "model",
+        "pbrdf",
+        "--material",
+        "vegetation",
+        "--theta-i-deg",
+        "40",
+        "--theta-r-deg",
+        "40",
+        "--phi-deg",
+        "180",
+    ]);
+    let veg: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    // Seed Table 3.2: f00_d = 0.04 / pi.
+    assert!((veg["f00_diffuse"].as_f64().unwrap() - 0.04 / std::f64::consts::PI).abs() < 1e-15);
+    let out = polarimeter(&[
+        "model",
+        "pbrdf",
+        "--material",
+        "unobtainium",
+        "--theta-i-deg",
+        "40",
+        "--theta-r-deg",
+        "40",
+        "--phi-deg",
+        "180",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains("unobtainium") && err.contains("glass"),
+        "{err}"
+    );
+    let out = polarimeter(&["model", "materials"]);
+    let lib = polar_model::material::MaterialLibrary::from_toml_str(
+        &String::from_utf8(out.stdout).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(lib, polar_model::material::MaterialLibrary::builtin());
+}
