@@ -18,6 +18,8 @@ pub enum Kind {
     Stokes,
     /// `model polarimeter`
     Polarimeter,
+    /// `model sun`
+    Sun,
 }
 
 /// The allowed values of a field, for error messages from the parsers (the model's own range
@@ -36,6 +38,14 @@ pub fn allowed(field: &str) -> Option<&'static str> {
         "intensities" => "a list of finite numbers, one per angle",
         "extinction_ratio" => "a number > 1",
         "offset_deg" => "a number in [-180, 180]",
+        "time" => "an RFC 3339 instant, e.g. 2026-06-21T15:00:00Z",
+        "lat_deg" => "a number in [-90, 90]",
+        "lon_deg" => "a number in [-180, 180]",
+        "elevation_m" => "a number in [-500, 9000]",
+        "pressure_hpa" => "a number in [1, 2000]",
+        "temperature_c" => "a number in [-100, 60]",
+        "delta_t_s" => "a number of seconds in [-1e4, 1e5]",
+        "no_refraction" => "true or false",
         "material" => "a built-in material name (polarimeter model materials)",
         _ => return None,
     })
@@ -70,6 +80,7 @@ pub fn eval_line(kind: Kind, line: &str, cache: &mut DiffuseCache) -> Result<Val
         Kind::Pbrdf => commands::pbrdf(&parse(line)?, cache),
         Kind::Stokes => commands::stokes(&parse(line)?),
         Kind::Polarimeter => commands::polarimeter(&parse(line)?),
+        Kind::Sun => commands::sun(&parse(line)?),
     }
 }
 

@@ -327,3 +327,99 @@ pub fn polarimeter(a: &PolarimeterArgs) -> Result<Value, CommandError> {
         "noise_gains": set.noise_gains(),
     }))
 }
+
+/// `polarimeter model sun`: the sun's position (NREL SPA). Azimuth clockwise from north.
+#[derive(Debug, Clone, Default, Args, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SunArgs {
+    /// UTC instant, RFC 3339 (`2026-06-21T15:00:00Z`, or with an offset `...-04:00`).
+    #[arg(long)]
+    pub time: Option<String>,
+    /// Latitude, degrees north, [-90, 90].
+    #[arg(long, allow_hyphen_values = true)]
+    pub lat_deg: Option<f64>,
+    /// Longitude, degrees east, [-180, 180] (west is negative).
+    #[arg(long, allow_hyphen_values = true)]
+    pub lon_deg: Option<f64>,
+    /// Elevation above sea level, metres, [-500, 9000].
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    #[serde(default)]
+    pub elevation_m: f64,
+    /// Surface pressure for the refraction correction, hPa (default: standard atmosphere scaled
+    /// to the elevation with an 8.4 km scale height).
+    #[arg(long)]
+    #[serde(default)]
+    pub pressure_hpa: Option<f64>,
+    /// Air temperature for the refraction correction, degrees Celsius.
+    #[arg(long, default_value_t = 15.0, allow_hyphen_values = true)]
+    #[serde(default = "standard_temperature")]
+    pub temperature_c: f64,
+    /// TT - UT in seconds (default: Espenak-Meeus estimate for the date).
+    #[arg(long, allow_hyphen_values = true)]
+    #[serde(default)]
+    pub delta_t_s: Option<f64>,
+    /// Report the geometric position, without atmospheric refraction.
+    #[arg(long)]
+    #[serde(default)]
+    pub no_refraction: bool,
+}
+
+fn standard_temperature() -> f64 {
+    15.0
+}
+
+/// Parses an RFC 3339 instant into UTC calendar fields.
+pub fn parse_utc(text: &str) -> Result<polar_model::sun::UtcTime, CommandError> {
+    use chrono::{Datelike, Timelike};
+    let t = chrono::DateTime::parse_from_rfc3339(text)
+        .map_err(|e| {
+            CommandError(format!(
+                "time = {text:?} is invalid ({e}): allowed RFC 3339, e.g. 2026-06-21T15:00:00Z"
+            ))
+        })?
+        .naive_utc();
+    Ok(polar_model::sun::UtcTime {
+        year: t.year(),
+        month: t.month(),
+        day: t.day(),
+        hour: t.hour(),
+        minute: t.minute(),
+        second: t.second() as f64 + t.nanosecond().min(999_999_999) as f64 * 1e-9,
+    })
+}
+
+/// Evaluates [`SunArgs`].
+pub fn sun(a: &SunArgs) -> Result<Value, CommandError> {
+    use polar_model::sun::{sun_position, Site, Weather};
+    let time = parse_utc(&required(
+        a.time.clone(),
+        "time",
+        "RFC 3339, e.g. 2026-06-21T15:00:00Z",
+    )?)?;
+    let site = Site::new(
+        required(a.lat_deg, "lat_deg", "[-90, 90]")?,
+        required(a.lon_deg, "lon_deg", "[-180, 180]")?,
+        a.elevation_m,
+    )?;
+    let weather = if a.no_refraction {
+        None
+    } else {
+        let p = a
+            .pressure_hpa
+            .unwrap_or(Weather::STANDARD.pressure_hpa * (-a.elevation_m / 8434.0).exp());
+        ModelError::check_range("pressure_hpa", p, 1.0, 2000.0, "[1, 2000]")?;
+        ModelError::check_range("temperature_c", a.temperature_c, -100.0, 60.0, "[-100, 60]")?;
+        Some(Weather {
+            pressure_hpa: p,
+            temperature_c: a.temperature_c,
+        })
+    };
+    let p = sun_position(&time, &site, a.delta_t_s, weather)?;
+    Ok(json!({
+        "zenith_deg": p.zenith_deg,
+        "azimuth_deg": p.azimuth_deg,
+        "elevation_deg": 90.0 - p.zenith_deg,
+        "delta_t_s": p.delta_t_s,
+        "refraction": weather.is_some(),
+    }))
+}

@@ -61,6 +61,15 @@ enum ModelCommand {
         #[arg(long)]
         batch: Option<PathBuf>,
     },
+    /// The sun's zenith and azimuth (NREL SPA) for a UTC time and site. Azimuth is clockwise from
+    /// north (0 north, 90 east).
+    Sun {
+        #[command(flatten)]
+        args: commands::SunArgs,
+        /// JSON-lines input file, `-` for stdin.
+        #[arg(long)]
+        batch: Option<PathBuf>,
+    },
     /// Print the built-in material library as TOML (save it, edit it, cite its sources).
     Materials,
     /// Condition number, EWV, singular values and pseudo-inverse of an analyzer set.
@@ -188,6 +197,8 @@ fn main() -> ExitCode {
                 &args,
                 &mut DiffuseCache::default(),
             ))),
+            ModelCommand::Sun { batch: Some(p), .. } => run_batch(Kind::Sun, &p),
+            ModelCommand::Sun { args, batch: None } => Ok(print_json(commands::sun(&args))),
             ModelCommand::Materials => Ok(
                 match polar_model::material::MaterialLibrary::builtin().to_toml_string() {
                     Ok(text) => {

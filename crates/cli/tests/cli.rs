@@ -335,3 +335,66 @@ fn built_in_materials_from_the_command_line() {
     .unwrap();
     assert_eq!(lib, polar_model::material::MaterialLibrary::builtin());
 }
+
+/// `model sun` reproduces the NREL SPA worked example (NREL/TP-560-34302: zenith 50.11162,
+/// azimuth 194.340241) from an RFC 3339 time with a UTC offset, and names bad fields.
+#[test]
+fn sun_command_matches_nrel_example() {
+    let out = polarimeter(&[
+        "model",
+        "sun",
+        "--time",
+        "2003-10-17T12:30:30-07:00",
+        "--lat-deg",
+        "39.742476",
+        "--lon-deg",
+        "-105.1786",
+        "--elevation-m",
+        "1830.14",
+        "--pressure-hpa",
+        "820",
+        "--temperature-c",
+        "11",
+        "--delta-t-s",
+        "67",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(
+        (v["zenith_deg"].as_f64().unwrap() - 50.11162).abs() < 5e-6,
+        "{v}"
+    );
+    assert!(
+        (v["azimuth_deg"].as_f64().unwrap() - 194.340241).abs() < 5e-7,
+        "{v}"
+    );
+    let out = polarimeter(&[
+        "model",
+        "sun",
+        "--time",
+        "2026-06-21 15:00",
+        "--lat-deg",
+        "43",
+        "--lon-deg",
+        "-77",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(err.contains("time") && err.contains("RFC 3339"), "{err}");
+    let out = polarimeter(&[
+        "model",
+        "sun",
+        "--time",
+        "2026-06-21T15:00:00Z",
+        "--lat-deg",
+        "95",
+        "--lon-deg",
+        "-77",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8(out.stderr).unwrap().contains("lat_deg"));
+}
