@@ -20,6 +20,8 @@ pub enum Kind {
     Polarimeter,
     /// `model sun`
     Sun,
+    /// `model sky`
+    Sky,
 }
 
 /// The allowed values of a field, for error messages from the parsers (the model's own range
@@ -46,6 +48,9 @@ pub fn allowed(field: &str) -> Option<&'static str> {
         "temperature_c" => "a number in [-100, 60]",
         "delta_t_s" => "a number of seconds in [-1e4, 1e5]",
         "no_refraction" => "true or false",
+        "sun_zenith_deg" | "zenith_deg" => "a number in [0, 90]",
+        "sun_azimuth_deg" | "azimuth_deg" => "a number in [-360, 360] (clockwise from north)",
+        "wavelength_nm" => "a number in [200, 3000]",
         "material" => "a built-in material name (polarimeter model materials)",
         _ => return None,
     })
@@ -81,6 +86,7 @@ pub fn eval_line(kind: Kind, line: &str, cache: &mut DiffuseCache) -> Result<Val
         Kind::Stokes => commands::stokes(&parse(line)?),
         Kind::Polarimeter => commands::polarimeter(&parse(line)?),
         Kind::Sun => commands::sun(&parse(line)?),
+        Kind::Sky => commands::sky(&parse(line)?),
     }
 }
 

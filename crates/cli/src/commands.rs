@@ -423,3 +423,63 @@ pub fn sun(a: &SunArgs) -> Result<Value, CommandError> {
         "refraction": weather.is_some(),
     }))
 }
+
+/// `polarimeter model sky`: Rayleigh single-scattering sky radiance and polarisation.
+/// Azimuths clockwise from north; the Stokes frame's x axis is horizontal (S1 > 0: horizontal
+/// E-vector); radiance per unit top-of-atmosphere solar irradiance (sr^-1).
+#[derive(Debug, Clone, Default, Args, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SkyArgs {
+    /// Sun zenith angle, degrees, [0, 90].
+    #[arg(long)]
+    pub sun_zenith_deg: Option<f64>,
+    /// Sun azimuth, degrees clockwise from north, [-360, 360].
+    #[arg(long, allow_hyphen_values = true)]
+    pub sun_azimuth_deg: Option<f64>,
+    /// Zenith angle of the sky direction viewed, degrees, [0, 90].
+    #[arg(long)]
+    pub zenith_deg: Option<f64>,
+    /// Azimuth of the sky direction viewed, degrees clockwise from north, [-360, 360].
+    #[arg(long, allow_hyphen_values = true)]
+    pub azimuth_deg: Option<f64>,
+    /// Wavelength, nm, [200, 3000].
+    #[arg(long, default_value_t = 550.0)]
+    #[serde(default = "default_wavelength")]
+    pub wavelength_nm: f64,
+}
+
+fn default_wavelength() -> f64 {
+    550.0
+}
+
+/// Evaluates [`SkyArgs`].
+pub fn sky(a: &SkyArgs) -> Result<Value, CommandError> {
+    use polar_model::sky::{direction_from_deg, RayleighSky};
+    let angle = |v: Option<f64>, field: &'static str, lo: f64, hi: f64, allowed: &'static str| {
+        let v = required(v, field, allowed)?;
+        ModelError::check_range(field, v, lo, hi, allowed).map_err(CommandError::from)
+    };
+    let sun_z = angle(a.sun_zenith_deg, "sun_zenith_deg", 0.0, 90.0, "[0, 90]")?;
+    let sun_a = angle(
+        a.sun_azimuth_deg,
+        "sun_azimuth_deg",
+        -360.0,
+        360.0,
+        "[-360, 360]",
+    )?;
+    let z = angle(a.zenith_deg, "zenith_deg", 0.0, 90.0, "[0, 90]")?;
+    let az = angle(a.azimuth_deg, "azimuth_deg", -360.0, 360.0, "[-360, 360]")?;
+    let model = RayleighSky::at_wavelength(a.wavelength_nm)?;
+    let s = model.stokes(
+        &direction_from_deg(sun_z, sun_a),
+        &direction_from_deg(z, az),
+    )?;
+    Ok(json!({
+        "s": [s.0[0], s.0[1], s.0[2]],
+        "dolp": s.dolp(),
+        "aop_deg": s.aop_rad().map(f64::to_degrees),
+        "model": "rayleigh single scattering",
+        "optical_depth": model.optical_depth,
+        "units": "sr^-1 per unit top-of-atmosphere solar irradiance",
+    }))
+}

@@ -70,6 +70,15 @@ enum ModelCommand {
         #[arg(long)]
         batch: Option<PathBuf>,
     },
+    /// Rayleigh single-scattering sky: Stokes radiance, DoLP and AoP of one sky direction.
+    /// Azimuths are clockwise from north; S1 > 0 is a horizontal E-vector.
+    Sky {
+        #[command(flatten)]
+        args: commands::SkyArgs,
+        /// JSON-lines input file, `-` for stdin.
+        #[arg(long)]
+        batch: Option<PathBuf>,
+    },
     /// Print the built-in material library as TOML (save it, edit it, cite its sources).
     Materials,
     /// Condition number, EWV, singular values and pseudo-inverse of an analyzer set.
@@ -199,6 +208,8 @@ fn main() -> ExitCode {
             ))),
             ModelCommand::Sun { batch: Some(p), .. } => run_batch(Kind::Sun, &p),
             ModelCommand::Sun { args, batch: None } => Ok(print_json(commands::sun(&args))),
+            ModelCommand::Sky { batch: Some(p), .. } => run_batch(Kind::Sky, &p),
+            ModelCommand::Sky { args, batch: None } => Ok(print_json(commands::sky(&args))),
             ModelCommand::Materials => Ok(
                 match polar_model::material::MaterialLibrary::builtin().to_toml_string() {
                     Ok(text) => {

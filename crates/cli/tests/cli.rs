@@ -398,3 +398,47 @@ fn sun_command_matches_nrel_example() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8(out.stderr).unwrap().contains("lat_deg"));
 }
+
+/// `model sky`: 90 deg from the sun the DoLP is the Rayleigh maximum 0.9457, and the E-vector is
+/// perpendicular to the scattering plane. Sun at zenith 80 deg due north, view at zenith 10 deg
+/// due south: the scattering plane is the north-south vertical plane, so the E-vector is
+/// east-west, which is the frame's horizontal x axis: AoP = 0.
+#[test]
+fn sky_command_rayleigh_maximum() {
+    let out = polarimeter(&[
+        "model",
+        "sky",
+        "--sun-zenith-deg",
+        "80",
+        "--sun-azimuth-deg",
+        "0",
+        "--zenith-deg",
+        "10",
+        "--azimuth-deg",
+        "180",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!((v["dolp"].as_f64().unwrap() - 0.9457).abs() < 5e-5, "{v}");
+    assert!(v["aop_deg"].as_f64().unwrap().abs() < 1e-9, "{v}");
+    let out = polarimeter(&[
+        "model",
+        "sky",
+        "--sun-zenith-deg",
+        "100",
+        "--sun-azimuth-deg",
+        "0",
+        "--zenith-deg",
+        "0",
+        "--azimuth-deg",
+        "90",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8(out.stderr)
+        .unwrap()
+        .contains("sun_zenith_deg"));
+}

@@ -16,6 +16,7 @@
 //! * [`pbrdf`]: the microfacet polarimetric BRDF (seed Eqs. 3.4-3.18) and the vegetation model (Eq. 3.19).
 //! * [`material`]: a small library of materials at 550 nm, TOML in and out.
 //! * [`analyzer`]: measurement matrices of analyzer sets, reconstruction, conditioning and noise gains.
+//! * [`sky`]: Rayleigh single-scattering sky radiance and polarisation.
 //! * [`sun`]: the sun's position from UTC time and site (NREL SPA).
 //! * [`quadrature`]: the adaptive Gauss-Kronrod rule the model's integrals use, with error estimates.
 #![warn(missing_docs)]
@@ -27,6 +28,7 @@ pub mod material;
 pub mod pbrdf;
 pub mod polarization;
 pub mod quadrature;
+pub mod sky;
 pub mod sun;
 
 pub use error::ModelError;

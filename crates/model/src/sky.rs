@@ -1,0 +1,211 @@
+//! Clear-sky polarised radiance by Rayleigh single scattering (MODEL.md section 10).
+//!
+//! Directions on the sky are given by zenith angle and azimuth **clockwise from north** (x east,
+//! y north, z up). The Stokes vector of light arriving from sky direction `d` is expressed in
+//! that ray's surface frame (the convention of [`crate::pbrdf`]): propagation `k = -d`,
+//! `x = s ∝ k × z` (horizontal, perpendicular to the vertical plane through `d`), `y = k × x`.
+//! So `S1 > 0` is a horizontal E-vector, and the same Stokes vector is the incident state the
+//! pBRDF expects for that direction.
+
+use crate::error::ModelError;
+use crate::polarization::Stokes;
+use nalgebra::Vector3;
+
+/// Rayleigh optical depth of the whole atmosphere at sea level (standard pressure),
+/// `tau_R = 0.008569 l^-4 (1 + 0.0113 l^-2 + 0.00013 l^-4)`, `l` in micrometres
+/// (Hansen & Travis, Space Sci. Rev. 16, 527 (1974), Eq. 2.30; MODEL.md section 10).
+pub fn rayleigh_optical_depth(wavelength_um: f64) -> Result<f64, ModelError> {
+    let l = ModelError::check_range(
+        "wavelength_nm",
+        wavelength_um * 1e3,
+        200.0,
+        3000.0,
+        "[200, 3000]",
+    )? * 1e-3;
+    let l2 = 1.0 / (l * l);
+    Ok(0.008569 * l2 * l2 * (1.0 + 0.0113 * l2 + 0.00013 * l2 * l2))
+}
+
+/// Molecular depolarisation factor of air (Young, Appl. Opt. 19, 3427 (1980); MODEL.md).
+pub const AIR_DEPOLARIZATION: f64 = 0.0279;
+
+/// Unit vector towards a sky direction, zenith angle and azimuth clockwise from north, degrees.
+pub fn direction_from_deg(zenith_deg: f64, azimuth_deg: f64) -> Vector3<f64> {
+    let (sz, cz) = crate::pbrdf::sin_cos_deg(zenith_deg);
+    let (sa, ca) = crate::pbrdf::sin_cos_deg(azimuth_deg);
+    Vector3::new(sz * sa, sz * ca, cz)
+}
+
+/// A Rayleigh (molecular) single-scattering sky over a plane-parallel, homogeneous layer.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RayleighSky {
+    /// Vertical optical depth of the layer.
+    pub optical_depth: f64,
+    /// Molecular depolarisation factor `rho_n` (0 for ideal dipoles).
+    pub depolarization: f64,
+}
+
+impl RayleighSky {
+    /// The sea-level Rayleigh sky at `wavelength_nm`, depolarisation 0.0279.
+    pub fn at_wavelength(wavelength_nm: f64) -> Result<Self, ModelError> {
+        Ok(RayleighSky {
+            optical_depth: rayleigh_optical_depth(wavelength_nm * 1e-3)?,
+            depolarization: AIR_DEPOLARIZATION,
+        })
+    }
+
+    /// `Delta = (1 - rho) / (1 + rho / 2)`: the fraction of the phase matrix that is dipole-like
+    /// (Hansen & Travis 1974, Eq. 2.15).
+    fn delta(&self) -> f64 {
+        (1.0 - self.depolarization) / (1.0 + 0.5 * self.depolarization)
+    }
+
+    /// Phase-matrix elements `(P11, -P12)` at scattering angle with cosine `cos_gamma`,
+    /// normalised so that `P11` averages to 1 over the sphere.
+    pub fn phase(&self, cos_gamma: f64) -> (f64, f64) {
+        let d = self.delta();
+        let c2 = cos_gamma * cos_gamma;
+        (0.75 * d * (1.0 + c2) + (1.0 - d), 0.75 * d * (1.0 - c2))
+    }
+
+    /// Degree of linear polarisation of singly scattered light at scattering angle `gamma`:
+    /// `-P12 / P11`; its maximum, at 90 deg, is `0.75 Delta / (1 - 0.25 Delta)` = 0.9457 for
+    /// air. (MODEL.md's `d_max sin^2 / (1 + cos^2)` is the same curve to first order in `rho`.)
+    pub fn dolp(&self, cos_gamma: f64) -> f64 {
+        let (p11, p12) = self.phase(cos_gamma);
+        p12 / p11
+    }
+
+    /// Sky Stokes radiance per unit top-of-atmosphere solar irradiance (sr^-1), for light arriving
+    /// from `view` (unit, upward) with the sun towards `sun` (unit), single scattering at the
+    /// bottom of the layer (Liou, *An Introduction to Atmospheric Radiation*, 2nd ed., Eq. 3.5.x
+    /// for the diffuse downward intensity):
+    /// `L = P11(gamma) / (4 pi) * mu0 / (mu0 - mu) * (exp(-tau/mu0) - exp(-tau/mu))`,
+    /// evaluated with `expm1` so that `mu = mu0` and the horizon are exact limits.
+    /// Errors name `sun_zenith_deg` or `zenith_deg` when a direction is below the horizon.
+    pub fn stokes(&self, sun: &Vector3<f64>, view: &Vector3<f64>) -> Result<Stokes, ModelError> {
+        if !(sun.z >= 0.0) {
+            return Err(ModelError::OutOfRange {
+                field: "sun_zenith_deg",
+                value: sun.z.clamp(-1.0, 1.0).acos().to_degrees(),
+                allowed: "[0, 90]",
+            });
+        }
+        if !(view.z >= 0.0) {
+            return Err(ModelError::OutOfRange {
+                field: "zenith_deg",
+                value: view.z.clamp(-1.0, 1.0).acos().to_degrees(),
+                allowed: "[0, 90]",
+            });
+        }
+        let (mu0, mu) = (sun.z, view.z);
+        let tau = self.optical_depth;
+        let path = if mu0 <= 0.0 {
+            0.0
+        } else if mu <= 0.0 {
+            (-tau / mu0).exp()
+        } else {
+            // mu0/(mu0-mu) (e^{-tau/mu0} - e^{-tau/mu}) = e^{-tau/mu0} (tau/mu) (1 - e^{-x})/x,
+            // x = tau (mu0 - mu) / (mu mu0).
+            let x = tau * (mu0 - mu) / (mu * mu0);
+            let ratio = if x.abs() < 1e-12 {
+                1.0 - 0.5 * x
+            } else {
+                -(-x).exp_m1() / x
+            };
+            (-tau / mu0).exp() * (tau / mu) * ratio
+        };
+        let cos_gamma = sun.dot(view).clamp(-1.0, 1.0);
+        let (p11, p12) = self.phase(cos_gamma);
+        let radiance = p11 / (4.0 * std::f64::consts::PI) * path;
+        // E-vector perpendicular to the scattering plane (k, sun).
+        let k = -view;
+        let x = k.cross(&Vector3::z());
+        let x = if x.norm() > 0.0 {
+            x.normalize()
+        } else {
+            Vector3::new(0.0, 1.0, 0.0).cross(&k).normalize()
+        };
+        let y = k.cross(&x);
+        let e = k.cross(sun);
+        let (c2, s2) = if e.norm() > 0.0 {
+            let (c, s) = (e.dot(&x), e.dot(&y));
+            let n2 = c * c + s * s;
+            ((c * c - s * s) / n2, 2.0 * c * s / n2)
+        } else {
+            (1.0, 0.0) // looking at or away from the sun: unpolarised (p12 = 0 there)
+        };
+        let p = radiance * p12 / p11;
+        Ok(Stokes::new(radiance, p * c2, p * s2))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// REFERENCE_VALUES.md: 0.22129 (450 nm), 0.09728 (550 nm), 0.04932 (650 nm).
+    #[test]
+    fn rayleigh_optical_depth_reference_values() {
+        for (nm, tau) in [(450.0, 0.22129), (550.0, 0.09728), (650.0, 0.04932)] {
+            let t = rayleigh_optical_depth(nm * 1e-3).unwrap();
+            assert!((t - tau).abs() < 6e-6, "{nm}: {t}");
+        }
+        assert!(rayleigh_optical_depth(0.1)
+            .unwrap_err()
+            .to_string()
+            .contains("wavelength_nm"));
+    }
+
+    /// Maximum DoLP 0.9457 at 90 deg from the sun (REFERENCE_VALUES.md), 0 towards the sun.
+    #[test]
+    fn maximum_dolp_and_neutral_sun() {
+        let sky = RayleighSky::at_wavelength(550.0).unwrap();
+        assert!((sky.dolp(0.0) - 0.9457).abs() < 5e-5, "{}", sky.dolp(0.0));
+        assert_eq!(sky.dolp(1.0), 0.0);
+        let ideal = RayleighSky {
+            optical_depth: 0.1,
+            depolarization: 0.0,
+        };
+        assert!((ideal.dolp(0.0) - 1.0).abs() < 1e-15);
+    }
+
+    /// Sun at the zenith, view at 60 deg zenith: gamma = 60 deg, the E-vector is horizontal
+    /// (perpendicular to the vertical plane containing sun and view), so S2 = 0 and S1 > 0;
+    /// the radiance matches the closed form.
+    #[test]
+    fn sun_at_zenith_gives_horizontal_e_vector() {
+        let sky = RayleighSky::at_wavelength(550.0).unwrap();
+        for az in [0.0, 77.0, 200.0] {
+            let s = sky
+                .stokes(&Vector3::z(), &direction_from_deg(60.0, az))
+                .unwrap();
+            assert!(s.0[2].abs() < 1e-15 * s.0[0] && s.0[1] > 0.0, "{s:?}");
+            assert!((s.dolp().unwrap() - sky.dolp(0.5)).abs() < 1e-14);
+            let tau = sky.optical_depth;
+            let closed = sky.phase(0.5).0 / (4.0 * std::f64::consts::PI) * 1.0 / (1.0 - 0.5)
+                * ((-tau).exp() - (-tau / 0.5).exp());
+            assert!((s.0[0] - closed).abs() < 1e-14, "{} vs {closed}", s.0[0]);
+        }
+    }
+
+    /// Looking into the sun's own zenith angle (mu = mu0) is the exact limit tau/mu e^{-tau/mu},
+    /// the horizon is finite, and a sun below the horizon is an error naming the field.
+    #[test]
+    fn limits_and_errors() {
+        let sky = RayleighSky::at_wavelength(550.0).unwrap();
+        let sun = direction_from_deg(50.0, 0.0);
+        let same = sky.stokes(&sun, &direction_from_deg(50.0, 90.0)).unwrap();
+        let near = sky
+            .stokes(&sun, &direction_from_deg(50.0 + 1e-7, 90.0))
+            .unwrap();
+        assert!((same.0[0] - near.0[0]).abs() < 1e-8 * same.0[0]);
+        let horizon = sky.stokes(&sun, &direction_from_deg(90.0, 90.0)).unwrap();
+        assert!(horizon.0.iter().all(|v| v.is_finite()) && horizon.0[0] > 0.0);
+        let e = sky
+            .stokes(&direction_from_deg(95.0, 0.0), &Vector3::z())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("sun_zenith_deg"), "{e}");
+    }
+}
