@@ -84,14 +84,14 @@ impl RayleighSky {
     /// evaluated with `expm1` so that `mu = mu0` and the horizon are exact limits.
     /// Errors name `sun_zenith_deg` or `zenith_deg` when a direction is below the horizon.
     pub fn stokes(&self, sun: &Vector3<f64>, view: &Vector3<f64>) -> Result<Stokes, ModelError> {
-        if !(sun.z >= 0.0) {
+        if sun.z.is_nan() || sun.z < 0.0 {
             return Err(ModelError::OutOfRange {
                 field: "sun_zenith_deg",
                 value: sun.z.clamp(-1.0, 1.0).acos().to_degrees(),
                 allowed: "[0, 90]",
             });
         }
-        if !(view.z >= 0.0) {
+        if view.z.is_nan() || view.z < 0.0 {
             return Err(ModelError::OutOfRange {
                 field: "zenith_deg",
                 value: view.z.clamp(-1.0, 1.0).acos().to_degrees(),
