@@ -18,6 +18,7 @@
 //! * [`analyzer`]: measurement matrices of analyzer sets, reconstruction, conditioning and noise gains.
 //! * [`sky`]: Rayleigh single-scattering sky radiance and polarisation.
 //! * [`sun`]: the sun's position from UTC time and site (NREL SPA).
+//! * [`tiles`]: per-tile viewing geometry of a sensor above flat ground (Appendix A).
 //! * [`quadrature`]: the adaptive Gauss-Kronrod rule the model's integrals use, with error estimates.
 #![warn(missing_docs)]
 
@@ -30,5 +31,6 @@ pub mod polarization;
 pub mod quadrature;
 pub mod sky;
 pub mod sun;
+pub mod tiles;
 
 pub use error::ModelError;
