@@ -22,6 +22,8 @@ pub enum Kind {
     Sun,
     /// `model sky`
     Sky,
+    /// `model geometry`
+    Geometry,
 }
 
 /// The allowed values of a field, for error messages from the parsers (the model's own range
@@ -51,6 +53,11 @@ pub fn allowed(field: &str) -> Option<&'static str> {
         "sun_zenith_deg" | "zenith_deg" => "a number in [0, 90]",
         "sun_azimuth_deg" | "azimuth_deg" => "a number in [-360, 360] (clockwise from north)",
         "wavelength_nm" => "a number in [200, 3000]",
+        "altitude_m" => "a number in (0, 1e5]",
+        "off_nadir_deg" => "a number in [0, 89]",
+        "look_azimuth_deg" => "a number in [-360, 360] (clockwise from north)",
+        "fov_deg" => "one or two numbers in (0, 120]",
+        "tiles" => "NxM, e.g. 3x3",
         "material" => "a built-in material name (polarimeter model materials)",
         _ => return None,
     })
@@ -87,6 +94,7 @@ pub fn eval_line(kind: Kind, line: &str, cache: &mut DiffuseCache) -> Result<Val
         Kind::Polarimeter => commands::polarimeter(&parse(line)?),
         Kind::Sun => commands::sun(&parse(line)?),
         Kind::Sky => commands::sky(&parse(line)?),
+        Kind::Geometry => commands::geometry(&parse(line)?),
     }
 }
 

@@ -483,3 +483,94 @@ pub fn sky(a: &SkyArgs) -> Result<Value, CommandError> {
         "units": "sr^-1 per unit top-of-atmosphere solar irradiance",
     }))
 }
+
+/// `polarimeter model geometry`: per-tile sun/view geometry of a sensor above flat ground
+/// (Appendix A). Azimuths clockwise from north; ground_m is [east, north] of the nadir point.
+#[derive(Debug, Clone, Default, Args, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GeometryArgs {
+    /// Sensor height above the ground, metres, (0, 1e5].
+    #[arg(long)]
+    pub altitude_m: Option<f64>,
+    /// Boresight angle from nadir, degrees, [0, 89].
+    #[arg(long, default_value_t = 0.0)]
+    #[serde(default)]
+    pub off_nadir_deg: f64,
+    /// Azimuth the boresight looks towards, degrees clockwise from north.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    #[serde(default)]
+    pub look_azimuth_deg: f64,
+    /// Field of view across,along the image, degrees, each (0, 120].
+    #[arg(long, value_delimiter = ',')]
+    #[serde(default)]
+    pub fov_deg: Vec<f64>,
+    /// Tiles across x along, e.g. 3x3.
+    #[arg(long, default_value = "3x3")]
+    #[serde(default = "default_tiles")]
+    pub tiles: String,
+    /// Sun zenith angle, degrees, [0, 90].
+    #[arg(long)]
+    pub sun_zenith_deg: Option<f64>,
+    /// Sun azimuth, degrees clockwise from north.
+    #[arg(long, allow_hyphen_values = true)]
+    pub sun_azimuth_deg: Option<f64>,
+}
+
+fn default_tiles() -> String {
+    "3x3".into()
+}
+
+/// Parses `NxM` tile counts.
+pub fn parse_tiles(text: &str) -> Result<(usize, usize), CommandError> {
+    let bad = || {
+        CommandError(format!(
+            "tiles = {text:?} is invalid: allowed NxM with N, M >= 1, e.g. 3x3"
+        ))
+    };
+    let (a, b) = text.split_once(['x', 'X']).ok_or_else(bad)?;
+    Ok((
+        a.trim().parse().map_err(|_| bad())?,
+        b.trim().parse().map_err(|_| bad())?,
+    ))
+}
+
+/// Evaluates [`GeometryArgs`].
+pub fn geometry(a: &GeometryArgs) -> Result<Value, CommandError> {
+    use polar_model::tiles::{tiles, Pointing};
+    let fov = match a.fov_deg.as_slice() {
+        [x, y] => (*x, *y),
+        [x] => (*x, *x),
+        other => return Err(CommandError(format!(
+            "fov_deg has {} values: allowed one (square) or two (across,along), each in (0, 120]",
+            other.len()
+        ))),
+    };
+    let pointing = Pointing {
+        altitude_m: required(a.altitude_m, "altitude_m", "(0, 1e5]")?,
+        off_nadir_deg: a.off_nadir_deg,
+        look_azimuth_deg: a.look_azimuth_deg,
+        fov_deg: fov,
+    };
+    let t = tiles(
+        &pointing,
+        parse_tiles(&a.tiles)?,
+        required(a.sun_zenith_deg, "sun_zenith_deg", "[0, 90]")?,
+        required(a.sun_azimuth_deg, "sun_azimuth_deg", "[-360, 360]")?,
+    )?;
+    let rows: Vec<Value> = t
+        .iter()
+        .map(|t| {
+            let (c, s) = t.camera_from_surface;
+            json!({
+                "index": [t.index.0, t.index.1],
+                "theta_i_deg": t.theta_i_deg,
+                "theta_r_deg": t.theta_r_deg,
+                "phi_deg": t.phi_deg,
+                "ground_m": t.ground_m,
+                "range_m": t.range_m,
+                "camera_from_surface_deg": 0.5 * s.atan2(c).to_degrees(),
+            })
+        })
+        .collect();
+    Ok(json!({ "tiles": rows }))
+}

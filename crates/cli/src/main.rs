@@ -79,6 +79,15 @@ enum ModelCommand {
         #[arg(long)]
         batch: Option<PathBuf>,
     },
+    /// Per-tile sun and view geometry of a sensor above flat ground (seed Appendix A).
+    /// Azimuths are clockwise from north; ground_m is [east, north] of the nadir point.
+    Geometry {
+        #[command(flatten)]
+        args: commands::GeometryArgs,
+        /// JSON-lines input file, `-` for stdin.
+        #[arg(long)]
+        batch: Option<PathBuf>,
+    },
     /// Print the built-in material library as TOML (save it, edit it, cite its sources).
     Materials,
     /// Condition number, EWV, singular values and pseudo-inverse of an analyzer set.
@@ -210,6 +219,10 @@ fn main() -> ExitCode {
             ModelCommand::Sun { args, batch: None } => Ok(print_json(commands::sun(&args))),
             ModelCommand::Sky { batch: Some(p), .. } => run_batch(Kind::Sky, &p),
             ModelCommand::Sky { args, batch: None } => Ok(print_json(commands::sky(&args))),
+            ModelCommand::Geometry { batch: Some(p), .. } => run_batch(Kind::Geometry, &p),
+            ModelCommand::Geometry { args, batch: None } => {
+                Ok(print_json(commands::geometry(&args)))
+            }
             ModelCommand::Materials => Ok(
                 match polar_model::material::MaterialLibrary::builtin().to_toml_string() {
                     Ok(text) => {

@@ -442,3 +442,64 @@ fn sky_command_rayleigh_maximum() {
         .unwrap()
         .contains("sun_zenith_deg"));
 }
+
+/// `model geometry`: the example gives 9 tiles; the centre one is 1000 m north of nadir
+/// (H tan 45 deg, looking north) at view zenith 45 deg, and on the sun's side (sun azimuth 0):
+/// the relative azimuth is 180 deg, the specular plane.
+#[test]
+fn geometry_command_centre_tile() {
+    let out = polarimeter(&[
+        "model",
+        "geometry",
+        "--altitude-m",
+        "1000",
+        "--off-nadir-deg",
+        "45",
+        "--look-azimuth-deg",
+        "0",
+        "--fov-deg",
+        "10,10",
+        "--tiles",
+        "3x3",
+        "--sun-zenith-deg",
+        "46",
+        "--sun-azimuth-deg",
+        "0",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let tiles = v["tiles"].as_array().unwrap();
+    assert_eq!(tiles.len(), 9);
+    let c = &tiles[4];
+    assert!(
+        (c["theta_r_deg"].as_f64().unwrap() - 45.0).abs() < 1e-9,
+        "{c}"
+    );
+    assert!(
+        (c["ground_m"][1].as_f64().unwrap() - 1000.0).abs() < 1e-6
+            && c["ground_m"][0].as_f64().unwrap().abs() < 1e-6,
+        "{c}"
+    );
+    assert!((c["phi_deg"].as_f64().unwrap() - 180.0).abs() < 1e-9, "{c}");
+    assert_eq!(c["theta_i_deg"].as_f64().unwrap(), 46.0);
+    let out = polarimeter(&[
+        "model",
+        "geometry",
+        "--altitude-m",
+        "1000",
+        "--fov-deg",
+        "10",
+        "--tiles",
+        "3by3",
+        "--sun-zenith-deg",
+        "46",
+        "--sun-azimuth-deg",
+        "0",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8(out.stderr).unwrap().contains("tiles"));
+}
