@@ -540,10 +540,12 @@ pub fn geometry(a: &GeometryArgs) -> Result<Value, CommandError> {
     let fov = match a.fov_deg.as_slice() {
         [x, y] => (*x, *y),
         [x] => (*x, *x),
-        other => return Err(CommandError(format!(
+        other => {
+            return Err(CommandError(format!(
             "fov_deg has {} values: allowed one (square) or two (across,along), each in (0, 120]",
             other.len()
-        ))),
+        )))
+        }
     };
     let pointing = Pointing {
         altitude_m: required(a.altitude_m, "altitude_m", "(0, 1e5]")?,

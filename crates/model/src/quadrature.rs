@@ -91,50 +91,24 @@ pub struct Integral {
 }
 
 #[derive(Debug, Clone, Copy)]
-struct Piece {
+struct Piece<const N: usize> {
     a: f64,
     b: f64,
-    value: f64,
+    value: [f64; N],
     error: f64,
 }
 
-/// Applies the G7/K15 pair on `[a, b]` to an integrand that returns `(value, error_of_value)`;
-/// the pointwise errors (from an inner integration) are added to the interval's error with the
-/// Kronrod weights.
-fn gk15<F: FnMut(f64) -> (f64, f64)>(f: &mut F, a: f64, b: f64) -> Piece {
-    let centre = 0.5 * (a + b);
-    let half = 0.5 * (b - a);
-    let mut fv = [0.0f64; 15];
-    let mut inner = 0.0;
-    let (fc, ec) = f(centre);
-    fv[14] = fc;
-    inner += WGK[7] * ec;
-    for j in 0..7 {
-        let dx = half * XGK[j];
-        let (f1, e1) = f(centre - dx);
-        let (f2, e2) = f(centre + dx);
-        fv[2 * j] = f1;
-        fv[2 * j + 1] = f2;
-        inner += WGK[j] * (e1 + e2);
-    }
-    let mut kronrod = WGK[7] * fc;
-    let mut gauss = WG[3] * fc;
-    let mut abs_k = WGK[7] * fc.abs();
-    for j in 0..7 {
-        let (f1, f2) = (fv[2 * j], fv[2 * j + 1]);
-        kronrod += WGK[j] * (f1 + f2);
-        abs_k += WGK[j] * (f1.abs() + f2.abs());
-        if j % 2 == 1 {
-            gauss += WG[j / 2] * (f1 + f2);
-        }
-    }
-    // QUADPACK's error estimate: |K - G| rescaled by the integrand's variation on the interval
-    // (resasc), which tracks the true error of K15 closely for smooth integrands and falls back
-    // to |K - G| (or larger) where the integrand is rough.
+/// QUADPACK's error estimate of one component: `|K - G|` rescaled by the integrand's variation
+/// on the interval (resasc), which tracks the true error of K15 closely for smooth integrands
+/// and falls back to `|K - G|` (or larger) where the integrand is rough.
+fn component_error(fv: &[f64; 15], kronrod: f64, gauss: f64, half: f64) -> f64 {
+    let fc = fv[14];
     let mean = 0.5 * kronrod;
     let mut resasc = WGK[7] * (fc - mean).abs();
+    let mut abs_k = WGK[7] * fc.abs();
     for j in 0..7 {
         resasc += WGK[j] * ((fv[2 * j] - mean).abs() + (fv[2 * j + 1] - mean).abs());
+        abs_k += WGK[j] * (fv[2 * j].abs() + fv[2 * j + 1].abs());
     }
     let h = half.abs();
     let (resasc, resabs) = (resasc * h, abs_k * h);
@@ -145,24 +119,98 @@ fn gk15<F: FnMut(f64) -> (f64, f64)>(f: &mut F, a: f64, b: f64) -> Piece {
     if resabs > f64::MIN_POSITIVE / (50.0 * f64::EPSILON) {
         err = err.max(50.0 * f64::EPSILON * resabs);
     }
+    err
+}
+
+/// Applies the G7/K15 pair on `[a, b]` to an integrand with `N` components that returns
+/// `(values, error_of_values)`; the pointwise errors (from an inner integration) are added to the
+/// interval's error with the Kronrod weights. The interval's error is the largest component's.
+fn gk15<const N: usize, F: FnMut(f64) -> ([f64; N], f64)>(f: &mut F, a: f64, b: f64) -> Piece<N> {
+    let centre = 0.5 * (a + b);
+    let half = 0.5 * (b - a);
+    let mut fv = [[0.0f64; 15]; N];
+    let mut inner = 0.0;
+    let (vc, ec) = f(centre);
+    for n in 0..N {
+        fv[n][14] = vc[n];
+    }
+    inner += WGK[7] * ec;
+    for j in 0..7 {
+        let dx = half * XGK[j];
+        let (v1, e1) = f(centre - dx);
+        let (v2, e2) = f(centre + dx);
+        for n in 0..N {
+            fv[n][2 * j] = v1[n];
+            fv[n][2 * j + 1] = v2[n];
+        }
+        inner += WGK[j] * (e1 + e2);
+    }
+    let mut value = [0.0; N];
+    let mut error = 0.0f64;
+    for n in 0..N {
+        let v = &fv[n];
+        let mut kronrod = WGK[7] * v[14];
+        let mut gauss = WG[3] * v[14];
+        for j in 0..7 {
+            kronrod += WGK[j] * (v[2 * j] + v[2 * j + 1]);
+            if j % 2 == 1 {
+                gauss += WG[j / 2] * (v[2 * j] + v[2 * j + 1]);
+            }
+        }
+        value[n] = kronrod * half;
+        error = error.max(component_error(v, kronrod, gauss, half));
+    }
     Piece {
         a,
         b,
-        value: kronrod * half,
-        error: err + inner * h,
+        value,
+        error: error + inner * half.abs(),
     }
 }
 
+/// The result of integrating an `N`-component integrand.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IntegralN<const N: usize> {
+    /// The integral of each component.
+    pub value: [f64; N],
+    /// Conservative estimate of the largest component's error.
+    pub error: f64,
+    /// Number of integrand evaluations (innermost calls for nested integrals).
+    pub evaluations: usize,
+    /// Whether `error` met the tolerance within the interval budget.
+    pub converged: bool,
+}
+
+fn sum_pieces<const N: usize>(pieces: &[Piece<N>]) -> ([f64; N], f64) {
+    let mut value = [0.0; N];
+    let mut error = 0.0;
+    for p in pieces {
+        for n in 0..N {
+            value[n] += p.value[n];
+        }
+        error += p.error;
+    }
+    (value, error)
+}
+
+fn max_abs<const N: usize>(v: &[f64; N]) -> f64 {
+    v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
+}
+
 /// Integrates an integrand that carries its own pointwise error over `[a, b]`.
-fn adaptive<F: FnMut(f64) -> (f64, f64)>(mut f: F, a: f64, b: f64, tol: Tolerance) -> Integral {
+fn adaptive<const N: usize, F: FnMut(f64) -> ([f64; N], f64)>(
+    mut f: F,
+    a: f64,
+    b: f64,
+    tol: Tolerance,
+) -> IntegralN<N> {
     let mut pieces = vec![gk15(&mut f, a, b)];
     let mut evaluations = 15;
     loop {
-        let value: f64 = pieces.iter().map(|p| p.value).sum();
-        let error: f64 = pieces.iter().map(|p| p.error).sum();
-        let converged = error <= tol.target(value);
+        let (value, error) = sum_pieces(&pieces);
+        let converged = error <= tol.target(max_abs(&value));
         if converged || pieces.len() >= tol.max_intervals.max(1) || !error.is_finite() {
-            return Integral {
+            return IntegralN {
                 value,
                 error,
                 evaluations,
@@ -180,9 +228,8 @@ fn adaptive<F: FnMut(f64) -> (f64, f64)>(mut f: F, a: f64, b: f64, tol: Toleranc
         if mid <= p.a || mid >= p.b {
             // The interval cannot be split further in f64: report what we have.
             pieces.push(p);
-            let value: f64 = pieces.iter().map(|p| p.value).sum();
-            let error: f64 = pieces.iter().map(|p| p.error).sum();
-            return Integral {
+            let (value, error) = sum_pieces(&pieces);
+            return IntegralN {
                 value,
                 error,
                 evaluations,
@@ -195,9 +242,18 @@ fn adaptive<F: FnMut(f64) -> (f64, f64)>(mut f: F, a: f64, b: f64, tol: Toleranc
     }
 }
 
+fn scalar(r: IntegralN<1>) -> Integral {
+    Integral {
+        value: r.value[0],
+        error: r.error,
+        evaluations: r.evaluations,
+        converged: r.converged,
+    }
+}
+
 /// Integrates `f` over `[a, b]` to tolerance `tol`.
 pub fn integrate<F: FnMut(f64) -> f64>(mut f: F, a: f64, b: f64, tol: Tolerance) -> Integral {
-    adaptive(|x| (f(x), 0.0), a, b, tol)
+    scalar(adaptive(|x| ([f(x)], 0.0), a, b, tol))
 }
 
 /// Integrates `f(x, y)` over the rectangle `[ax, bx] x [ay, by]` by nested adaptive rules.
@@ -219,13 +275,35 @@ pub fn integrate_2d<F: FnMut(f64, f64) -> f64>(
 /// not spent locating them. Breakpoints outside `(ay, by)` are ignored.
 pub fn integrate_2d_split<F, B>(
     mut f: F,
-    (ax, bx): (f64, f64),
-    (ay, by): (f64, f64),
-    mut breaks: B,
+    x_range: (f64, f64),
+    y_range: (f64, f64),
+    breaks: B,
     tol: Tolerance,
 ) -> Integral
 where
     F: FnMut(f64, f64) -> f64,
+    B: FnMut(f64, &mut Vec<f64>),
+{
+    scalar(integrate_2d_split_n(
+        |x, y| [f(x, y)],
+        x_range,
+        y_range,
+        breaks,
+        tol,
+    ))
+}
+
+/// [`integrate_2d_split`] for an integrand with `N` components (a Stokes vector, say), all
+/// integrated on the same adaptive partition; the error is the largest component's.
+pub fn integrate_2d_split_n<const N: usize, F, B>(
+    mut f: F,
+    (ax, bx): (f64, f64),
+    (ay, by): (f64, f64),
+    mut breaks: B,
+    tol: Tolerance,
+) -> IntegralN<N>
+where
+    F: FnMut(f64, f64) -> [f64; N],
     B: FnMut(f64, &mut Vec<f64>),
 {
     let width = (bx - ax).abs().max(f64::MIN_POSITIVE);
@@ -247,12 +325,14 @@ where
                 rel: 0.1 * tol.rel,
                 max_intervals: tol.max_intervals,
             };
-            let (mut value, mut error) = (0.0, 0.0);
+            let (mut value, mut error) = ([0.0; N], 0.0);
             for w in points.windows(2) {
-                let inner = integrate(|y| f(x, y), w[0], w[1], inner_tol);
+                let inner = adaptive(|y| (f(x, y), 0.0), w[0], w[1], inner_tol);
                 evaluations += inner.evaluations;
                 all_inner_converged &= inner.converged;
-                value += inner.value;
+                for n in 0..N {
+                    value[n] += inner.value[n];
+                }
                 error += inner.error;
             }
             (value, error)
@@ -261,7 +341,7 @@ where
         bx,
         tol,
     );
-    Integral {
+    IntegralN {
         evaluations,
         converged: outer.converged && all_inner_converged,
         ..outer
