@@ -185,8 +185,8 @@ fn sum_pieces<const N: usize>(pieces: &[Piece<N>]) -> ([f64; N], f64) {
     let mut value = [0.0; N];
     let mut error = 0.0;
     for p in pieces {
-        for n in 0..N {
-            value[n] += p.value[n];
+        for (v, pv) in value.iter_mut().zip(&p.value) {
+            *v += pv;
         }
         error += p.error;
     }
@@ -330,8 +330,8 @@ where
                 let inner = adaptive(|y| (f(x, y), 0.0), w[0], w[1], inner_tol);
                 evaluations += inner.evaluations;
                 all_inner_converged &= inner.converged;
-                for n in 0..N {
-                    value[n] += inner.value[n];
+                for (v, iv) in value.iter_mut().zip(&inner.value) {
+                    *v += iv;
                 }
                 error += inner.error;
             }

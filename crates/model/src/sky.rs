@@ -124,7 +124,8 @@ impl RayleighSky {
         let x = if x.norm() > 0.0 {
             x.normalize()
         } else {
-            Vector3::new(0.0, 1.0, 0.0).cross(&k).normalize()
+            // At the zenith the frame is the pBRDF's normal-incidence limit: x = world +y.
+            Vector3::new(0.0, 1.0, 0.0)
         };
         let y = k.cross(&x);
         let e = k.cross(sun);
