@@ -17,6 +17,7 @@
 //! * [`material`]: a small library of materials at 550 nm, TOML in and out.
 //! * [`analyzer`]: measurement matrices of analyzer sets, reconstruction, conditioning and noise gains.
 //! * [`sky`]: Rayleigh single-scattering sky radiance and polarisation.
+//! * [`skylight`]: skylight reflected by a surface (Eq. 3.22), slope-space quadrature with error.
 //! * [`sun`]: the sun's position from UTC time and site (NREL SPA).
 //! * [`tiles`]: per-tile viewing geometry of a sensor above flat ground (Appendix A).
 //! * [`quadrature`]: the adaptive Gauss-Kronrod rule the model's integrals use, with error estimates.
@@ -30,6 +31,7 @@ pub mod pbrdf;
 pub mod polarization;
 pub mod quadrature;
 pub mod sky;
+pub mod skylight;
 pub mod sun;
 pub mod tiles;
 
