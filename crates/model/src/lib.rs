@@ -16,6 +16,7 @@
 //! * [`pbrdf`]: the microfacet polarimetric BRDF (seed Eqs. 3.4-3.18) and the vegetation model (Eq. 3.19).
 //! * [`material`]: a small library of materials at 550 nm, TOML in and out.
 //! * [`analyzer`]: measurement matrices of analyzer sets, reconstruction, conditioning and noise gains.
+//! * [`atmosphere`]: TOA spectrum, band, Beer-Lambert transmittance, clear sky with aerosol, path radiance.
 //! * [`sky`]: Rayleigh single-scattering sky radiance and polarisation.
 //! * [`skylight`]: skylight reflected by a surface (Eq. 3.22), slope-space quadrature with error.
 //! * [`sun`]: the sun's position from UTC time and site (NREL SPA).
@@ -24,6 +25,7 @@
 #![warn(missing_docs)]
 
 pub mod analyzer;
+pub mod atmosphere;
 pub mod error;
 pub mod fresnel;
 pub mod material;
