@@ -92,6 +92,11 @@ impl Band {
         Ok(Band { samples })
     }
 
+    /// The band's wavelength range, nm.
+    pub fn range_nm(&self) -> (f64, f64) {
+        (self.samples[0].0, self.samples[self.samples.len() - 1].0)
+    }
+
     /// Relative response at `nm`.
     pub fn response(&self, nm: f64) -> f64 {
         let s = &self.samples;

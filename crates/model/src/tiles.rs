@@ -45,6 +45,8 @@ pub struct Tile {
     pub ground_m: [f64; 2],
     /// Slant range from the sensor, metres.
     pub range_m: f64,
+    /// Unit vector from the ground point towards the sensor (world frame).
+    pub omega_view: Vector3<f64>,
     /// The pBRDF geometry of the tile.
     pub geometry: Geometry,
     /// `(cos 2eta, sin 2eta)` of the rotation camera frame <- reflected surface frame:
@@ -170,6 +172,7 @@ pub fn tiles(
                 phi_deg,
                 ground_m: [ground.x, ground.y],
                 range_m: t,
+                omega_view,
                 geometry,
                 camera_from_surface: cos_sin_2eta(&s_r, &x_cam, &k),
             });
