@@ -9,7 +9,10 @@
 
 use crate::error::ModelError;
 use crate::polarization::Stokes;
-use crate::sky::{rayleigh_optical_depth, RayleighSky, AIR_DEPOLARIZATION};
+use crate::sky::{
+    downward_path, e_vector_in_frame, rayleigh_optical_depth, single_scattered, RayleighSky,
+    AIR_DEPOLARIZATION,
+};
 use nalgebra::Vector3;
 use std::f64::consts::PI;
 
@@ -364,26 +367,6 @@ pub struct Path {
     pub layer_optical_depth: f64,
 }
 
-/// `(cos 2chi, sin 2chi)` of an E-vector perpendicular to the scattering plane of the ray
-/// travelling along `k` (unit) and the sun direction, in the ray's surface frame `x ∝ k × z`
-/// (world `+y` when `k` is vertical).
-fn e_vector_in_frame(k: &Vector3<f64>, sun: &Vector3<f64>) -> (f64, f64) {
-    let x = k.cross(&Vector3::z());
-    let x = if x.norm() > 0.0 {
-        x.normalize()
-    } else {
-        Vector3::new(0.0, 1.0, 0.0)
-    };
-    let y = k.cross(&x);
-    let e = k.cross(sun);
-    if e.norm() == 0.0 {
-        return (1.0, 0.0);
-    }
-    let (c, s) = (e.dot(&x), e.dot(&y));
-    let n2 = c * c + s * s;
-    ((c * c - s * s) / n2, 2.0 * c * s / n2)
-}
-
 /// A clear sky of Rayleigh plus aerosol single scattering in a plane-parallel layer: molecules
 /// scatter with the depolarised Rayleigh phase matrix, aerosol unpolarised with a
 /// Henyey-Greenstein phase function (its polarisation, small in the visible, is neglected).
@@ -433,30 +416,9 @@ impl crate::skylight::SkyRadiance for ClearSky {
     /// Downwelling single-scattering radiance per unit TOA irradiance (the formula of
     /// [`RayleighSky::stokes`] with the mixture's source).
     fn stokes_from(&self, towards: &Vector3<f64>) -> Stokes {
-        let (mu0, mu) = (self.sun.z, towards.z.max(0.0));
-        let tau = self.rayleigh + self.aerosol;
-        let path = if mu0 <= 0.0 || tau == 0.0 {
-            0.0
-        } else if mu <= 0.0 {
-            (-tau / mu0).exp()
-        } else {
-            let x = tau * (mu0 - mu) / (mu * mu0);
-            let ratio = if x.abs() < 1e-12 {
-                1.0 - 0.5 * x
-            } else {
-                -(-x).exp_m1() / x
-            };
-            (-tau / mu0).exp() * (tau / mu) * ratio
-        };
-        let cos_gamma = self.sun.dot(towards).clamp(-1.0, 1.0);
-        let (p11, p12) = self.source(cos_gamma);
-        let radiance = p11 / (4.0 * PI) * path;
-        if radiance == 0.0 {
-            return Stokes::new(0.0, 0.0, 0.0);
-        }
-        let (c2, s2) = e_vector_in_frame(&-towards, &self.sun);
-        let p = radiance * p12 / p11;
-        Stokes::new(radiance, p * c2, p * s2)
+        let path = downward_path(self.rayleigh + self.aerosol, self.sun.z, towards.z.max(0.0));
+        let (p11, p12) = self.source(self.sun.dot(towards).clamp(-1.0, 1.0));
+        single_scattered(p11, p12, path, &self.sun, towards)
     }
 }
 

@@ -193,6 +193,11 @@ impl Geometry {
         })
     }
 
+    /// The relative azimuth `phi` in `[0, 2 pi)` (0 at normal view, where it is undefined).
+    pub fn relative_azimuth_rad(&self) -> f64 {
+        self.sin_phi.atan2(self.cos_phi).rem_euclid(2.0 * PI)
+    }
+
     /// `cos ti` (floored at [`COS_FLOOR`]).
     pub fn cos_theta_i(&self) -> f64 {
         self.cos_ti

@@ -98,47 +98,77 @@ impl RayleighSky {
                 allowed: "[0, 90]",
             });
         }
-        let (mu0, mu) = (sun.z, view.z);
-        let tau = self.optical_depth;
-        let path = if mu0 <= 0.0 {
-            0.0
-        } else if mu <= 0.0 {
-            (-tau / mu0).exp()
-        } else {
-            // mu0/(mu0-mu) (e^{-tau/mu0} - e^{-tau/mu}) = e^{-tau/mu0} (tau/mu) (1 - e^{-x})/x,
-            // x = tau (mu0 - mu) / (mu mu0).
-            let x = tau * (mu0 - mu) / (mu * mu0);
-            let ratio = if x.abs() < 1e-12 {
-                1.0 - 0.5 * x
-            } else {
-                -(-x).exp_m1() / x
-            };
-            (-tau / mu0).exp() * (tau / mu) * ratio
-        };
         let cos_gamma = sun.dot(view).clamp(-1.0, 1.0);
         let (p11, p12) = self.phase(cos_gamma);
-        let radiance = p11 / (4.0 * std::f64::consts::PI) * path;
-        // E-vector perpendicular to the scattering plane (k, sun).
-        let k = -view;
-        let x = k.cross(&Vector3::z());
-        let x = if x.norm() > 0.0 {
-            x.normalize()
-        } else {
-            // At the zenith the frame is the pBRDF's normal-incidence limit: x = world +y.
-            Vector3::new(0.0, 1.0, 0.0)
-        };
-        let y = k.cross(&x);
-        let e = k.cross(sun);
-        let (c2, s2) = if e.norm() > 0.0 {
-            let (c, s) = (e.dot(&x), e.dot(&y));
-            let n2 = c * c + s * s;
-            ((c * c - s * s) / n2, 2.0 * c * s / n2)
-        } else {
-            (1.0, 0.0) // looking at or away from the sun: unpolarised (p12 = 0 there)
-        };
-        let p = radiance * p12 / p11;
-        Ok(Stokes::new(radiance, p * c2, p * s2))
+        Ok(single_scattered(
+            p11,
+            p12,
+            downward_path(self.optical_depth, sun.z, view.z),
+            sun,
+            view,
+        ))
     }
+}
+
+/// The geometric factor of downward single scattering at the bottom of a homogeneous layer of
+/// optical depth `tau`, sun at `mu0 = cos`, view at `mu = cos` (Liou, *An Introduction to
+/// Atmospheric Radiation*): `mu0 / (mu0 - mu) (e^{-tau/mu0} - e^{-tau/mu})`, evaluated with
+/// `expm1` so that `mu = mu0` and the horizon are exact limits; 0 with the sun at the horizon.
+pub(crate) fn downward_path(tau: f64, mu0: f64, mu: f64) -> f64 {
+    if mu0 <= 0.0 || tau == 0.0 {
+        0.0
+    } else if mu <= 0.0 {
+        (-tau / mu0).exp()
+    } else {
+        // = e^{-tau/mu0} (tau/mu) (1 - e^{-x})/x, x = tau (mu0 - mu) / (mu mu0).
+        let x = tau * (mu0 - mu) / (mu * mu0);
+        let ratio = if x.abs() < 1e-12 {
+            1.0 - 0.5 * x
+        } else {
+            -(-x).exp_m1() / x
+        };
+        (-tau / mu0).exp() * (tau / mu) * ratio
+    }
+}
+
+/// `(cos 2chi, sin 2chi)` of an E-vector perpendicular to the scattering plane of a ray
+/// propagating along `k` (unit) and the sun direction, in the ray's surface frame `x ∝ k × z`
+/// (world `+y` when `k` is vertical: the pBRDF's normal-incidence limit). Towards or away from
+/// the sun the plane is undefined and `(1, 0)` is returned (the light is unpolarised there).
+pub(crate) fn e_vector_in_frame(k: &Vector3<f64>, sun: &Vector3<f64>) -> (f64, f64) {
+    let x = k.cross(&Vector3::z());
+    let x = if x.norm() > 0.0 {
+        x.normalize()
+    } else {
+        Vector3::new(0.0, 1.0, 0.0)
+    };
+    let y = k.cross(&x);
+    let e = k.cross(sun);
+    if e.norm() == 0.0 {
+        return (1.0, 0.0);
+    }
+    let (c, s) = (e.dot(&x), e.dot(&y));
+    let n2 = c * c + s * s;
+    ((c * c - s * s) / n2, 2.0 * c * s / n2)
+}
+
+/// Stokes radiance per unit TOA irradiance of singly scattered light arriving from `towards`,
+/// from a source `(omega P11, -omega P12)` (phase functions averaging 1) and the geometric
+/// `path` factor.
+pub(crate) fn single_scattered(
+    p11: f64,
+    p12: f64,
+    path: f64,
+    sun: &Vector3<f64>,
+    towards: &Vector3<f64>,
+) -> Stokes {
+    let radiance = p11 / (4.0 * std::f64::consts::PI) * path;
+    if radiance == 0.0 {
+        return Stokes::new(0.0, 0.0, 0.0);
+    }
+    let (c2, s2) = e_vector_in_frame(&-towards, sun);
+    let p = radiance * p12 / p11;
+    Stokes::new(radiance, p * c2, p * s2)
 }
 
 #[cfg(test)]

@@ -159,8 +159,7 @@ pub fn tiles(
             let ground = Vector3::new(0.0, 0.0, p.altitude_m) + d * t;
             let omega_view = -d;
             let geometry = Geometry::from_directions(&omega_sun, &omega_view)?;
-            // Relative azimuth as the pBRDF sees it: from the turned frame's (cos phi, sin phi).
-            let phi_deg = relative_azimuth_deg(&omega_sun, &omega_view);
+            let phi_deg = geometry.relative_azimuth_rad().to_degrees();
             // Camera Stokes frame of this ray: `right` made transverse to k = omega_view.
             let k = omega_view;
             let x_cam = (right - k * right.dot(&k)).normalize();
@@ -179,22 +178,6 @@ pub fn tiles(
         }
     }
     Ok(out)
-}
-
-/// The relative azimuth `phi` of [`Geometry::from_directions`], degrees in `[0, 360)`.
-pub fn relative_azimuth_deg(omega_sun: &Vector3<f64>, omega_view: &Vector3<f64>) -> f64 {
-    let h = (omega_sun.x * omega_sun.x + omega_sun.y * omega_sun.y).sqrt();
-    let (ca, sa) = if h > 0.0 {
-        (omega_sun.x / h, omega_sun.y / h)
-    } else {
-        (1.0, 0.0)
-    };
-    let x = ca * omega_view.x + sa * omega_view.y;
-    let y = -sa * omega_view.x + ca * omega_view.y;
-    if x == 0.0 && y == 0.0 {
-        return 0.0;
-    }
-    y.atan2(x).to_degrees().rem_euclid(360.0)
 }
 
 #[cfg(test)]
