@@ -268,7 +268,7 @@ fn polar_panels(
         }
     }
     // Colour bar.
-    let (bw, bh) = bar.dim_in_pixel();
+    let (_, bh) = bar.dim_in_pixel();
     let (x0, y0, y1) = (20i32, 40i32, bh as i32 - 40);
     for y in y0..y1 {
         let v = 1.0 - (y - y0) as f64 / (y1 - y0) as f64;
@@ -288,7 +288,6 @@ fn polar_panels(
     }
     bar.draw_text("DoLP", &(FONT, 15).into_text_style(&bar), (x0, 12))
         .map_err(&e)?;
-    let _ = bw;
     root.present().map_err(&e)?;
     Ok(csv)
 }

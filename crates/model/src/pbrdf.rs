@@ -440,16 +440,6 @@ impl Microfacet {
     }
 }
 
-impl Tolerance {
-    /// The same tolerance for an integral `factor` times larger.
-    fn scaled(self, factor: f64) -> Tolerance {
-        Tolerance {
-            abs: self.abs * factor,
-            ..self
-        }
-    }
-}
-
 /// The polarising term of the vegetation model (Eq. 3.19, after Bréon et al. 1995 and
 /// Maignan et al. 2009): leaves of uniformly distributed inclination reflect specularly at their
 /// surface (index `n`), giving `rho_p = Fp / (4 (cos ti + cos tr))` with `Fp = 0.5 (Rs - Rp)` at the

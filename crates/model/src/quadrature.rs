@@ -70,6 +70,16 @@ impl Tolerance {
     }
 }
 
+impl Tolerance {
+    /// The same tolerance for an integral `factor` times larger.
+    pub(crate) fn scaled(self, factor: f64) -> Tolerance {
+        Tolerance {
+            abs: self.abs * factor,
+            ..self
+        }
+    }
+}
+
 impl Default for Tolerance {
     /// `1e-9` absolute: well below every figure the model reports with 6 significant digits.
     fn default() -> Self {
