@@ -3,5 +3,6 @@
 #![warn(missing_docs)]
 
 pub mod batch;
+pub mod bench;
 pub mod commands;
 pub mod figures;

@@ -30,6 +30,29 @@ enum Command {
         #[command(subcommand)]
         command: ReportCommand,
     },
+    /// Speed against error of the model.
+    Bench {
+        #[command(subcommand)]
+        command: BenchCommand,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum BenchCommand {
+    /// Time per scene evaluation and actual error against a reference computed in the same run,
+    /// for the example scenes (bench, rooftop, airborne) at tolerances 1e-2 .. 1e-8. Prints a
+    /// Markdown table.
+    Scene {
+        /// Tolerance of the reference, [1e-10, 1e-6].
+        #[arg(long, default_value_t = 1e-9)]
+        reference_tolerance: f64,
+        /// Loosest and tightest tolerance exponents, e.g. 2,8 for 1e-2 .. 1e-8.
+        #[arg(long, value_delimiter = ',', default_values_t = [2u32, 8])]
+        exponents: Vec<u32>,
+        /// Minimum timing runs per row.
+        #[arg(long, default_value_t = 3)]
+        min_runs: usize,
+    },
 }
 
 /// Input for a model command: its flags, or `--batch FILE` (`-` for stdin) with one JSON object
@@ -90,6 +113,13 @@ enum ModelCommand {
     },
     /// Print the built-in material library as TOML (save it, edit it, cite its sources).
     Materials,
+    /// Mean Stokes radiance and covariance of each material of a TOML scene (examples/*.toml)
+    /// over the field of view, to a tolerance, with the error estimate and the terms evaluated
+    /// and skipped. Azimuths in the file are clockwise from north; output in the camera frame.
+    Scene {
+        #[command(flatten)]
+        args: commands::SceneArgs,
+    },
     /// Condition number, EWV, singular values and pseudo-inverse of an analyzer set.
     Polarimeter {
         #[command(flatten)]
@@ -183,6 +213,30 @@ fn print_json(result: Result<serde_json::Value, commands::CommandError>) -> Exit
     }
 }
 
+fn bench_scene(reference_tol: f64, exponents: &[u32], min_runs: usize) -> anyhow::Result<ExitCode> {
+    if !(1e-10..=1e-6).contains(&reference_tol) {
+        anyhow::bail!(
+            "reference_tolerance = {reference_tol} is out of range: allowed [1e-10, 1e-6]"
+        );
+    }
+    let (lo, hi) = match exponents {
+        [a, b] if 1 <= *a && a <= b && *b <= 10 => (*a, *b),
+        _ => anyhow::bail!(
+            "exponents = {exponents:?} is invalid: allowed two integers 1 <= a <= b <= 10"
+        ),
+    };
+    let tolerances: Vec<f64> = (lo..=hi).map(|e| 10f64.powi(-(e as i32))).collect();
+    let rows = polar_cli::bench::scene(
+        &polar_cli::bench::EXAMPLES,
+        &tolerances,
+        reference_tol,
+        min_runs.max(1),
+        std::time::Duration::from_millis(200),
+    )?;
+    print!("{}", polar_cli::bench::markdown(&rows, reference_tol));
+    Ok(ExitCode::SUCCESS)
+}
+
 fn main() -> ExitCode {
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,
@@ -235,6 +289,7 @@ fn main() -> ExitCode {
                     }
                 },
             ),
+            ModelCommand::Scene { args } => Ok(print_json(commands::scene(&args))),
             ModelCommand::Stokes { batch: Some(p), .. } => run_batch(Kind::Stokes, &p),
             ModelCommand::Stokes { args, batch: None } => Ok(print_json(commands::stokes(&args))),
             ModelCommand::Polarimeter { batch: Some(p), .. } => run_batch(Kind::Polarimeter, &p),
@@ -242,6 +297,14 @@ fn main() -> ExitCode {
                 Ok(print_json(commands::polarimeter(&args)))
             }
         },
+        Command::Bench {
+            command:
+                BenchCommand::Scene {
+                    reference_tolerance,
+                    exponents,
+                    min_runs,
+                },
+        } => bench_scene(reference_tolerance, &exponents, min_runs),
         Command::Report {
             command: ReportCommand::Figures { out },
         } => polar_cli::figures::draw_all(&out)

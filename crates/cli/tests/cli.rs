@@ -503,3 +503,69 @@ fn geometry_command_centre_tile() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8(out.stderr).unwrap().contains("tiles"));
 }
+
+/// Every example scene evaluates at the default tolerance: the required JSON fields, a
+/// covariance that is symmetric positive semi-definite (diagonal >= 0, |cov_ij| <= sqrt of the
+/// diagonals, to rounding), DoLP in [0, 1], and an error estimate below the tolerance.
+#[test]
+fn example_scenes_evaluate() {
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../../examples");
+    for name in ["bench", "rooftop", "airborne"] {
+        let path = format!("{root}/{name}.toml");
+        let out = polarimeter(&["model", "scene", "--scene", &path, "--tolerance", "1e-3"]);
+        assert!(
+            out.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        for key in [
+            "mean",
+            "cov",
+            "error_estimate",
+            "terms",
+            "evaluations",
+            "materials",
+        ] {
+            assert!(v.get(key).is_some(), "{name}: no {key}");
+        }
+        for m in v["materials"].as_array().unwrap() {
+            let cov: Vec<Vec<f64>> = serde_json::from_value(m["cov"].clone()).unwrap();
+            for i in 0..3 {
+                assert!(cov[i][i] >= 0.0, "{name}: {cov:?}");
+                for j in 0..3 {
+                    assert!((cov[i][j] - cov[j][i]).abs() <= 1e-12 * cov[i][i].max(cov[j][j]));
+                    assert!(
+                        cov[i][j].abs() <= (cov[i][i] * cov[j][j]).sqrt() * (1.0 + 1e-9) + 1e-300
+                    );
+                }
+            }
+            let dolp = m["dolp"].as_f64().unwrap();
+            assert!((0.0..=1.0).contains(&dolp), "{name}: dolp {dolp}");
+            let e = m["error_estimate"].as_f64().unwrap();
+            assert!(e < 1e-3, "{name} {}: error estimate {e}", m["material"]);
+        }
+    }
+}
+
+/// A bad scene file exits 2 with one line naming the file and the field.
+#[test]
+fn bad_scene_names_file_and_field() {
+    let dir = std::env::temp_dir().join(format!("polar-scene-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("bad.toml");
+    let text =
+        include_str!("../../../examples/bench.toml").replace("altitude_m = 2", "altitude_m = 0");
+    std::fs::write(&path, text).unwrap();
+    let out = polarimeter(&["model", "scene", "--scene", path.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("bad.toml") && err.contains("altitude_m") && err.contains("(0, 1e5]"),
+        "{err}"
+    );
+    let missing = polarimeter(&["model", "scene", "--scene", "/nonexistent/scene.toml"]);
+    assert_eq!(missing.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&missing.stderr).contains("cannot read"));
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -21,16 +21,34 @@ use std::f64::consts::PI;
 /// averages), from pvlib-python `pvlib/data/ASTMG173.csv`.
 pub const TOA_SPECTRUM_CSV: &str = include_str!("../data/toa_astm_g173_10nm.csv");
 
-/// The spectrum as `(wavelength_nm, irradiance)` pairs.
-pub fn toa_spectrum() -> Vec<(f64, f64)> {
-    TOA_SPECTRUM_CSV
-        .lines()
-        .skip(1)
-        .filter_map(|l| {
-            let (a, b) = l.split_once(',')?;
-            Some((a.trim().parse().ok()?, b.trim().parse().ok()?))
-        })
-        .collect()
+/// The spectrum as `(wavelength_nm, irradiance)` pairs (parsed once).
+pub fn toa_spectrum() -> &'static [(f64, f64)] {
+    static SPECTRUM: std::sync::OnceLock<Vec<(f64, f64)>> = std::sync::OnceLock::new();
+    SPECTRUM.get_or_init(|| {
+        TOA_SPECTRUM_CSV
+            .lines()
+            .skip(1)
+            .filter_map(|l| {
+                let (a, b) = l.split_once(',')?;
+                Some((a.trim().parse().ok()?, b.trim().parse().ok()?))
+            })
+            .collect()
+    })
+}
+
+/// The TOA spectral irradiance at `nm`, linearly interpolated (0 outside the table).
+pub fn toa_irradiance(nm: f64) -> f64 {
+    linear(toa_spectrum(), nm)
+}
+
+/// Piecewise-linear interpolation in `(x, y)` samples sorted by `x`; 0 outside.
+fn linear(s: &[(f64, f64)], x: f64) -> f64 {
+    if s.is_empty() || x < s[0].0 || x > s[s.len() - 1].0 {
+        return 0.0;
+    }
+    let i = s.partition_point(|p| p.0 <= x).clamp(1, s.len() - 1);
+    let (a, b) = (s[i - 1], s[i]);
+    a.1 + (b.1 - a.1) * (x - a.0) / (b.0 - a.0)
 }
 
 /// A sensor's spectral band: relative response at wavelengths (nm), linearly interpolated,
@@ -102,36 +120,66 @@ impl Band {
 
     /// Relative response at `nm`.
     pub fn response(&self, nm: f64) -> f64 {
-        let s = &self.samples;
-        if nm < s[0].0 || nm > s[s.len() - 1].0 {
-            return 0.0;
-        }
-        let i = s.partition_point(|p| p.0 <= nm).clamp(1, s.len() - 1);
-        let (a, b) = (s[i - 1], s[i]);
-        a.1 + (b.1 - a.1) * (nm - a.0) / (b.0 - a.0)
+        linear(&self.samples, nm)
     }
 
     /// `int f(l) R(l) E0(l) dl` over the band on a 1-nm grid (TOA spectrum linearly
     /// interpolated), with `f` a spectral factor (transmittance, say).
     pub fn solar_weighted<F: FnMut(f64) -> f64>(&self, mut f: F) -> f64 {
-        let spectrum = toa_spectrum();
-        let (lo, hi) = (self.samples[0].0, self.samples[self.samples.len() - 1].0);
-        let e0 = |nm: f64| {
-            let i = spectrum
-                .partition_point(|p| p.0 <= nm)
-                .clamp(1, spectrum.len() - 1);
-            let (a, b) = (spectrum[i - 1], spectrum[i]);
-            a.1 + (b.1 - a.1) * (nm - a.0) / (b.0 - a.0)
-        };
+        let (lo, hi) = self.range_nm();
         let n = ((hi - lo).ceil() as usize).max(1);
         let step = (hi - lo) / n as f64;
         (0..=n)
             .map(|k| {
                 let l = lo + k as f64 * step;
                 let w = if k == 0 || k == n { 0.5 } else { 1.0 };
-                w * f(l) * self.response(l) * e0(l) * step
+                w * f(l) * self.response(l) * toa_irradiance(l) * step
             })
             .sum()
+    }
+
+    /// Product-rule spectral nodes for `int R(l) E0(l) g(l) dl` with `g` smooth (transmittances,
+    /// sky radiance ~ l^-4): `2 pairs + 1` equally spaced nodes `l_i` and weights
+    /// `w_i = int R E0 L_i dl`, `L_i` the piecewise-quadratic Lagrange basis over pairs of
+    /// sub-intervals, so that `sum w_i g(l_i)` interpolates only `g` (to third order) while the
+    /// spiky `R E0` is integrated exactly: `R E0` is piecewise linear times linear between the
+    /// knots of both tables and the nodes, and 3-point Gauss-Legendre on each piece is exact for
+    /// that quartic. `pairs` in `[1, 512]`.
+    pub fn quadratic_nodes(&self, pairs: usize) -> Vec<(f64, f64)> {
+        let pairs = pairs.clamp(1, 512);
+        let (lo, hi) = self.range_nm();
+        let m = 2 * pairs;
+        let h = (hi - lo) / m as f64;
+        let node = |i: usize| lo + i as f64 * h;
+        let mut knots: Vec<f64> = (0..=m).map(node).collect();
+        knots.extend(self.samples.iter().map(|p| p.0));
+        knots.extend(
+            toa_spectrum()
+                .iter()
+                .map(|p| p.0)
+                .filter(|&l| l > lo && l < hi),
+        );
+        knots.sort_by(f64::total_cmp);
+        knots.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+        // 3-point Gauss-Legendre on [-1, 1].
+        let x3 = (0.6f64).sqrt();
+        let gl = [(-x3, 5.0 / 9.0), (0.0, 8.0 / 9.0), (x3, 5.0 / 9.0)];
+        let mut weights = vec![0.0; m + 1];
+        for seg in knots.windows(2) {
+            let (a, b) = (seg[0], seg[1]);
+            let (mid, half) = (0.5 * (a + b), 0.5 * (b - a));
+            let pair = (((mid - lo) / (2.0 * h)).floor() as usize).min(pairs - 1);
+            let i0 = 2 * pair;
+            let (x0, x1, x2) = (node(i0), node(i0 + 1), node(i0 + 2));
+            for (t, w) in gl {
+                let l = mid + half * t;
+                let re = self.response(l) * toa_irradiance(l) * w * half;
+                weights[i0] += re * (l - x1) * (l - x2) / ((x0 - x1) * (x0 - x2));
+                weights[i0 + 1] += re * (l - x0) * (l - x2) / ((x1 - x0) * (x1 - x2));
+                weights[i0 + 2] += re * (l - x0) * (l - x1) / ((x2 - x0) * (x2 - x1));
+            }
+        }
+        (0..=m).map(|i| (node(i), weights[i])).collect()
     }
 }
 

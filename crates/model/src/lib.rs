@@ -20,6 +20,8 @@
 //! * [`sky`]: Rayleigh single-scattering sky radiance and polarisation.
 //! * [`skylight`]: skylight reflected by a surface (Eq. 3.22), slope-space quadrature with error.
 //! * [`sun`]: the sun's position from UTC time and site (NREL SPA).
+//! * [`scene`]: a scene's mean and covariance at the aperture, to a tolerance, with its error and the terms it skipped.
+//! * [`scene_file`]: the TOML scene format.
 //! * [`tiles`]: per-tile viewing geometry of a sensor above flat ground (Appendix A).
 //! * [`quadrature`]: the adaptive Gauss-Kronrod rule the model's integrals use, with error estimates.
 #![warn(missing_docs)]
@@ -32,6 +34,8 @@ pub mod material;
 pub mod pbrdf;
 pub mod polarization;
 pub mod quadrature;
+pub mod scene;
+pub mod scene_file;
 pub mod sky;
 pub mod skylight;
 pub mod sun;

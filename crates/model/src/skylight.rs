@@ -15,7 +15,7 @@
 use crate::error::ModelError;
 use crate::pbrdf::{FacetGeometry, Geometry, Surface, COS_FLOOR};
 use crate::polarization::Stokes;
-use crate::quadrature::{integrate_2d_split_n, Tolerance};
+use crate::quadrature::{integrate_2d_split_n, integrate_periodic_split_n, Tolerance};
 use crate::sky::RayleighSky;
 use nalgebra::Vector3;
 use std::f64::consts::PI;
@@ -166,7 +166,7 @@ pub fn specular_skylight<S: SkyRadiance + ?Sized>(
         out.push(-k / cv * to_t);
         out.push((-k + k.hypot(cv)) / cv * to_t);
     };
-    let r = integrate_2d_split_n(f, (0.0, 2.0 * PI), (0.0, T), breaks, tol);
+    let r = integrate_periodic_split_n(f, (0.0, 2.0 * PI), (0.0, T), breaks, tol);
     let scale = sky.stokes_from(&Vector3::z()).0[0].abs().max(1e-300);
     Ok(StokesIntegral {
         stokes: Stokes::new(r.value[0], r.value[1], r.value[2]),
@@ -219,7 +219,7 @@ pub fn direct_skylight<S: SkyRadiance + ?Sized>(
         let out = surface.specular(&g).0 * sky.stokes_from(&d).0 * mu;
         [out[0], out[1], out[2]]
     };
-    let r = integrate_2d_split_n(f, (0.0, 2.0 * PI), (0.0, 1.0), |_, _| {}, tol);
+    let r = integrate_periodic_split_n(f, (0.0, 2.0 * PI), (0.0, 1.0), |_, _| {}, tol);
     Ok(StokesIntegral {
         stokes: Stokes::new(r.value[0], r.value[1], r.value[2]),
         error: r.error,
@@ -264,7 +264,7 @@ mod tests {
                 "sigma {sigma} tv {tv}: {r:?} vs {}",
                 2.0 * a
             );
-            assert!(r.converged);
+            assert!(r.converged, "sigma {sigma} tv {tv}: {r:?}");
         }
     }
 

@@ -81,6 +81,121 @@ pub fn reflected_frame_x(omega_sun: &Vector3<f64>, omega_view: &Vector3<f64>) ->
     Vector3::new(sa, -ca, 0.0)
 }
 
+/// A validated sensor view of flat ground under the sun: computes the geometry of the ray through
+/// any point of the image plane (for tiles, or for quadrature nodes over the field of view).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Field {
+    altitude_m: f64,
+    boresight: Vector3<f64>,
+    right: Vector3<f64>,
+    up: Vector3<f64>,
+    half_tan: (f64, f64),
+    omega_sun: Vector3<f64>,
+    sun_zenith_deg: f64,
+}
+
+impl Field {
+    /// Validates the pointing and the sun. Errors name `altitude_m`, `off_nadir_deg`,
+    /// `look_azimuth_deg`, `fov_deg`, `sun_zenith_deg` or `sun_azimuth_deg`.
+    pub fn new(
+        pointing: &Pointing,
+        sun_zenith_deg: f64,
+        sun_azimuth_deg: f64,
+    ) -> Result<Field, ModelError> {
+        let p = pointing;
+        if !(p.altitude_m.is_finite() && p.altitude_m > 0.0 && p.altitude_m <= 1e5) {
+            return Err(ModelError::OutOfRange {
+                field: "altitude_m",
+                value: p.altitude_m,
+                allowed: "(0, 1e5]",
+            });
+        }
+        ModelError::check_range("off_nadir_deg", p.off_nadir_deg, 0.0, 89.0, "[0, 89]")?;
+        ModelError::check_range(
+            "look_azimuth_deg",
+            p.look_azimuth_deg,
+            -360.0,
+            360.0,
+            "[-360, 360]",
+        )?;
+        for v in [p.fov_deg.0, p.fov_deg.1] {
+            if !(v.is_finite() && v > 0.0 && v <= 120.0) {
+                return Err(ModelError::OutOfRange {
+                    field: "fov_deg",
+                    value: v,
+                    allowed: "(0, 120] each",
+                });
+            }
+        }
+        ModelError::check_range("sun_zenith_deg", sun_zenith_deg, 0.0, 90.0, "[0, 90]")?;
+        ModelError::check_range(
+            "sun_azimuth_deg",
+            sun_azimuth_deg,
+            -360.0,
+            360.0,
+            "[-360, 360]",
+        )?;
+        let boresight = -enu(p.off_nadir_deg, p.look_azimuth_deg + 180.0); // from sensor, downwards
+        let (sl, cl) = crate::pbrdf::sin_cos_deg(p.look_azimuth_deg);
+        let right = Vector3::new(cl, -sl, 0.0);
+        Ok(Field {
+            altitude_m: p.altitude_m,
+            boresight,
+            right,
+            up: right.cross(&boresight),
+            half_tan: (
+                (0.5 * p.fov_deg.0).to_radians().tan(),
+                (0.5 * p.fov_deg.1).to_radians().tan(),
+            ),
+            omega_sun: enu(sun_zenith_deg, sun_azimuth_deg),
+            sun_zenith_deg,
+        })
+    }
+
+    /// Unit vector towards the sun (world frame).
+    pub fn omega_sun(&self) -> Vector3<f64> {
+        self.omega_sun
+    }
+
+    /// The geometry of the ray through image-plane point `(u, v)`, each in `[-1, 1]` (`u = 1` at
+    /// the right edge, `v = 1` at the top), labelled `index`. Errors name `fov_deg` when the ray
+    /// does not reach the ground (looks above the horizon).
+    pub fn ray(&self, u: f64, v: f64, index: (usize, usize)) -> Result<Tile, ModelError> {
+        let d =
+            (self.boresight + self.right * (u * self.half_tan.0) + self.up * (v * self.half_tan.1))
+                .normalize();
+        if d.z >= -1e-9 {
+            return Err(ModelError::Invalid {
+                field: "fov_deg",
+                reason: format!(
+                    "the ray at image point ({u:.3}, {v:.3}) looks {:.3} deg above the horizon: reduce fov_deg or off_nadir_deg",
+                    d.z.asin().to_degrees()
+                ),
+            });
+        }
+        let t = self.altitude_m / -d.z;
+        let ground = Vector3::new(0.0, 0.0, self.altitude_m) + d * t;
+        let omega_view = -d;
+        let geometry = Geometry::from_directions(&self.omega_sun, &omega_view)?;
+        let phi_deg = geometry.relative_azimuth_rad().to_degrees();
+        // Camera Stokes frame of this ray: `right` made transverse to k = omega_view.
+        let k = omega_view;
+        let x_cam = (self.right - k * self.right.dot(&k)).normalize();
+        let s_r = reflected_frame_x(&self.omega_sun, &omega_view);
+        Ok(Tile {
+            index,
+            theta_i_deg: self.sun_zenith_deg,
+            theta_r_deg: omega_view.z.clamp(-1.0, 1.0).acos().to_degrees(),
+            phi_deg,
+            ground_m: [ground.x, ground.y],
+            range_m: t,
+            omega_view,
+            geometry,
+            camera_from_surface: cos_sin_2eta(&s_r, &x_cam, &k),
+        })
+    }
+}
+
 /// Splits the field of view into `nx x ny` tiles and returns their geometry, row-major from the
 /// top-left. Errors name `altitude_m`, `off_nadir_deg`, `fov_deg`, `tiles`, `sun_zenith_deg`, or
 /// `fov_deg` again when a tile's ray does not reach the ground (looks above the horizon).
@@ -90,91 +205,20 @@ pub fn tiles(
     sun_zenith_deg: f64,
     sun_azimuth_deg: f64,
 ) -> Result<Vec<Tile>, ModelError> {
-    let p = pointing;
-    if !(p.altitude_m.is_finite() && p.altitude_m > 0.0 && p.altitude_m <= 1e5) {
-        return Err(ModelError::OutOfRange {
-            field: "altitude_m",
-            value: p.altitude_m,
-            allowed: "(0, 1e5]",
-        });
-    }
-    ModelError::check_range("off_nadir_deg", p.off_nadir_deg, 0.0, 89.0, "[0, 89]")?;
-    ModelError::check_range(
-        "look_azimuth_deg",
-        p.look_azimuth_deg,
-        -360.0,
-        360.0,
-        "[-360, 360]",
-    )?;
-    for v in [p.fov_deg.0, p.fov_deg.1] {
-        if !(v.is_finite() && v > 0.0 && v <= 120.0) {
-            return Err(ModelError::OutOfRange {
-                field: "fov_deg",
-                value: v,
-                allowed: "(0, 120] each",
-            });
-        }
-    }
+    let field = Field::new(pointing, sun_zenith_deg, sun_azimuth_deg)?;
     if nx == 0 || ny == 0 || nx * ny > 1_000_000 {
         return Err(ModelError::Invalid {
             field: "tiles",
             reason: format!("{nx}x{ny}: allowed 1x1 to 1000000 tiles in all"),
         });
     }
-    ModelError::check_range("sun_zenith_deg", sun_zenith_deg, 0.0, 90.0, "[0, 90]")?;
-    ModelError::check_range(
-        "sun_azimuth_deg",
-        sun_azimuth_deg,
-        -360.0,
-        360.0,
-        "[-360, 360]",
-    )?;
-
-    let boresight = -enu(p.off_nadir_deg, p.look_azimuth_deg + 180.0); // from sensor, downwards
-    let (sl, cl) = crate::pbrdf::sin_cos_deg(p.look_azimuth_deg);
-    let right = Vector3::new(cl, -sl, 0.0);
-    let up = right.cross(&boresight);
-    let omega_sun = enu(sun_zenith_deg, sun_azimuth_deg);
-    let (tx, ty) = (
-        (0.5 * p.fov_deg.0).to_radians().tan(),
-        (0.5 * p.fov_deg.1).to_radians().tan(),
-    );
     let mut out = Vec::with_capacity(nx * ny);
     for row in 0..ny {
         for col in 0..nx {
-            // Tile centre on the image plane at unit distance (pinhole).
-            let u = ((col as f64 + 0.5) / nx as f64 * 2.0 - 1.0) * tx;
-            let v = (1.0 - (row as f64 + 0.5) / ny as f64 * 2.0) * ty;
-            let d = (boresight + right * u + up * v).normalize();
-            if d.z >= -1e-9 {
-                return Err(ModelError::Invalid {
-                    field: "fov_deg",
-                    reason: format!(
-                        "tile ({col}, {row}) looks {:.3} deg above the horizon: reduce fov_deg or off_nadir_deg",
-                        d.z.asin().to_degrees()
-                    ),
-                });
-            }
-            let t = p.altitude_m / -d.z;
-            let ground = Vector3::new(0.0, 0.0, p.altitude_m) + d * t;
-            let omega_view = -d;
-            let geometry = Geometry::from_directions(&omega_sun, &omega_view)?;
-            let phi_deg = geometry.relative_azimuth_rad().to_degrees();
-            // Camera Stokes frame of this ray: `right` made transverse to k = omega_view.
-            let k = omega_view;
-            let x_cam = (right - k * right.dot(&k)).normalize();
-            let s_r = reflected_frame_x(&omega_sun, &omega_view);
-            out.push(Tile {
-                index: (col, row),
-                theta_i_deg: sun_zenith_deg,
-                theta_r_deg: omega_view.z.clamp(-1.0, 1.0).acos().to_degrees(),
-                phi_deg,
-                ground_m: [ground.x, ground.y],
-                range_m: t,
-                omega_view,
-                geometry,
-                camera_from_surface: cos_sin_2eta(&s_r, &x_cam, &k),
-            });
+            // Tile centre on the image plane.
+            let u = (col as f64 + 0.5) / nx as f64 * 2.0 - 1.0;
+            let v = 1.0 - (row as f64 + 0.5) / ny as f64 * 2.0;
+            out.push(field.ray(u, v, (col, row))?);
         }
     }
     Ok(out)
