@@ -447,10 +447,27 @@ pub struct SkyArgs {
     #[arg(long, default_value_t = 550.0)]
     #[serde(default = "default_wavelength")]
     pub wavelength_nm: f64,
+    /// Sky model: rayleigh (single scattering) or berry (Berry-Dennis-Lee: the Rayleigh
+    /// radiance with the neutral points split by --separation-deg, as in the real sky).
+    #[arg(long, default_value = "rayleigh")]
+    #[serde(default = "default_sky_model")]
+    pub model: String,
+    /// Berry model: angle between the Babinet and Brewster neutral points, degrees, [0, 60].
+    #[arg(long, default_value_t = 30.0)]
+    #[serde(default = "default_separation")]
+    pub separation_deg: f64,
 }
 
 fn default_wavelength() -> f64 {
     550.0
+}
+
+fn default_sky_model() -> String {
+    "rayleigh".into()
+}
+
+fn default_separation() -> f64 {
+    30.0
 }
 
 /// Evaluates [`SkyArgs`].
@@ -471,15 +488,37 @@ pub fn sky(a: &SkyArgs) -> Result<Value, CommandError> {
     let z = angle(a.zenith_deg, "zenith_deg", 0.0, 90.0, "[0, 90]")?;
     let az = angle(a.azimuth_deg, "azimuth_deg", -360.0, 360.0, "[-360, 360]")?;
     let model = RayleighSky::at_wavelength(a.wavelength_nm)?;
-    let s = model.stokes(
-        &direction_from_deg(sun_z, sun_a),
-        &direction_from_deg(z, az),
-    )?;
+    let sun = direction_from_deg(sun_z, sun_a);
+    let view = direction_from_deg(z, az);
+    let rayleigh = model.stokes(&sun, &view)?;
+    let (s, name) = match a.model.as_str() {
+        "rayleigh" => (rayleigh, "rayleigh single scattering"),
+        "berry" => {
+            let sep =
+                ModelError::check_range("separation_deg", a.separation_deg, 0.0, 60.0, "[0, 60]")?;
+            let b = polar_model::sky::BerrySky {
+                sun,
+                separation_rad: sep.to_radians(),
+                max_dolp: model.dolp(0.0),
+            };
+            let (p, c2, s2) = b.polarization(&view);
+            let i = rayleigh.0[0];
+            (
+                polar_model::polarization::Stokes::new(i, i * p * c2, i * p * s2),
+                "berry-dennis-lee (rayleigh radiance)",
+            )
+        }
+        other => {
+            return Err(CommandError(format!(
+                "model = {other:?} is invalid: allowed rayleigh or berry"
+            )))
+        }
+    };
     Ok(json!({
         "s": [s.0[0], s.0[1], s.0[2]],
         "dolp": s.dolp(),
         "aop_deg": s.aop_rad().map(f64::to_degrees),
-        "model": "rayleigh single scattering",
+        "model": name,
         "optical_depth": model.optical_depth,
         "units": "sr^-1 per unit top-of-atmosphere solar irradiance",
     }))
