@@ -340,6 +340,52 @@ where
     ))
 }
 
+/// The inner integral of a 2-D rule at outer point `x`: adaptive over `[ay, by]`, split at
+/// `breaks(x)`, each piece to `0.1 tol / width / pieces` so that the outer sum of inner errors
+/// stays a tenth of the tolerance. Returns the value and error, and adds to `evaluations` and
+/// `converged`.
+#[allow(clippy::too_many_arguments)]
+fn inner_line<const N: usize, F, B>(
+    f: &mut F,
+    breaks: &mut B,
+    points: &mut Vec<f64>,
+    x: f64,
+    (ay, by): (f64, f64),
+    width: f64,
+    tol: Tolerance,
+    evaluations: &mut usize,
+    converged: &mut bool,
+) -> ([f64; N], f64)
+where
+    F: FnMut(f64, f64) -> [f64; N],
+    B: FnMut(f64, &mut Vec<f64>),
+{
+    points.clear();
+    breaks(x, points);
+    points.retain(|&y| y.is_finite() && y > ay && y < by);
+    points.push(ay);
+    points.push(by);
+    points.sort_by(f64::total_cmp);
+    points.dedup();
+    let pieces = (points.len() - 1) as f64;
+    let inner_tol = Tolerance {
+        abs: 0.1 * tol.abs / width / pieces,
+        rel: 0.1 * tol.rel,
+        max_intervals: tol.max_intervals,
+    };
+    let (mut value, mut error) = ([0.0; N], 0.0);
+    for w in points.windows(2) {
+        let inner = adaptive(|y| (f(x, y), 0.0), w[0], w[1], inner_tol);
+        *evaluations += inner.evaluations;
+        *converged &= inner.converged;
+        for (v, iv) in value.iter_mut().zip(&inner.value) {
+            *v += iv;
+        }
+        error += inner.error;
+    }
+    (value, error)
+}
+
 /// [`integrate_2d_split`] for an integrand with `N` components (a Stokes vector, say), all
 /// integrated on the same adaptive partition; the error is the largest component's.
 pub fn integrate_2d_split_n<const N: usize, F, B>(
@@ -359,30 +405,17 @@ where
     let mut points = Vec::with_capacity(8);
     let outer = adaptive(
         |x| {
-            points.clear();
-            breaks(x, &mut points);
-            points.retain(|&y| y.is_finite() && y > ay && y < by);
-            points.push(ay);
-            points.push(by);
-            points.sort_by(f64::total_cmp);
-            points.dedup();
-            let pieces = (points.len() - 1) as f64;
-            let inner_tol = Tolerance {
-                abs: 0.1 * tol.abs / width / pieces,
-                rel: 0.1 * tol.rel,
-                max_intervals: tol.max_intervals,
-            };
-            let (mut value, mut error) = ([0.0; N], 0.0);
-            for w in points.windows(2) {
-                let inner = adaptive(|y| (f(x, y), 0.0), w[0], w[1], inner_tol);
-                evaluations += inner.evaluations;
-                all_inner_converged &= inner.converged;
-                for (v, iv) in value.iter_mut().zip(&inner.value) {
-                    *v += iv;
-                }
-                error += inner.error;
-            }
-            (value, error)
+            inner_line(
+                &mut f,
+                &mut breaks,
+                &mut points,
+                x,
+                (ay, by),
+                width,
+                tol,
+                &mut evaluations,
+                &mut all_inner_converged,
+            )
         },
         ax,
         bx,
@@ -418,31 +451,18 @@ where
     let mut evaluations = 0usize;
     let mut all_inner_converged = true;
     let mut points = Vec::with_capacity(8);
-    let mut line = |x: f64, evaluations: &mut usize, converged: &mut bool| -> ([f64; N], f64) {
-        points.clear();
-        breaks(x, &mut points);
-        points.retain(|&y| y.is_finite() && y > ay && y < by);
-        points.push(ay);
-        points.push(by);
-        points.sort_by(f64::total_cmp);
-        points.dedup();
-        let pieces = (points.len() - 1) as f64;
-        let inner_tol = Tolerance {
-            abs: 0.1 * tol.abs / period / pieces,
-            rel: 0.1 * tol.rel,
-            max_intervals: tol.max_intervals,
-        };
-        let (mut value, mut error) = ([0.0; N], 0.0);
-        for w in points.windows(2) {
-            let inner = adaptive(|y| (f(x, y), 0.0), w[0], w[1], inner_tol);
-            *evaluations += inner.evaluations;
-            *converged &= inner.converged;
-            for (v, iv) in value.iter_mut().zip(&inner.value) {
-                *v += iv;
-            }
-            error += inner.error;
-        }
-        (value, error)
+    let mut line = |x: f64, evaluations: &mut usize, converged: &mut bool| {
+        inner_line(
+            &mut f,
+            &mut breaks,
+            &mut points,
+            x,
+            (ay, by),
+            period,
+            tol,
+            evaluations,
+            converged,
+        )
     };
     let mut m = 8usize;
     let mut sum = [0.0; N];

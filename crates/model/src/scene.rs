@@ -463,6 +463,25 @@ impl Prepared {
         self.table_error
     }
 
+    /// The band sky `sum_k c_k (A_k, B_k)` for per-node coefficients `c_k` (node weight times
+    /// the ground-to-sensor transmittance).
+    fn band_sky(&self, coefficients: &[f64]) -> BandSky<'_> {
+        let combine = |tables: &[Vec<f64>]| -> Vec<f64> {
+            let mut out = vec![0.0; tables[0].len()];
+            for (t, c) in tables.iter().zip(coefficients) {
+                for (o, v) in out.iter_mut().zip(t) {
+                    *o += c * v;
+                }
+            }
+            out
+        };
+        BandSky {
+            prepared: self,
+            a: combine(&self.table_a),
+            b: combine(&self.table_b),
+        }
+    }
+
     /// One field point: camera-frame total and surface part.
     fn point(
         &self,
@@ -496,20 +515,7 @@ impl Prepared {
         let mut sky_part = Vector3::zeros();
         let mut evaluations = 0;
         if inc.skylight {
-            let combine = |tables: &[Vec<f64>]| -> Vec<f64> {
-                let mut out = vec![0.0; self.table_a[0].len()];
-                for (t, w) in tables.iter().zip(&up) {
-                    for (o, v) in out.iter_mut().zip(t) {
-                        *o += w * v;
-                    }
-                }
-                out
-            };
-            let sky = BandSky {
-                prepared: self,
-                a: combine(&self.table_a),
-                b: combine(&self.table_b),
-            };
+            let sky = self.band_sky(&up);
             let r = reflected_skylight(
                 surface,
                 f00_diffuse,
@@ -887,20 +893,8 @@ mod tests {
     fn band_sky_equals_sum_of_exact_skies() {
         let s = spec(2.0, 0.0, 0.0, 1.0);
         let p = Prepared::new(&s, 1e-6).unwrap();
-        let combine = |tables: &[Vec<f64>]| -> Vec<f64> {
-            let mut out = vec![0.0; p.table_a[0].len()];
-            for (t, w) in tables.iter().zip(p.nodes.iter().map(|n| n.weight)) {
-                for (o, v) in out.iter_mut().zip(t) {
-                    *o += w * v;
-                }
-            }
-            out
-        };
-        let band = BandSky {
-            prepared: &p,
-            a: combine(&p.table_a),
-            b: combine(&p.table_b),
-        };
+        let weights: Vec<f64> = p.nodes.iter().map(|n| n.weight).collect();
+        let band = p.band_sky(&weights);
         for (z, az) in [
             (0.0, 0.0),
             (30.0, 90.0),

@@ -136,6 +136,16 @@ pub(crate) fn downward_path(tau: f64, mu0: f64, mu: f64) -> f64 {
 /// (world `+y` when `k` is vertical: the pBRDF's normal-incidence limit). Towards or away from
 /// the sun the plane is undefined and `(1, 0)` is returned (the light is unpolarised there).
 pub(crate) fn e_vector_in_frame(k: &Vector3<f64>, sun: &Vector3<f64>) -> (f64, f64) {
+    let e = k.cross(sun);
+    if e.norm() == 0.0 {
+        return (1.0, 0.0);
+    }
+    cos_sin_2chi(k, &e)
+}
+
+/// `(cos 2chi, sin 2chi)` of a (non-zero, transverse) E-vector `e` of a ray propagating along
+/// `k`, in the ray's surface frame `x ∝ k × z` (world `+y` when `k` is vertical), `y = k × x`.
+fn cos_sin_2chi(k: &Vector3<f64>, e: &Vector3<f64>) -> (f64, f64) {
     let x = k.cross(&Vector3::z());
     let x = if x.norm() > 0.0 {
         x.normalize()
@@ -143,12 +153,8 @@ pub(crate) fn e_vector_in_frame(k: &Vector3<f64>, sun: &Vector3<f64>) -> (f64, f
         Vector3::new(0.0, 1.0, 0.0)
     };
     let y = k.cross(&x);
-    let e = k.cross(sun);
-    if e.norm() == 0.0 {
-        return (1.0, 0.0);
-    }
     let (c, s) = (e.dot(&x), e.dot(&y));
-    let n2 = c * c + s * s;
+    let n2 = (c * c + s * s).max(1e-300);
     ((c * c - s * s) / n2, 2.0 * c * s / n2)
 }
 
@@ -221,8 +227,6 @@ impl BerrySky {
             / (1.0 + z.norm_sqr()).powi(2);
         let m = w.norm().min(1.0);
         let dolp = self.max_dolp * m / (2.0 - m);
-        // Chart angle chi_c = arg(w)/2 relative to the chart's x axis; on the sphere it is the
-        // angle chi_c - phi from the local radial direction e_theta towards e_phi.
         let phi = towards.y.atan2(towards.x);
         // The E-vector's chart angle is arg(w e^{-2i phi_s}) / 2 (the inscribed-angle theorem on
         // the circles through the neutral points); on the sphere it is measured from the local
@@ -237,17 +241,8 @@ impl BerrySky {
         );
         let e_phi = Vector3::new(-phi.sin(), phi.cos(), 0.0);
         let e = e_theta * a.cos() + e_phi * a.sin();
-        let k = -towards;
-        let x = k.cross(&Vector3::z());
-        let x = if x.norm() > 0.0 {
-            x.normalize()
-        } else {
-            Vector3::new(0.0, 1.0, 0.0)
-        };
-        let y = k.cross(&x);
-        let (c, s) = (e.dot(&x), e.dot(&y));
-        let n2 = (c * c + s * s).max(1e-300);
-        (dolp, (c * c - s * s) / n2, 2.0 * c * s / n2)
+        let (c2, s2) = cos_sin_2chi(&-towards, &e);
+        (dolp, c2, s2)
     }
 }
 
