@@ -58,7 +58,7 @@ pub fn allowed(field: &str) -> Option<&'static str> {
         "look_azimuth_deg" => "a number in [-360, 360] (clockwise from north)",
         "fov_deg" => "one or two numbers in (0, 120]",
         "tiles" => "NxM, e.g. 3x3",
-        "model" => "rayleigh or berry",
+        "model" => "rayleigh, berry or table",
         "separation_deg" => "a number in [0, 60]",
         "material" => "a built-in material name (polarimeter model materials)",
         _ => return None,

@@ -447,8 +447,9 @@ pub struct SkyArgs {
     #[arg(long, default_value_t = 550.0)]
     #[serde(default = "default_wavelength")]
     pub wavelength_nm: f64,
-    /// Sky model: rayleigh (single scattering) or berry (Berry-Dennis-Lee: the Rayleigh
-    /// radiance with the neutral points split by --separation-deg, as in the real sky).
+    /// Sky model: rayleigh (single scattering), berry (Berry-Dennis-Lee: the Rayleigh
+    /// radiance with the neutral points split by --separation-deg, as in the real sky) or table
+    /// (--table FILE).
     #[arg(long, default_value = "rayleigh")]
     #[serde(default = "default_sky_model")]
     pub model: String,
@@ -456,6 +457,20 @@ pub struct SkyArgs {
     #[arg(long, default_value_t = 30.0)]
     #[serde(default = "default_separation")]
     pub separation_deg: f64,
+    /// Table model: a CSV sky (zenith_deg,azimuth_deg,S0,S1,S2) exported from a
+    /// radiative-transfer code; the answer is in the table's units.
+    #[arg(long)]
+    #[serde(default)]
+    pub table: Option<std::path::PathBuf>,
+    /// Table model: the axis the table's S1 > 0 refers to, horizontal or vertical (meridian
+    /// plane, as libRadtran).
+    #[arg(long, default_value = "horizontal")]
+    #[serde(default = "default_reference")]
+    pub reference: String,
+}
+
+fn default_reference() -> String {
+    "horizontal".into()
 }
 
 fn default_wavelength() -> f64 {
@@ -508,9 +523,42 @@ pub fn sky(a: &SkyArgs) -> Result<Value, CommandError> {
                 "berry-dennis-lee (rayleigh radiance)",
             )
         }
+        "table" => {
+            let path = a
+                .table
+                .as_ref()
+                .ok_or_else(|| CommandError("model = \"table\" needs --table FILE.csv".into()))?;
+            let reference = match a.reference.as_str() {
+                "horizontal" => polar_model::sky_table::StokesReference::Horizontal,
+                "vertical" => polar_model::sky_table::StokesReference::Vertical,
+                other => {
+                    return Err(CommandError(format!(
+                        "reference = {other:?} is invalid: allowed horizontal or vertical"
+                    )))
+                }
+            };
+            let text = std::fs::read_to_string(path).map_err(|e| {
+                CommandError(format!(
+                    "table = {:?}: cannot read ({e})",
+                    path.display().to_string()
+                ))
+            })?;
+            let t = polar_model::sky_table::SkyTable::from_csv_str(&text, reference)
+                .map_err(|e| CommandError(format!("{}: {e}", path.display())))?;
+            let s = t.stokes_at_deg(z, az);
+            return Ok(json!({
+                "s": [s.0[0], s.0[1], s.0[2]],
+                "dolp": s.dolp(),
+                "aop_deg": s.aop_rad().map(f64::to_degrees),
+                "model": "table",
+                "grid": [t.grid().0, t.grid().1],
+                "interpolation_error": t.interpolation_error(),
+                "units": "the table's",
+            }));
+        }
         other => {
             return Err(CommandError(format!(
-                "model = {other:?} is invalid: allowed rayleigh or berry"
+                "model = {other:?} is invalid: allowed rayleigh, berry or table"
             )))
         }
     };
@@ -664,9 +712,21 @@ pub fn material_json(r: &polar_model::scene::MaterialResult) -> Value {
     })
 }
 
-/// Evaluates a scene given as TOML text.
-pub fn scene_text(text: &str, tolerance: f64) -> Result<Value, CommandError> {
-    let scene = polar_model::scene_file::Scene::from_toml_str(text)?;
+/// Reads a file a scene names, relative to the scene file's directory.
+pub fn read_relative(base: &std::path::Path, path: &str) -> Result<String, String> {
+    let full = base.join(path);
+    std::fs::read_to_string(&full).map_err(|e| format!("{}: cannot read ({e})", full.display()))
+}
+
+/// Evaluates a scene given as TOML text; files it names are read relative to `base`.
+pub fn scene_text(
+    text: &str,
+    base: &std::path::Path,
+    tolerance: f64,
+) -> Result<Value, CommandError> {
+    let scene = polar_model::scene_file::Scene::from_toml_str_with_files(text, &|p| {
+        read_relative(base, p)
+    })?;
     let results = polar_model::scene::evaluate(&scene.spec, &scene.materials, tolerance)?;
     let all: Vec<Value> = results.iter().map(material_json).collect();
     let mut out = all.first().cloned().unwrap_or(Value::Null);
@@ -678,6 +738,51 @@ pub fn scene_text(text: &str, tolerance: f64) -> Result<Value, CommandError> {
     Ok(out)
 }
 
+/// A scene's band sky at the ground as sky-table CSV on a `step_deg` grid (zenith 0..=90,
+/// azimuth 0..360); each zenith-0 row is the limit along its own azimuth.
+pub fn sky_table_csv(path: &std::path::Path, step_deg: f64) -> Result<String, CommandError> {
+    let step = ModelError::check_range("step_deg", step_deg, 1.0, 30.0, "[1, 30]")?;
+    if (90.0 / step).fract().abs() > 1e-9 || (360.0 / step).fract().abs() > 1e-9 {
+        return Err(CommandError(format!(
+            "step_deg = {step} is invalid: allowed a divisor of 90 in [1, 30]"
+        )));
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        CommandError(format!(
+            "scene = {:?}: cannot read ({e})",
+            path.display().to_string()
+        ))
+    })?;
+    let base = path.parent().unwrap_or(std::path::Path::new("."));
+    let scene = polar_model::scene_file::Scene::from_toml_str_with_files(&text, &|p| {
+        read_relative(base, p)
+    })
+    .map_err(|e| CommandError(format!("{}: {e}", path.display())))?;
+    let prepared = polar_model::scene::Prepared::new(&scene.spec, 1e-6)?;
+    let sky = prepared.ground_sky();
+    let mut out = format!(
+        "# band sky at the ground from {} (sun zenith {:.4} deg, azimuth {:.4} deg), W m^-2 sr^-1;\n\
+         # S1 > 0: E-vector horizontal. Written by polarimeter model sky-table.\n\
+         zenith_deg,azimuth_deg,S0,S1,S2\n",
+        path.display(),
+        scene.spec.sun_zenith_deg,
+        scene.spec.sun_azimuth_deg
+    );
+    let (nz, na) = (
+        (90.0 / step).round() as usize,
+        (360.0 / step).round() as usize,
+    );
+    for i in 0..=nz {
+        for j in 0..na {
+            let (z, a) = (i as f64 * step, j as f64 * step);
+            let d = polar_model::sky::direction_from_deg(z.max(1e-7), a);
+            let v = sky.stokes_from(&d).0;
+            out += &format!("{z},{a},{:.9e},{:.9e},{:.9e}\n", v[0], v[1], v[2]);
+        }
+    }
+    Ok(out)
+}
+
 /// Evaluates [`SceneArgs`].
 pub fn scene(a: &SceneArgs) -> Result<Value, CommandError> {
     let text = std::fs::read_to_string(&a.scene).map_err(|e| {
@@ -686,6 +791,7 @@ pub fn scene(a: &SceneArgs) -> Result<Value, CommandError> {
             a.scene.display().to_string()
         ))
     })?;
-    scene_text(&text, a.tolerance)
+    let base = a.scene.parent().unwrap_or(std::path::Path::new("."));
+    scene_text(&text, base, a.tolerance)
         .map_err(|e| CommandError(format!("{}: {}", a.scene.display(), e.0)))
 }

@@ -93,7 +93,7 @@ enum ModelCommand {
         #[arg(long)]
         batch: Option<PathBuf>,
     },
-    /// Rayleigh single-scattering sky: Stokes radiance, DoLP and AoP of one sky direction.
+    /// Sky Stokes radiance, DoLP and AoP of one sky direction (rayleigh, berry or a CSV table).
     /// Azimuths are clockwise from north; S1 > 0 is a horizontal E-vector.
     Sky {
         #[command(flatten)]
@@ -110,6 +110,17 @@ enum ModelCommand {
         /// JSON-lines input file, `-` for stdin.
         #[arg(long)]
         batch: Option<PathBuf>,
+    },
+    /// Print a scene's band sky at the ground as a sky table (CSV: zenith_deg, azimuth_deg, S0,
+    /// S1, S2 in W m^-2 sr^-1, S1 > 0 horizontal), the format `[sky] model = "table"` reads.
+    /// Azimuths clockwise from north.
+    SkyTable {
+        /// The scene (TOML).
+        #[arg(long)]
+        scene: PathBuf,
+        /// Grid step in zenith and azimuth, degrees, [1, 30] (the seed's MODTRAN-P grid: 10).
+        #[arg(long, default_value_t = 10.0)]
+        step_deg: f64,
     },
     /// Print the built-in material library as TOML (save it, edit it, cite its sources).
     Materials,
@@ -273,6 +284,18 @@ fn main() -> ExitCode {
             ModelCommand::Sun { args, batch: None } => Ok(print_json(commands::sun(&args))),
             ModelCommand::Sky { batch: Some(p), .. } => run_batch(Kind::Sky, &p),
             ModelCommand::Sky { args, batch: None } => Ok(print_json(commands::sky(&args))),
+            ModelCommand::SkyTable { scene, step_deg } => {
+                match commands::sky_table_csv(&scene, step_deg) {
+                    Ok(csv) => {
+                        print!("{csv}");
+                        Ok(ExitCode::SUCCESS)
+                    }
+                    Err(e) => {
+                        eprintln!("error: {}", e.0);
+                        Ok(ExitCode::from(2))
+                    }
+                }
+            }
             ModelCommand::Geometry { batch: Some(p), .. } => run_batch(Kind::Geometry, &p),
             ModelCommand::Geometry { args, batch: None } => {
                 Ok(print_json(commands::geometry(&args)))

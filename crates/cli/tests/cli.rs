@@ -510,7 +510,7 @@ fn geometry_command_centre_tile() {
 #[test]
 fn example_scenes_evaluate() {
     let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../../examples");
-    for name in ["bench", "rooftop", "airborne"] {
+    for name in ["bench", "rooftop", "airborne", "rooftop_table"] {
         let path = format!("{root}/{name}.toml");
         let out = polarimeter(&["model", "scene", "--scene", &path, "--tolerance", "1e-3"]);
         assert!(
@@ -542,8 +542,11 @@ fn example_scenes_evaluate() {
             }
             let dolp = m["dolp"].as_f64().unwrap();
             assert!((0.0..=1.0).contains(&dolp), "{name}: dolp {dolp}");
+            // The analytic skies meet the tolerance; a 10-degree sky table adds its
+            // interpolation error, about 1 % for the darkest material (the panel).
             let e = m["error_estimate"].as_f64().unwrap();
-            assert!(e < 1e-3, "{name} {}: error estimate {e}", m["material"]);
+            let limit = if name == "rooftop_table" { 2e-2 } else { 1e-3 };
+            assert!(e < limit, "{name} {}: error estimate {e}", m["material"]);
         }
     }
 }
@@ -568,4 +571,87 @@ fn bad_scene_names_file_and_field() {
     assert_eq!(missing.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&missing.stderr).contains("cannot read"));
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `model sky-table` writes a table that `model sky --model table` reads back: at a grid node
+/// the interpolant returns the written row (1e-9 relative: 10 significant digits written).
+#[test]
+fn sky_table_round_trips_through_the_cli() {
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../../examples/rooftop.toml");
+    let out = polarimeter(&["model", "sky-table", "--scene", scene, "--step-deg", "15"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let csv = String::from_utf8(out.stdout).unwrap();
+    let row: Vec<f64> = csv
+        .lines()
+        .find(|l| l.starts_with("45,120,"))
+        .unwrap()
+        .split(',')
+        .map(|x| x.parse().unwrap())
+        .collect();
+    let dir = std::env::temp_dir().join(format!("polar-sky-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("sky.csv");
+    std::fs::write(&path, &csv).unwrap();
+    let out = polarimeter(&[
+        "model",
+        "sky",
+        "--model",
+        "table",
+        "--table",
+        path.to_str().unwrap(),
+        "--sun-zenith-deg",
+        "30",
+        "--sun-azimuth-deg",
+        "100",
+        "--zenith-deg",
+        "45",
+        "--azimuth-deg",
+        "120",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let s: Vec<f64> = serde_json::from_value(v["s"].clone()).unwrap();
+    for k in 0..3 {
+        assert!(
+            (s[k] - row[k + 2]).abs() <= 1e-9 * row[2],
+            "{s:?} vs {row:?}"
+        );
+    }
+    // A hole: the error names the file and the missing grid point.
+    let holed: String = csv
+        .lines()
+        .filter(|l| !l.starts_with("45,120,"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    std::fs::write(&path, holed).unwrap();
+    let out = polarimeter(&[
+        "model",
+        "sky",
+        "--model",
+        "table",
+        "--table",
+        path.to_str().unwrap(),
+        "--sun-zenith-deg",
+        "30",
+        "--sun-azimuth-deg",
+        "100",
+        "--zenith-deg",
+        "45",
+        "--azimuth-deg",
+        "120",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("sky.csv") && err.contains("(45.0, 120.0)"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
 }

@@ -18,6 +18,7 @@
 //! * [`analyzer`]: measurement matrices of analyzer sets, reconstruction, conditioning and noise gains.
 //! * [`atmosphere`]: TOA spectrum, band, Beer-Lambert transmittance, clear sky with aerosol, path radiance.
 //! * [`sky`]: Rayleigh single-scattering sky radiance and polarisation.
+//! * [`sky_table`]: a tabulated sky from a radiative-transfer code (CSV), interpolated with its error.
 //! * [`skylight`]: skylight reflected by a surface (Eq. 3.22), slope-space quadrature with error.
 //! * [`sun`]: the sun's position from UTC time and site (NREL SPA).
 //! * [`scene`]: a scene's mean and covariance at the aperture, to a tolerance, with its error and the terms it skipped.
@@ -37,6 +38,7 @@ pub mod quadrature;
 pub mod scene;
 pub mod scene_file;
 pub mod sky;
+pub mod sky_table;
 pub mod skylight;
 pub mod sun;
 pub mod tiles;

@@ -12,6 +12,10 @@
 //! elevation_m = 160
 //! [atmosphere]                         # optional; every field optional (clear continental)
 //! aerosol_optical_depth_550 = 0.1
+//! [sky]                                # optional; model = "single_scattering" by default
+//! model = "berry"                      # separation_deg = 30, max_dolp = 0.7; or "table" with
+//!                                      # file = "sky.csv" (zenith_deg,azimuth_deg,S0,S1,S2),
+//!                                      # reference = "horizontal" | "vertical"
 //! [band]
 //! lo_nm = 450                          # or response = [[450, 0.2], [550, 1.0], [650, 0.3]]
 //! hi_nm = 650
@@ -29,7 +33,8 @@
 use crate::atmosphere::{Atmosphere, Band};
 use crate::error::ModelError;
 use crate::material::{Material, MaterialLibrary, MaterialModel};
-use crate::scene::{SceneMaterial, SceneSpec, Texture};
+use crate::scene::{SceneMaterial, SceneSpec, SkyModel, Texture};
+use crate::sky_table::{SkyTable, StokesReference};
 use crate::sun::{sun_position, Site, UtcTime};
 use crate::tiles::Pointing;
 use serde::Deserialize;
@@ -50,6 +55,7 @@ struct File {
     site: Option<SiteFile>,
     #[serde(default)]
     atmosphere: AtmosphereFile,
+    sky: Option<SkyFile>,
     band: BandFile,
     sensor: SensorFile,
     #[serde(rename = "material", default)]
@@ -82,6 +88,16 @@ struct AtmosphereFile {
     aerosol_g: Option<f64>,
     rayleigh_scale_height_m: Option<f64>,
     aerosol_scale_height_m: Option<f64>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SkyFile {
+    model: String,
+    separation_deg: Option<f64>,
+    max_dolp: Option<f64>,
+    file: Option<String>,
+    reference: Option<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -164,8 +180,22 @@ pub fn parse_utc(text: &str) -> Result<UtcTime, ModelError> {
 
 impl Scene {
     /// Parses and validates a scene. Errors name the field, the value and the allowed range
-    /// (TOML syntax errors and unknown keys come with their line and column).
+    /// (TOML syntax errors and unknown keys come with their line and column). A scene that
+    /// names a sky table file needs [`Scene::from_toml_str_with_files`].
     pub fn from_toml_str(text: &str) -> Result<Scene, ModelError> {
+        Scene::from_toml_str_with_files(text, &|path| {
+            Err(format!(
+                "cannot read {path:?}: this parser has no file access (load the scene through the CLI)"
+            ))
+        })
+    }
+
+    /// As [`Scene::from_toml_str`], with `read` returning the text of a file the scene names
+    /// (`sky.file`), or why it could not.
+    pub fn from_toml_str_with_files(
+        text: &str,
+        read: &dyn Fn(&str) -> Result<String, String>,
+    ) -> Result<Scene, ModelError> {
         let f: File = toml::from_str(text).map_err(|e| invalid("scene", e.to_string()))?;
         let site = f
             .site
@@ -228,6 +258,10 @@ impl Scene {
                 ))
             }
         };
+        let sky = match f.sky {
+            None => SkyModel::SingleScattering,
+            Some(k) => sky_model(k, read)?,
+        };
         let pointing = Pointing {
             altitude_m: f.sensor.altitude_m,
             off_nadir_deg: f.sensor.off_nadir_deg,
@@ -259,11 +293,90 @@ impl Scene {
                 sun_zenith_deg,
                 sun_azimuth_deg,
                 atmosphere,
+                sky,
                 band,
                 pointing,
             },
             materials,
         })
+    }
+}
+
+/// Largest DoLP of the Berry sky when the file gives none: the middle of clear skies' 0.6-0.8
+/// (MODEL.md section 10).
+const BERRY_MAX_DOLP: f64 = 0.7;
+/// Babinet-Brewster separation when the file gives none: the two points sit roughly 15 deg
+/// above and below the sun in clear skies (Berry, Dennis & Lee 2004, introduction); the CLI's
+/// `model sky --model berry` uses the same default.
+const BERRY_SEPARATION_DEG: f64 = 30.0;
+
+fn sky_model(
+    k: SkyFile,
+    read: &dyn Fn(&str) -> Result<String, String>,
+) -> Result<SkyModel, ModelError> {
+    let only = |field: &'static str, present: bool, model: &str| {
+        if present {
+            Err(invalid(
+                field,
+                format!("is not used by sky.model = {model:?}"),
+            ))
+        } else {
+            Ok(())
+        }
+    };
+    match k.model.as_str() {
+        "single_scattering" => {
+            only("sky.separation_deg", k.separation_deg.is_some(), &k.model)?;
+            only("sky.max_dolp", k.max_dolp.is_some(), &k.model)?;
+            only("sky.file", k.file.is_some(), &k.model)?;
+            only("sky.reference", k.reference.is_some(), &k.model)?;
+            Ok(SkyModel::SingleScattering)
+        }
+        "berry" => {
+            only("sky.file", k.file.is_some(), &k.model)?;
+            only("sky.reference", k.reference.is_some(), &k.model)?;
+            Ok(SkyModel::Berry {
+                separation_deg: ModelError::check_range(
+                    "sky.separation_deg",
+                    k.separation_deg.unwrap_or(BERRY_SEPARATION_DEG),
+                    0.0,
+                    60.0,
+                    "[0, 60]",
+                )?,
+                max_dolp: ModelError::check_range(
+                    "sky.max_dolp",
+                    k.max_dolp.unwrap_or(BERRY_MAX_DOLP),
+                    0.0,
+                    1.0,
+                    "[0, 1]",
+                )?,
+            })
+        }
+        "table" => {
+            only("sky.separation_deg", k.separation_deg.is_some(), &k.model)?;
+            only("sky.max_dolp", k.max_dolp.is_some(), &k.model)?;
+            let path = k.file.ok_or_else(|| {
+                invalid("sky.file", "sky.model = \"table\" needs file = \"...csv\"")
+            })?;
+            let reference = match k.reference.as_deref() {
+                None | Some("horizontal") => StokesReference::Horizontal,
+                Some("vertical") => StokesReference::Vertical,
+                Some(other) => {
+                    return Err(invalid(
+                        "sky.reference",
+                        format!("{other:?}: allowed \"horizontal\" or \"vertical\""),
+                    ))
+                }
+            };
+            let text = read(&path).map_err(|e| invalid("sky.file", e))?;
+            let table = SkyTable::from_csv_str(&text, reference)
+                .map_err(|e| invalid("sky.file", format!("{path}: {e}")))?;
+            Ok(SkyModel::Table(std::sync::Arc::new(table)))
+        }
+        other => Err(invalid(
+            "sky.model",
+            format!("{other:?}: allowed \"single_scattering\", \"berry\" or \"table\""),
+        )),
     }
 }
 
@@ -355,6 +468,78 @@ name = "panel"
 library = "black_paint"
 texture_cv = 0.02
 "#;
+
+    fn with_sky(sky: &str) -> String {
+        MINIMAL.replace("[band]", &format!("[sky]\n{sky}\n[band]"))
+    }
+
+    /// A 30 x 90 degree table, optionally without one row.
+    fn table(drop: Option<&str>) -> String {
+        let mut t = String::from("zenith_deg,azimuth_deg,S0,S1,S2\n");
+        for z in [0, 30, 60, 90] {
+            for a in [0, 90, 180, 270] {
+                let row = format!("{z},{a},1.0,0.1,0.0");
+                if Some(row.as_str()) != drop {
+                    t += &row;
+                    t += "\n";
+                }
+            }
+        }
+        t
+    }
+
+    /// The [sky] section: Berry with defaults, a table read through the caller's reader, and
+    /// errors naming the field: unknown model, unused key, unreadable file, a table with a hole.
+    #[test]
+    fn sky_section_parses_and_errors_name_the_field() {
+        let s = Scene::from_toml_str(&with_sky("model = \"berry\"")).unwrap();
+        assert_eq!(
+            s.spec.sky,
+            SkyModel::Berry {
+                separation_deg: BERRY_SEPARATION_DEG,
+                max_dolp: BERRY_MAX_DOLP
+            }
+        );
+        let read_ok = |p: &str| {
+            assert_eq!(p, "sky.csv");
+            Ok(table(None))
+        };
+        let text = with_sky("model = \"table\"\nfile = \"sky.csv\"\nreference = \"vertical\"");
+        let s = Scene::from_toml_str_with_files(&text, &read_ok).unwrap();
+        let SkyModel::Table(t) = &s.spec.sky else {
+            panic!("{:?}", s.spec.sky)
+        };
+        // Vertical reference: the file's S1 = 0.1 is -0.1 in the horizontal frame.
+        assert!((t.stokes_at_deg(45.0, 45.0).0[1] + 0.1).abs() < 1e-12);
+        let e = Scene::from_toml_str(&text).unwrap_err().to_string();
+        assert!(
+            e.contains("sky.file") && e.contains("no file access"),
+            "{e}"
+        );
+        let holed = |_: &str| Ok(table(Some("60,90,1.0,0.1,0.0")));
+        let e = Scene::from_toml_str_with_files(&text, &holed)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("sky.file") && e.contains("sky.csv") && e.contains("(60.0, 90.0)"),
+            "{e}"
+        );
+        for (sky, field) in [
+            ("model = \"modtran\"", "sky.model"),
+            ("model = \"berry\"\nfile = \"x.csv\"", "sky.file"),
+            ("model = \"berry\"\nmax_dolp = 1.5", "sky.max_dolp"),
+            ("model = \"table\"", "sky.file"),
+            (
+                "model = \"table\"\nfile = \"a\"\nreference = \"up\"",
+                "sky.reference",
+            ),
+        ] {
+            let e = Scene::from_toml_str(&with_sky(sky))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(field), "{sky}: {e}");
+        }
+    }
 
     #[test]
     fn minimal_scene_parses_with_defaults() {

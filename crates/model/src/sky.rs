@@ -103,7 +103,11 @@ impl RayleighSky {
         Ok(single_scattered(
             p11,
             p12,
-            downward_path(self.optical_depth, sun.z, view.z),
+            downward_path(
+                self.optical_depth,
+                crate::atmosphere::slant_mu0(sun.z),
+                view.z,
+            ),
             sun,
             view,
         ))
@@ -113,7 +117,9 @@ impl RayleighSky {
 /// The geometric factor of downward single scattering at the bottom of a homogeneous layer of
 /// optical depth `tau`, sun at `mu0 = cos`, view at `mu = cos` (Liou, *An Introduction to
 /// Atmospheric Radiation*): `mu0 / (mu0 - mu) (e^{-tau/mu0} - e^{-tau/mu})`, evaluated with
-/// `expm1` so that `mu = mu0` and the horizon are exact limits; 0 with the sun at the horizon.
+/// `expm1` so that `mu = mu0` and the horizon are exact limits. `mu0` enters only through the
+/// sun beam's attenuation, so callers pass the pseudo-spherical
+/// [`crate::atmosphere::slant_mu0`].
 pub(crate) fn downward_path(tau: f64, mu0: f64, mu: f64) -> f64 {
     if mu0 <= 0.0 || tau == 0.0 {
         0.0
