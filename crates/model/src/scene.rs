@@ -660,6 +660,48 @@ impl Prepared {
         })
     }
 
+    /// The three radiance terms of Eq. 3.24 for `material` along the boresight, band-integrated,
+    /// in the camera frame (W m^-2 sr^-1): the direct sun (Eq. 3.21, transmitted up), the
+    /// reflected skylight (Eq. 3.22, transmitted up) and the path radiance (Eq. 3.23). Nothing
+    /// is skipped; the skylight is integrated to the scene's tolerance of the largest term.
+    pub fn boresight_terms(&self, material: &SceneMaterial) -> Result<[Stokes; 3], ModelError> {
+        let surface = &material.surface;
+        let diffuse = surface.diffuse(
+            self.spec.sun_zenith_deg.to_radians(),
+            Tolerance::absolute(self.tol / 64.0),
+        )?;
+        let centre = self.field.ray(0.0, 0.0, (0, 0))?;
+        let base = Include {
+            skylight: false,
+            path: true,
+            tol_abs: 0.0,
+            coarse_table: false,
+        };
+        let no_sky = self.point(surface, diffuse.f00, &centre, base)?;
+        let white: f64 = self
+            .nodes
+            .iter()
+            .map(|n| n.weight * (n.t_sun * self.sun.z + n.e_sky))
+            .sum::<f64>()
+            / PI;
+        let scale = no_sky.total[0].abs().max(1e-3 * white).max(1e-300);
+        let all = self.point(
+            surface,
+            diffuse.f00,
+            &centre,
+            Include {
+                skylight: true,
+                tol_abs: self.tol * scale,
+                ..base
+            },
+        )?;
+        Ok([
+            Stokes(no_sky.surface),
+            Stokes(all.sky),
+            Stokes(all.total - all.surface),
+        ])
+    }
+
     /// Evaluates one material over the field of view.
     pub fn evaluate(&self, material: &SceneMaterial) -> Result<MaterialResult, ModelError> {
         let tol = self.tol;
