@@ -213,12 +213,12 @@ fn figures_show_what_the_seed_describes() {
     let (mut spread, mut peaks) = (Vec::new(), Vec::new());
     for sigma in ["sigma = 0.1", "sigma = 0.3", "sigma = 0.5", "sigma = 0.7"] {
         let panel: Vec<&Vec<String>> = rows.iter().filter(|r| r[0] == sigma).collect();
-        let dolp = |r: &Vec<String>| r[4].parse::<f64>().unwrap();
+        let dolp = |r: &Vec<String>| r[3].parse::<f64>().unwrap();
         let best = panel
             .iter()
             .max_by(|a, b| dolp(a).total_cmp(&dolp(b)))
             .unwrap();
-        let phi: f64 = best[3].parse().unwrap();
+        let phi: f64 = best[2].parse().unwrap();
         if sigma == "sigma = 0.1" || sigma == "sigma = 0.3" {
             assert_eq!(phi, 180.0, "{sigma}: max DoLP at phi {phi}");
         }
@@ -239,17 +239,60 @@ fn figures_show_what_the_seed_describes() {
     let rows = read_csv(&dir.join("fig3_7_glass_vs_vegetation.csv"));
     let peak = |ti: &str| {
         rows.iter()
-            .filter(|r| r[0].starts_with("glass") && r[1] == ti)
-            .map(|r| r[4].parse::<f64>().unwrap())
+            .filter(|r| r[0] == format!("glass; theta_i = {ti}"))
+            .map(|r| r[3].parse::<f64>().unwrap())
             .fold(0.0, f64::max)
     };
     assert!(
-        peak("60") > peak("40") && peak("40") > peak("20"),
+        peak("60") > peak("40") && peak("40") > peak("20") && peak("20") > 0.0,
         "{} {} {}",
         peak("20"),
         peak("40"),
         peak("60")
     );
+    // Fig. 3.12: the sky's DoLP peaks 90 deg from the sun (within the CSV's 5-deg grid plus
+    // the band's flatness along that great circle: 10 deg), and the zenith's DoLP grows as the
+    // sun sinks from 20 to 80 deg.
+    let rows = read_csv(&dir.join("fig3_12_sky_dolp_sun.csv"));
+    let mut zenith_dolp = Vec::new();
+    for sun_z in [20.0f64, 40.0, 60.0, 80.0] {
+        let panel: Vec<(f64, f64, f64)> = rows
+            .iter()
+            .filter(|r| r[0] == format!("sun zenith {sun_z} deg"))
+            .map(|r| {
+                (
+                    r[1].parse().unwrap(),
+                    r[2].parse().unwrap(),
+                    r[3].parse().unwrap(),
+                )
+            })
+            .collect();
+        let best = panel
+            .iter()
+            .fold((0.0, 0.0, 0.0), |m, p| if p.2 > m.2 { *p } else { m });
+        let (z, az) = (best.0.to_radians(), best.1.to_radians());
+        let (zs, azs) = (sun_z.to_radians(), std::f64::consts::PI);
+        let cos_gamma = z.cos() * zs.cos() + z.sin() * zs.sin() * (az - azs).cos();
+        let gamma = cos_gamma.acos().to_degrees();
+        assert!(
+            (gamma - 90.0).abs() <= 10.0,
+            "sun {sun_z}: max at {best:?}, {gamma} deg away"
+        );
+        zenith_dolp.push(panel.iter().find(|p| p.0 == 0.0).unwrap().2);
+    }
+    assert!(
+        zenith_dolp.windows(2).all(|w| w[1] > w[0]),
+        "{zenith_dolp:?}"
+    );
+    // Figs. 4.1-4.2: looking into glass's glint the direct sun is over 90 % of S0; the path
+    // radiance is unpolarised in the antisolar direction (-45 deg, next to the antisun at -46)
+    // and polarised elsewhere (over 10 % at nadir).
+    let rows = read_csv(&dir.join("fig4_2_contributions_glass.csv"));
+    let at = |v: &str| rows.iter().find(|r| r[0] == v).unwrap();
+    let f = |r: &Vec<String>, k: usize| r[k].parse::<f64>().unwrap();
+    assert!(f(at("45"), 1) > 0.9 * f(at("45"), 7), "{:?}", at("45"));
+    assert!(f(at("-45"), 6) < 0.02 * f(at("-45"), 5), "{:?}", at("-45"));
+    assert!(f(at("0"), 6) > 0.1 * f(at("0"), 5), "{:?}", at("0"));
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
