@@ -453,7 +453,8 @@ pub struct ClearSky {
 impl ClearSky {
     /// Henyey-Greenstein phase function normalised to average 1 over the sphere.
     pub fn henyey_greenstein(g: f64, cos_gamma: f64) -> f64 {
-        (1.0 - g * g) / (1.0 + g * g - 2.0 * g * cos_gamma).powf(1.5)
+        let d = 1.0 + g * g - 2.0 * g * cos_gamma;
+        (1.0 - g * g) / (d * d.sqrt())
     }
 
     /// Optical-depth-weighted source `(omega P11, -omega P12)` of the mixture, phase functions

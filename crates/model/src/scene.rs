@@ -717,12 +717,12 @@ impl Prepared {
                 }
             }
         }
-        let diffuse = surface.diffuse(
+        let mut diffuse = surface.diffuse(
             self.spec.sun_zenith_deg.to_radians(),
             Tolerance::absolute(tol / 64.0),
         )?;
         let mut evaluations = diffuse.specular_albedo.evaluations;
-        let f00 = diffuse.f00;
+        let mut f00 = diffuse.f00;
         let centre = self.field.ray(0.0, 0.0, (0, 0))?;
         let direct_only = Include {
             skylight: false,
@@ -803,6 +803,18 @@ impl Prepared {
                 format!("{path_rel:.2e} of S0 at {altitude} m, below tol/4")
             },
         };
+        // The Lambertian term f00_d = (DHR - specular albedo) / pi carries the albedo's error
+        // times the irradiance: `error * white` of radiance. A dark material (S0 << white) needs
+        // the albedo tighter than tol/64: redone to tol/16 of S0 when above tol/8.
+        let albedo_target = tol / 8.0 * s0_est / white.max(1e-300);
+        if diffuse.specular_albedo.error > albedo_target {
+            diffuse = surface.diffuse(
+                self.spec.sun_zenith_deg.to_radians(),
+                Tolerance::absolute(albedo_target / 2.0),
+            )?;
+            evaluations += diffuse.specular_albedo.evaluations;
+            f00 = diffuse.f00;
+        }
         // Every tolerance from here on is relative to the estimated S0.
         let s0_direct = s0_est;
         let inc = Include {
@@ -816,7 +828,7 @@ impl Prepared {
         // tolerance / 32, its error added), decide whether one ray is enough: the field's mean then
         // differs from the centre by less than the largest corner difference.
         let probe = Include {
-            tol_abs: tol / 32.0 * s0_direct,
+            tol_abs: tol / 16.0 * s0_direct,
             ..inc
         };
         let c0 = self.point(surface, f00, &centre, probe)?;
@@ -840,7 +852,7 @@ impl Prepared {
             // allowed for), the polynomial through this order's rays replaces the hemisphere
             // integrals at every higher order, and its last prediction error is reported.
             let per_ray = Include {
-                tol_abs: tol / 16.0 * s0_direct,
+                tol_abs: tol / 8.0 * s0_direct,
                 ..inc
             };
             let mut fit: Option<SkyFit> = None;
@@ -976,10 +988,17 @@ impl Prepared {
             }
             _ => 0.0,
         };
+        // A skipped term's measured size is an error the answer carries.
+        let skipped = if skylight {
+            0.0
+        } else {
+            sky_bound * s0_direct / s0
+        } + if path { 0.0 } else { path_rel * s0_direct / s0 };
         let error_estimate = sky_error / s0
+            + skipped
             + table_error
             + sky_fit_error * (s0_direct / s0)
-            + diffuse.specular_albedo.error * (s0_direct / s0)
+            + diffuse.specular_albedo.error * white / s0
             + self.spectral_change
             + self.table_error
             + field_change.min(1.0);

@@ -143,8 +143,17 @@ pub(crate) fn downward_path(tau: f64, mu0: f64, mu: f64) -> f64 {
 /// the sun the plane is undefined and `(1, 0)` is returned (the light is unpolarised there).
 pub(crate) fn e_vector_in_frame(k: &Vector3<f64>, sun: &Vector3<f64>) -> (f64, f64) {
     let e = k.cross(sun);
-    if e.norm() == 0.0 {
+    if e.norm_squared() == 0.0 {
         return (1.0, 0.0);
+    }
+    if k.x != 0.0 || k.y != 0.0 {
+        // The unnormalised frame x = k × z = (k.y, -k.x, 0), y = k × x = k k.z - z for unit k:
+        // e.x = e.x k.y - e.y k.x, e.y = -e.z (e ⊥ k). The scale of x cancels in the ratios.
+        let (c, s) = (e.x * k.y - e.y * k.x, -e.z);
+        let n2 = c * c + s * s;
+        if n2 > 0.0 {
+            return ((c * c - s * s) / n2, 2.0 * c * s / n2);
+        }
     }
     cos_sin_2chi(k, &e)
 }
