@@ -341,8 +341,8 @@ where
 }
 
 /// The inner integral of a 2-D rule at outer point `x`: adaptive over `[ay, by]`, split at
-/// `breaks(x)`, each piece to `0.1 tol / width / pieces` so that the outer sum of inner errors
-/// stays a tenth of the tolerance. Returns the value and error, and adds to `evaluations` and
+/// `breaks(x)`, each piece to `0.3 tol / width / pieces` so that the outer sum of inner errors
+/// stays below 0.3 of the tolerance. Returns the value and error, and adds to `evaluations` and
 /// `converged`.
 #[allow(clippy::too_many_arguments)]
 fn inner_line<const N: usize, F, B>(
@@ -369,8 +369,8 @@ where
     points.dedup();
     let pieces = (points.len() - 1) as f64;
     let inner_tol = Tolerance {
-        abs: 0.1 * tol.abs / width / pieces,
-        rel: 0.1 * tol.rel,
+        abs: 0.3 * tol.abs / width / pieces,
+        rel: 0.3 * tol.rel,
         max_intervals: tol.max_intervals,
     };
     let (mut value, mut error) = ([0.0; N], 0.0);
