@@ -35,7 +35,17 @@
 //!   `tol / 4` in facet-slope space;
 //! * **geometry variation** `Sigma_g` and **texture** `Sigma_v` as above and in [`Texture`].
 //!
-//! The reported `error_estimate` adds the quadrature, spectral, table and field errors.
+//! The reported `error_estimate` adds the quadrature, spectral, `mu`-table and field errors, the
+//! measured size of every skipped term, the Lambertian term's share of the specular albedo's
+//! error, and, for a tabulated sky, the interpolation error measured on the result (the
+//! centre's skylight recomputed with the half-resolution table).
+//!
+//! # Sky
+//!
+//! [`SkyModel`]: single scattering (above), Berry-Dennis-Lee polarisation on single-scattering
+//! radiance, or a table from a radiative-transfer code ([`crate::sky_table`]). The sun beam's
+//! attenuation uses the pseudo-spherical cosine ([`crate::atmosphere::slant_mu0`]), so a sun at
+//! the horizon still lights the sky.
 
 use crate::atmosphere::{air_mass, slant_mu0, Atmosphere, Band, ClearSky};
 use crate::error::ModelError;

@@ -219,7 +219,7 @@ impl BerrySky {
     }
 
     /// `(DoLP, cos 2chi, sin 2chi)` of light arriving from `towards` (unit, upward), `chi` the
-    /// E-vector's angle in the frame of [`e_vector_in_frame`] for the ray `-towards`.
+    /// E-vector's angle in the frame of this module (x horizontal) for the ray `-towards`.
     pub fn polarization(&self, towards: &Vector3<f64>) -> (f64, f64, f64) {
         use num_complex::Complex64 as C;
         let theta_s = self.sun.z.clamp(-1.0, 1.0).acos();
