@@ -16,5 +16,9 @@ if ((${#APT_PACKAGES[@]})); then
   fi
 fi
 
+# The firmware protocol must build for a Cortex-M4F without std (thumbv7em-none-eabihf).
+rustup target add thumbv7em-none-eabihf >/dev/null
+cargo build -p polar-firmware-protocol --target thumbv7em-none-eabihf --locked
+
 # Optimised tests: the property and quadrature tests evaluate the model ~1e7 times.
 cargo test --workspace --release --locked
