@@ -1,0 +1,159 @@
+//! Device traits of the polarimeter and the error kinds every device shares
+//! (`../shared/design/SYSTEM.md`, "Device abstraction").
+//!
+//! * [`Rotator`]: a rotation stage (home, move to an absolute angle, read the position back).
+//! * [`FilterWheel`]: a wheel (or slider) of labelled slots.
+//! * [`Analyzer`]: the view plans use. It speaks analyzer angles whether a rotator turns one
+//!   polarizer or a wheel holds fixed polarizers at known angles. It uses the polarizer's
+//!   180-degree period to take the shorter way, and always approaches a target from the same
+//!   side, so that gear backlash is taken up the same way every time.
+//!
+//! Every error maps to an [`ErrorKind`] through [`DeviceError::kind`], so that the engine can
+//! retry, reconnect or abort without knowing the device. Traits use `async fn`: drivers
+//! implement them on tokio, simulated devices in memory. This crate has no I/O and no runtime.
+#![warn(missing_docs)]
+
+mod analyzer;
+
+pub use analyzer::{Analyzer, Approach, OnRotator, OnWheel, SlotAngle};
+
+use std::f64::consts::PI;
+
+/// What went wrong, as the engine needs to know it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[non_exhaustive]
+pub enum ErrorKind {
+    /// No (complete) answer within the deadline.
+    Timeout,
+    /// The device is gone (unplugged, port closed); it may come back.
+    Disconnected,
+    /// The device answered with bytes that do not parse, or an unexpected reply.
+    Protocol,
+    /// A request outside the device's range (a slot past the last, an angle not fitted).
+    OutOfRange,
+    /// The device is busy with another operation.
+    Busy,
+    /// The mechanism did not follow (stall, position not reached).
+    Stalled,
+    /// Anything else (over temperature, a refused command, an internal fault).
+    Other,
+}
+
+impl ErrorKind {
+    /// Whether repeating the same request can succeed without intervention.
+    pub fn is_transient(self) -> bool {
+        matches!(
+            self,
+            ErrorKind::Timeout | ErrorKind::Busy | ErrorKind::Protocol
+        )
+    }
+}
+
+impl std::fmt::Display for ErrorKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            ErrorKind::Timeout => "timeout",
+            ErrorKind::Disconnected => "disconnected",
+            ErrorKind::Protocol => "protocol error",
+            ErrorKind::OutOfRange => "out of range",
+            ErrorKind::Busy => "busy",
+            ErrorKind::Stalled => "stalled",
+            ErrorKind::Other => "device error",
+        })
+    }
+}
+
+/// A device error: its kind, the device, and what happened.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{device}: {kind}: {message}")]
+pub struct DeviceError {
+    kind: ErrorKind,
+    /// The device, as the user names it (port and address, or a simulator's name).
+    pub device: String,
+    /// What happened, with the values involved.
+    pub message: String,
+}
+
+impl DeviceError {
+    /// A new error.
+    pub fn new(kind: ErrorKind, device: impl Into<String>, message: impl Into<String>) -> Self {
+        DeviceError {
+            kind,
+            device: device.into(),
+            message: message.into(),
+        }
+    }
+
+    /// The kind.
+    pub fn kind(&self) -> ErrorKind {
+        self.kind
+    }
+}
+
+/// What a rotator reports about itself.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RotatorInfo {
+    /// Model and serial number, as the device reports them.
+    pub model: String,
+    /// Encoder counts per turn of the output (the angular resolution is one count).
+    pub counts_per_turn: u32,
+    /// How close a move must land to its target, radians (the readback check).
+    pub tolerance_rad: f64,
+}
+
+/// A rotation stage.
+#[allow(async_fn_in_trait)] // used through generics; Send-ness is the implementor's business
+pub trait Rotator {
+    /// Identity and resolution.
+    fn info(&self) -> &RotatorInfo;
+    /// Finds the index and zeroes the position.
+    async fn home(&mut self) -> Result<(), DeviceError>;
+    /// Moves to `angle_rad` in `[0, 2 pi)`, the short way or as the device likes, and returns
+    /// the position read back afterwards (within `tolerance_rad` of the target, or an error of
+    /// kind [`ErrorKind::Stalled`]).
+    async fn move_to(&mut self, angle_rad: f64) -> Result<f64, DeviceError>;
+    /// The position, radians in `[0, 2 pi)`.
+    async fn position_rad(&mut self) -> Result<f64, DeviceError>;
+    /// Whether [`Rotator::set_velocity`] does anything.
+    fn supports_velocity(&self) -> bool {
+        false
+    }
+    /// Sets the cruise velocity, rad/s; by default a no-op (see [`Rotator::supports_velocity`]).
+    async fn set_velocity(&mut self, _rad_per_s: f64) -> Result<(), DeviceError> {
+        Ok(())
+    }
+}
+
+/// A filter wheel or slider of labelled slots.
+#[allow(async_fn_in_trait)]
+pub trait FilterWheel {
+    /// The slots' labels, in slot order (slot 0 first).
+    fn slots(&self) -> &[String];
+    /// Moves to `slot` and returns the slot read back.
+    async fn select(&mut self, slot: usize) -> Result<usize, DeviceError>;
+    /// The current slot (`None` between slots).
+    async fn slot(&mut self) -> Result<Option<usize>, DeviceError>;
+}
+
+/// `angle` reduced to `[0, period)`.
+pub fn wrap(angle: f64, period: f64) -> f64 {
+    let r = angle.rem_euclid(period);
+    if r >= period {
+        0.0
+    } else {
+        r
+    }
+}
+
+/// The signed difference `a - b` reduced to `(-period/2, period/2]`.
+pub fn signed_difference(a: f64, b: f64, period: f64) -> f64 {
+    let d = wrap(a - b, period);
+    if d > period / 2.0 {
+        d - period
+    } else {
+        d
+    }
+}
+
+/// A full turn, radians.
+pub const TURN_RAD: f64 = 2.0 * PI;
