@@ -1,0 +1,700 @@
+//! Our firmware's stage or filter wheel, simulated at the byte level
+//! (`firmware-protocol/SPEC.md`): the host's bytes go in with the simulated time, the device's
+//! bytes come out, including the motion-done events that fall due as time passes.
+
+use crate::faults::{Dice, FaultProfile};
+use crate::motion::{output_from_motor, Profile};
+use polar_firmware_protocol::{
+    encode_vec, BootReason, Command, Decoder, DeviceKind, ErrorCode, Packet, Reply, StatusFlags,
+    PROTOCOL_VERSION,
+};
+
+/// What the simulated device is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NativeConfig {
+    /// Rotator or filter wheel.
+    pub kind: DeviceKind,
+    /// Encoder counts per output turn.
+    pub counts_per_turn: u32,
+    /// Slots (filter wheel), 0 for a rotator.
+    pub slots: u8,
+    /// Serial number.
+    pub serial: u32,
+    /// Cruise velocity at boot, counts/s.
+    pub velocity_counts_per_s: u32,
+    /// Acceleration at boot, counts/s^2.
+    pub acceleration_counts_per_s2: u32,
+    /// Time homing takes, seconds.
+    pub homing_s: f64,
+    /// Gear backlash between motor and output, counts.
+    pub backlash_counts: f64,
+    /// Encoder noise (standard deviation), counts.
+    pub encoder_noise_counts: f64,
+}
+
+impl NativeConfig {
+    /// A rotation stage like a small worm-gear mount: 144000 counts per turn (0.0025 deg),
+    /// 60 deg/s, 0.5 s homing, 0.05 deg backlash, 0.3 count encoder noise.
+    pub fn rotator() -> Self {
+        NativeConfig {
+            kind: DeviceKind::Rotator,
+            counts_per_turn: 144_000,
+            slots: 0,
+            serial: 0x5000_0001,
+            velocity_counts_per_s: 24_000,
+            acceleration_counts_per_s2: 96_000,
+            homing_s: 0.5,
+            backlash_counts: 20.0,
+            encoder_noise_counts: 0.3,
+        }
+    }
+
+    /// A six-slot filter wheel.
+    pub fn wheel() -> Self {
+        NativeConfig {
+            kind: DeviceKind::FilterWheel,
+            counts_per_turn: 6_000,
+            slots: 6,
+            serial: 0x5000_0002,
+            velocity_counts_per_s: 6_000,
+            acceleration_counts_per_s2: 24_000,
+            homing_s: 1.0,
+            backlash_counts: 0.0,
+            encoder_noise_counts: 0.0,
+        }
+    }
+}
+
+/// The simulated device.
+#[derive(Debug, Clone)]
+pub struct NativeDevice {
+    config: NativeConfig,
+    faults: FaultProfile,
+    dice: Dice,
+    decoder: Decoder<Command>,
+    velocity: f64,
+    acceleration: f64,
+    /// Motor position when idle, counts.
+    motor: f64,
+    /// Direction of the last motion (+1 / -1).
+    direction: f64,
+    homed: bool,
+    stalled: bool,
+    /// The move in progress and the command that started it.
+    motion: Option<(Profile, u8)>,
+    /// Homing in progress: its end time and the command's seq.
+    homing: Option<(f64, u8)>,
+}
+
+impl NativeDevice {
+    /// A device at power-on (unhomed, at a random position), faults from `faults`, all randomness
+    /// from `seed`.
+    pub fn new(config: NativeConfig, faults: FaultProfile, seed: u64) -> Self {
+        let mut dice = Dice::new(seed);
+        let motor = (dice.uniform() * config.counts_per_turn as f64).floor();
+        NativeDevice {
+            velocity: config.velocity_counts_per_s as f64,
+            acceleration: config.acceleration_counts_per_s2 as f64,
+            config,
+            faults,
+            dice,
+            decoder: Decoder::new(),
+            motor,
+            direction: 1.0,
+            homed: false,
+            stalled: false,
+            motion: None,
+            homing: None,
+        }
+    }
+
+    /// The output shaft's true angle in counts at `now_s` (what the optics see), which differs
+    /// from the reported position by the backlash and the encoder noise.
+    pub fn true_output_counts(&self, now_s: f64) -> f64 {
+        let (motor, dir) = match &self.motion {
+            Some((p, _)) => (p.position(now_s), p.direction()),
+            None => (self.motor, self.direction),
+        };
+        output_from_motor(motor, dir, self.config.backlash_counts)
+    }
+
+    /// Whether a motion or homing is in progress at `now_s`.
+    pub fn busy(&self, now_s: f64) -> bool {
+        self.motion.as_ref().is_some_and(|(p, _)| now_s < p.end_s())
+            || self.homing.is_some_and(|(end, _)| now_s < end)
+    }
+
+    /// The power-on notice a host sees when it opens the port after a boot.
+    pub fn boot_notice(&self) -> Vec<u8> {
+        encode_vec(
+            0,
+            &Reply::Boot {
+                reason: BootReason::PowerOn,
+            },
+        )
+    }
+
+    /// Feeds the host's bytes at `now_s`; returns the device's bytes: events that fell due,
+    /// then the replies, in order. Bytes that do not decode are ignored, as the firmware does
+    /// (without a valid sequence number there is nobody to answer).
+    pub fn receive(&mut self, now_s: f64, bytes: &[u8]) -> Vec<u8> {
+        let mut out = self.tick(now_s);
+        for &b in bytes {
+            if let Some(Ok(packet)) = self.decoder.feed(b) {
+                out.extend(self.handle(now_s, packet));
+            }
+        }
+        out
+    }
+
+    /// Advances to `now_s`: returns the events (MotionDone) that fell due.
+    pub fn tick(&mut self, now_s: f64) -> Vec<u8> {
+        let mut out = Vec::new();
+        if let Some((end, seq)) = self.homing {
+            if now_s >= end {
+                self.homing = None;
+                self.motor = 0.0;
+                self.direction = 1.0;
+                self.homed = true;
+                out.extend(self.send(seq, Reply::MotionDone { position_counts: 0 }));
+            }
+        }
+        if let Some((p, seq)) = self.motion {
+            if now_s >= p.end_s() {
+                self.motion = None;
+                self.motor = p.target;
+                self.direction = p.direction();
+                let position_counts = self.reported(self.motor);
+                out.extend(self.send(seq, Reply::MotionDone { position_counts }));
+            }
+        }
+        out
+    }
+
+    /// The encoder reading for a motor position.
+    fn reported(&mut self, motor: f64) -> i32 {
+        let noisy = motor + self.config.encoder_noise_counts * self.dice.normal();
+        noisy.round().clamp(i32::MIN as f64, i32::MAX as f64) as i32
+    }
+
+    /// Encodes a reply, through the reply faults.
+    fn send(&mut self, seq: u8, reply: Reply) -> Vec<u8> {
+        if self.dice.chance(self.faults.drop_reply) {
+            return Vec::new();
+        }
+        let mut bytes = encode_vec(seq, &reply);
+        if self.dice.chance(self.faults.corrupt_reply) && bytes.len() > 1 {
+            let i = self.dice.index(bytes.len() - 1);
+            bytes[i] ^= 1 << self.dice.index(8);
+        }
+        if self.dice.chance(self.faults.duplicate_reply) {
+            let again = bytes.clone();
+            bytes.extend(again);
+        }
+        bytes
+    }
+
+    fn nack(&mut self, seq: u8, code: ErrorCode) -> Vec<u8> {
+        self.send(seq, Reply::Nack { code })
+    }
+
+    fn position_now(&self, now_s: f64) -> f64 {
+        match &self.motion {
+            Some((p, _)) => p.position(now_s),
+            None => self.motor,
+        }
+    }
+
+    /// Starts a move to `target` (motor counts); a stall fault cuts it half way.
+    fn start_move(&mut self, now_s: f64, seq: u8, target: f64) -> Vec<u8> {
+        let start = self.motor;
+        let mut p = Profile {
+            start,
+            target,
+            t0_s: now_s,
+            v: self.velocity,
+            a: self.acceleration,
+        };
+        self.stalled = false;
+        if self.dice.chance(self.faults.stall) {
+            // The motor stops half way; the firmware notices and reports where it stopped.
+            p.target = (start + target) / 2.0;
+            self.stalled = true;
+        }
+        self.motion = Some((p, seq));
+        self.send(seq, Reply::Ack)
+    }
+
+    fn reset(&mut self) {
+        self.motion = None;
+        self.homing = None;
+        self.homed = false;
+        self.stalled = false;
+        self.decoder.clear();
+        self.velocity = self.config.velocity_counts_per_s as f64;
+        self.acceleration = self.config.acceleration_counts_per_s2 as f64;
+    }
+
+    fn handle(&mut self, now_s: f64, packet: Packet<Command>) -> Vec<u8> {
+        let seq = packet.seq;
+        let busy = self.busy(now_s);
+        let is_motion = matches!(
+            packet.message,
+            Command::Home
+                | Command::MoveAbsolute { .. }
+                | Command::MoveRelative { .. }
+                | Command::SelectSlot { .. }
+        );
+        let mut out = if is_motion && self.dice.chance(self.faults.spurious_busy) {
+            self.nack(seq, ErrorCode::Busy)
+        } else {
+            self.command(now_s, seq, busy, packet.message)
+        };
+        if self.dice.chance(self.faults.spontaneous_reset) {
+            self.reset();
+            out.extend(self.send(
+                0,
+                Reply::Boot {
+                    reason: BootReason::Watchdog,
+                },
+            ));
+        }
+        out
+    }
+
+    fn command(&mut self, now_s: f64, seq: u8, busy: bool, command: Command) -> Vec<u8> {
+        let c = self.config.clone();
+        let rotator = c.kind == DeviceKind::Rotator;
+        match command {
+            Command::Identify => {
+                let reply = Reply::Identity {
+                    protocol_version: PROTOCOL_VERSION,
+                    firmware: [1, 0, 0],
+                    device: c.kind,
+                    counts_per_turn: c.counts_per_turn,
+                    slots: c.slots,
+                    serial: c.serial,
+                };
+                self.send(seq, reply)
+            }
+            Command::Home if busy => self.nack(seq, ErrorCode::Busy),
+            Command::Home => {
+                self.motion = None;
+                self.homing = Some((now_s + c.homing_s, seq));
+                self.send(seq, Reply::Ack)
+            }
+            Command::MoveAbsolute { .. }
+            | Command::MoveRelative { .. }
+            | Command::SelectSlot { .. }
+                if busy =>
+            {
+                self.nack(seq, ErrorCode::Busy)
+            }
+            Command::MoveAbsolute { position_counts } => {
+                if !rotator {
+                    self.nack(seq, ErrorCode::Unsupported)
+                } else if !self.homed {
+                    self.nack(seq, ErrorCode::NotHomed)
+                } else {
+                    self.start_move(now_s, seq, position_counts as f64)
+                }
+            }
+            Command::MoveRelative { delta_counts } => {
+                if !rotator {
+                    self.nack(seq, ErrorCode::Unsupported)
+                } else {
+                    let target = self.motor + delta_counts as f64;
+                    self.start_move(now_s, seq, target)
+                }
+            }
+            Command::SelectSlot { slot } => {
+                if rotator {
+                    self.nack(seq, ErrorCode::Unsupported)
+                } else if slot >= c.slots {
+                    self.nack(seq, ErrorCode::OutOfRange)
+                } else if !self.homed {
+                    self.nack(seq, ErrorCode::NotHomed)
+                } else {
+                    let target = slot as f64 * c.counts_per_turn as f64 / c.slots as f64;
+                    self.start_move(now_s, seq, target)
+                }
+            }
+            Command::Stop => {
+                if let Some((p, s)) = self.motion {
+                    if now_s < p.end_s() {
+                        self.motion = Some((p.stopped_at(now_s), s));
+                    }
+                }
+                self.send(seq, Reply::Ack)
+            }
+            Command::GetStatus => {
+                let moving = self.busy(now_s);
+                let mut flags = 0;
+                for (on, bit) in [
+                    (self.homed, StatusFlags::HOMED),
+                    (moving, StatusFlags::MOVING),
+                    (self.stalled && !moving, StatusFlags::STALLED),
+                ] {
+                    if on {
+                        flags |= bit;
+                    }
+                }
+                let position = self.position_now(now_s);
+                let position_counts = self.reported(position);
+                let slot = if rotator || moving || !self.homed {
+                    0xff
+                } else {
+                    let per = c.counts_per_turn as f64 / c.slots.max(1) as f64;
+                    let s = (position / per).round();
+                    if (position - s * per).abs() < 0.5 && s >= 0.0 && s < c.slots as f64 {
+                        s as u8
+                    } else {
+                        0xff
+                    }
+                };
+                self.send(
+                    seq,
+                    Reply::Status {
+                        position_counts,
+                        flags: StatusFlags(flags),
+                        slot,
+                    },
+                )
+            }
+            Command::SetMotion {
+                velocity_counts_per_s,
+                acceleration_counts_per_s2,
+            } => {
+                if velocity_counts_per_s == 0 || acceleration_counts_per_s2 == 0 {
+                    self.nack(seq, ErrorCode::OutOfRange)
+                } else {
+                    self.velocity = velocity_counts_per_s as f64;
+                    self.acceleration = acceleration_counts_per_s2 as f64;
+                    self.send(seq, Reply::Ack)
+                }
+            }
+            Command::Save => self.send(seq, Reply::Ack),
+            Command::Reset => {
+                let mut out = self.send(seq, Reply::Ack);
+                self.reset();
+                out.extend(self.send(
+                    0,
+                    Reply::Boot {
+                        reason: BootReason::Command,
+                    },
+                ));
+                out
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use polar_firmware_protocol::{next_seq, DecodeError};
+
+    /// A host stub: numbers commands, decodes everything the device says.
+    struct Host {
+        seq: u8,
+        decoder: Decoder<Reply>,
+    }
+
+    impl Host {
+        fn new() -> Self {
+            Host {
+                seq: 0,
+                decoder: Decoder::new(),
+            }
+        }
+
+        fn send(
+            &mut self,
+            dev: &mut NativeDevice,
+            now: f64,
+            c: Command,
+        ) -> (u8, Vec<Result<Packet<Reply>, DecodeError>>) {
+            self.seq = next_seq(self.seq);
+            let bytes = dev.receive(now, &encode_vec(self.seq, &c));
+            (self.seq, self.decode(&bytes))
+        }
+
+        fn decode(&mut self, bytes: &[u8]) -> Vec<Result<Packet<Reply>, DecodeError>> {
+            bytes.iter().filter_map(|&b| self.decoder.feed(b)).collect()
+        }
+    }
+
+    fn ok(seq: u8, message: Reply) -> Result<Packet<Reply>, DecodeError> {
+        Ok(Packet { seq, message })
+    }
+
+    /// The handshake, homing (Ack now, MotionDone after the homing time), a move that ends
+    /// when the trapezoid says, within the encoder noise of the target, Busy while moving,
+    /// NotHomed before homing, Status flags.
+    #[test]
+    fn stage_session() {
+        let mut dev = NativeDevice::new(NativeConfig::rotator(), FaultProfile::default(), 3);
+        let mut host = Host::new();
+        let (s, r) = host.send(&mut dev, 0.0, Command::Identify);
+        assert!(
+            matches!(r[..], [Ok(Packet { seq, message: Reply::Identity { counts_per_turn: 144_000, protocol_version: 1, .. } })] if seq == s)
+        );
+        let (s, r) = host.send(
+            &mut dev,
+            0.0,
+            Command::MoveAbsolute {
+                position_counts: 1000,
+            },
+        );
+        assert_eq!(
+            r,
+            vec![ok(
+                s,
+                Reply::Nack {
+                    code: ErrorCode::NotHomed
+                }
+            )]
+        );
+        let (home, r) = host.send(&mut dev, 0.0, Command::Home);
+        assert_eq!(r, vec![ok(home, Reply::Ack)]);
+        assert!(host.decode(&dev.tick(0.49)).is_empty());
+        assert_eq!(
+            host.decode(&dev.tick(0.5)),
+            vec![ok(home, Reply::MotionDone { position_counts: 0 })]
+        );
+        // 36000 counts (90 deg) at 24000 counts/s, 96000 counts/s^2: 1.5 + 0.25 s.
+        let (mv, r) = host.send(
+            &mut dev,
+            1.0,
+            Command::MoveAbsolute {
+                position_counts: 36_000,
+            },
+        );
+        assert_eq!(r, vec![ok(mv, Reply::Ack)]);
+        let (s, r) = host.send(&mut dev, 1.5, Command::MoveRelative { delta_counts: 5 });
+        assert_eq!(
+            r,
+            vec![ok(
+                s,
+                Reply::Nack {
+                    code: ErrorCode::Busy
+                }
+            )]
+        );
+        let (s, r) = host.send(&mut dev, 1.5, Command::GetStatus);
+        let Ok(Packet {
+            message:
+                Reply::Status {
+                    flags,
+                    position_counts,
+                    ..
+                },
+            seq,
+        }) = r[0]
+        else {
+            panic!("{r:?}")
+        };
+        assert_eq!(seq, s);
+        assert!(flags.has(StatusFlags::HOMED | StatusFlags::MOVING));
+        assert!(position_counts > 0 && position_counts < 36_000);
+        assert!(host.decode(&dev.tick(2.74)).is_empty());
+        let done = host.decode(&dev.tick(2.76));
+        let [Ok(Packet {
+            seq,
+            message: Reply::MotionDone { position_counts },
+        })] = done[..]
+        else {
+            panic!("{done:?}")
+        };
+        assert_eq!(seq, mv);
+        // Encoder noise 0.3 counts: within 2 counts (6.7 sigma).
+        assert!((position_counts - 36_000).abs() <= 2, "{position_counts}");
+        // The output lags the motor by half the backlash (20 counts) after a positive move.
+        assert!((dev.true_output_counts(3.0) - 35_990.0).abs() < 1e-9);
+    }
+
+    /// A wheel selects slots only after homing; a slot past the last is OutOfRange; Status
+    /// reports the slot; Reset acks, then sends a Boot notice and forgets the homing.
+    #[test]
+    fn wheel_session_and_reset() {
+        let mut dev = NativeDevice::new(NativeConfig::wheel(), FaultProfile::default(), 4);
+        let mut host = Host::new();
+        let (s, r) = host.send(&mut dev, 0.0, Command::SelectSlot { slot: 2 });
+        assert_eq!(
+            r,
+            vec![ok(
+                s,
+                Reply::Nack {
+                    code: ErrorCode::NotHomed
+                }
+            )]
+        );
+        host.send(&mut dev, 0.0, Command::Home);
+        dev.tick(1.0);
+        let (s, r) = host.send(&mut dev, 1.0, Command::SelectSlot { slot: 6 });
+        assert_eq!(
+            r,
+            vec![ok(
+                s,
+                Reply::Nack {
+                    code: ErrorCode::OutOfRange
+                }
+            )]
+        );
+        let (s, r) = host.send(&mut dev, 1.0, Command::MoveAbsolute { position_counts: 5 });
+        assert_eq!(
+            r,
+            vec![ok(
+                s,
+                Reply::Nack {
+                    code: ErrorCode::Unsupported
+                }
+            )]
+        );
+        host.send(&mut dev, 1.0, Command::SelectSlot { slot: 2 });
+        dev.tick(10.0);
+        let (_, r) = host.send(&mut dev, 10.0, Command::GetStatus);
+        assert!(
+            matches!(
+                r[..],
+                [Ok(Packet {
+                    message: Reply::Status { slot: 2, .. },
+                    ..
+                })]
+            ),
+            "{r:?}"
+        );
+        let (s, r) = host.send(&mut dev, 10.0, Command::Reset);
+        assert_eq!(
+            r,
+            vec![
+                ok(s, Reply::Ack),
+                ok(
+                    0,
+                    Reply::Boot {
+                        reason: BootReason::Command
+                    }
+                )
+            ]
+        );
+        let (s, r) = host.send(&mut dev, 10.0, Command::SelectSlot { slot: 1 });
+        assert_eq!(
+            r,
+            vec![ok(
+                s,
+                Reply::Nack {
+                    code: ErrorCode::NotHomed
+                }
+            )]
+        );
+    }
+
+    /// Stop decelerates: MotionDone comes early, short of the target.
+    #[test]
+    fn stop_ends_the_move_early() {
+        let mut dev = NativeDevice::new(NativeConfig::rotator(), FaultProfile::default(), 5);
+        let mut host = Host::new();
+        host.send(&mut dev, 0.0, Command::Home);
+        dev.tick(1.0);
+        let (mv, _) = host.send(
+            &mut dev,
+            1.0,
+            Command::MoveAbsolute {
+                position_counts: 72_000,
+            },
+        );
+        let (s, r) = host.send(&mut dev, 2.0, Command::Stop);
+        assert_eq!(r, vec![ok(s, Reply::Ack)]);
+        let done = host.decode(&dev.tick(2.5));
+        let [Ok(Packet {
+            seq,
+            message: Reply::MotionDone { position_counts },
+        })] = done[..]
+        else {
+            panic!("{done:?}")
+        };
+        assert_eq!(seq, mv);
+        assert!(
+            position_counts > 20_000 && position_counts < 30_000,
+            "{position_counts}"
+        );
+    }
+
+    /// Faults are seeded and do what they say: with every reply corrupted the host sees only
+    /// decode errors; dropped replies are silence; a stall reports where it stopped with the
+    /// stalled flag; garbage from the host is ignored.
+    #[test]
+    fn faults_are_reproducible() {
+        let corrupt = FaultProfile {
+            corrupt_reply: 1.0,
+            ..Default::default()
+        };
+        let mut dev = NativeDevice::new(NativeConfig::rotator(), corrupt, 6);
+        let mut host = Host::new();
+        for _ in 0..50 {
+            let (_, r) = host.send(&mut dev, 0.0, Command::GetStatus);
+            assert!(r.iter().all(|x| x.is_err()), "{r:?}");
+        }
+        let drop = FaultProfile {
+            drop_reply: 1.0,
+            ..Default::default()
+        };
+        let mut dev = NativeDevice::new(NativeConfig::rotator(), drop, 6);
+        assert!(host.send(&mut dev, 0.0, Command::Identify).1.is_empty());
+        let stall = FaultProfile {
+            stall: 1.0,
+            ..Default::default()
+        };
+        let mut dev = NativeDevice::new(NativeConfig::rotator(), stall, 7);
+        let mut host = Host::new();
+        host.send(&mut dev, 0.0, Command::Home);
+        dev.tick(1.0);
+        host.send(
+            &mut dev,
+            1.0,
+            Command::MoveAbsolute {
+                position_counts: 10_000,
+            },
+        );
+        let done = host.decode(&dev.tick(5.0));
+        let [Ok(Packet {
+            message: Reply::MotionDone { position_counts },
+            ..
+        })] = done[..]
+        else {
+            panic!("{done:?}")
+        };
+        assert!((position_counts - 5_000).abs() <= 2, "{position_counts}");
+        let (_, r) = host.send(&mut dev, 5.0, Command::GetStatus);
+        let Ok(Packet {
+            message: Reply::Status { flags, .. },
+            ..
+        }) = r[0]
+        else {
+            panic!("{r:?}")
+        };
+        assert!(flags.has(StatusFlags::STALLED));
+        // Garbage (with and without delimiters) costs nothing; the next command is answered.
+        let garbage = [0x13u8, 0x00, 0xff, 0xfe, 0x00, 0x42];
+        assert!(dev.receive(5.0, &garbage).is_empty());
+        let (s, r) = host.send(&mut dev, 5.0, Command::Save);
+        // The first frame after "0x42" without a delimiter is spoiled; the device ignores it.
+        assert!(r.is_empty() || r == vec![ok(s, Reply::Ack)], "{r:?}");
+        let (s, r) = host.send(&mut dev, 5.0, Command::Save);
+        assert_eq!(r, vec![ok(s, Reply::Ack)]);
+        // Same seed, same faults.
+        let p = FaultProfile {
+            drop_reply: 0.5,
+            ..Default::default()
+        };
+        let run = |seed| {
+            let mut dev = NativeDevice::new(NativeConfig::rotator(), p, seed);
+            let mut host = Host::new();
+            (0..40)
+                .map(|_| host.send(&mut dev, 0.0, Command::GetStatus).1.len())
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(run(9), run(9));
+        assert_ne!(run(9), run(10));
+    }
+}
