@@ -10,7 +10,7 @@ use polar_firmware_protocol::{
 };
 
 /// What the simulated device is.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct NativeConfig {
     /// Rotator or filter wheel.
     pub kind: DeviceKind,
@@ -111,11 +111,12 @@ impl NativeDevice {
     /// The output shaft's true angle in counts at `now_s` (what the optics see), which differs
     /// from the reported position by the backlash and the encoder noise.
     pub fn true_output_counts(&self, now_s: f64) -> f64 {
-        let (motor, dir) = match &self.motion {
-            Some((p, _)) => (p.position(now_s), p.direction()),
-            None => (self.motor, self.direction),
-        };
-        output_from_motor(motor, dir, self.config.backlash_counts)
+        let direction = self.motion.map_or(self.direction, |(p, _)| p.direction());
+        output_from_motor(
+            self.position_now(now_s),
+            direction,
+            self.config.backlash_counts,
+        )
     }
 
     /// Whether a motion or homing is in progress at `now_s`.
@@ -263,7 +264,7 @@ impl NativeDevice {
     }
 
     fn command(&mut self, now_s: f64, seq: u8, busy: bool, command: Command) -> Vec<u8> {
-        let c = self.config.clone();
+        let c = self.config;
         let rotator = c.kind == DeviceKind::Rotator;
         match command {
             Command::Identify => {

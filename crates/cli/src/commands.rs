@@ -718,15 +718,25 @@ pub fn read_relative(base: &std::path::Path, path: &str) -> Result<String, Strin
     std::fs::read_to_string(&full).map_err(|e| format!("{}: cannot read ({e})", full.display()))
 }
 
-/// Evaluates a scene given as TOML text; files it names are read relative to `base`.
-pub fn scene_text(
-    text: &str,
-    base: &std::path::Path,
+/// Reads and parses a scene file; files it names are read relative to its directory. Errors
+/// name the file.
+pub fn load_scene(path: &std::path::Path) -> Result<polar_model::scene_file::Scene, CommandError> {
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        CommandError(format!(
+            "scene = {:?}: cannot read ({e})",
+            path.display().to_string()
+        ))
+    })?;
+    let base = path.parent().unwrap_or(std::path::Path::new("."));
+    polar_model::scene_file::Scene::from_toml_str_with_files(&text, &|p| read_relative(base, p))
+        .map_err(|e| CommandError(format!("{}: {e}", path.display())))
+}
+
+/// Evaluates a parsed scene to JSON.
+pub fn scene_json(
+    scene: &polar_model::scene_file::Scene,
     tolerance: f64,
 ) -> Result<Value, CommandError> {
-    let scene = polar_model::scene_file::Scene::from_toml_str_with_files(text, &|p| {
-        read_relative(base, p)
-    })?;
     let results = polar_model::scene::evaluate(&scene.spec, &scene.materials, tolerance)?;
     let all: Vec<Value> = results.iter().map(material_json).collect();
     let mut out = all.first().cloned().unwrap_or(Value::Null);
@@ -747,17 +757,7 @@ pub fn sky_table_csv(path: &std::path::Path, step_deg: f64) -> Result<String, Co
             "step_deg = {step} is invalid: allowed a divisor of 90 in [1, 30]"
         )));
     }
-    let text = std::fs::read_to_string(path).map_err(|e| {
-        CommandError(format!(
-            "scene = {:?}: cannot read ({e})",
-            path.display().to_string()
-        ))
-    })?;
-    let base = path.parent().unwrap_or(std::path::Path::new("."));
-    let scene = polar_model::scene_file::Scene::from_toml_str_with_files(&text, &|p| {
-        read_relative(base, p)
-    })
-    .map_err(|e| CommandError(format!("{}: {e}", path.display())))?;
+    let scene = load_scene(path)?;
     let prepared = polar_model::scene::Prepared::new(&scene.spec, 1e-6)?;
     let sky = prepared.ground_sky();
     let mut out = format!(
@@ -785,13 +785,7 @@ pub fn sky_table_csv(path: &std::path::Path, step_deg: f64) -> Result<String, Co
 
 /// Evaluates [`SceneArgs`].
 pub fn scene(a: &SceneArgs) -> Result<Value, CommandError> {
-    let text = std::fs::read_to_string(&a.scene).map_err(|e| {
-        CommandError(format!(
-            "scene = {:?}: cannot read ({e})",
-            a.scene.display().to_string()
-        ))
-    })?;
-    let base = a.scene.parent().unwrap_or(std::path::Path::new("."));
-    scene_text(&text, base, a.tolerance)
+    let scene = load_scene(&a.scene)?;
+    scene_json(&scene, a.tolerance)
         .map_err(|e| CommandError(format!("{}: {}", a.scene.display(), e.0)))
 }

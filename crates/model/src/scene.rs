@@ -568,6 +568,16 @@ impl Prepared {
         })
     }
 
+    /// A white Lambertian surface's radiance at the ground, direct sun plus sky (W m^-2 sr^-1):
+    /// the scale below which a term cannot matter for any material.
+    fn white_radiance(&self) -> f64 {
+        self.nodes
+            .iter()
+            .map(|n| n.weight * (n.t_sun * self.sun.z + n.e_sky))
+            .sum::<f64>()
+            / PI
+    }
+
     /// Spectral nodes in use.
     pub fn spectral_nodes(&self) -> usize {
         self.nodes.len()
@@ -588,7 +598,12 @@ impl Prepared {
     /// The band sky `sum_k c_k (A_k, B_k)` for per-node coefficients `c_k` (node weight times
     /// the ground-to-sensor transmittance).
     fn band_sky(&self, coefficients: &[f64], coarse_table: bool) -> BandSky<'_> {
+        let table_sky = matches!(self.sky, Sky::Table(_));
         let combine = |tables: &[Vec<f64>]| -> Vec<f64> {
+            if table_sky {
+                // A tabulated sky replaces the single-scattering tables.
+                return Vec::new();
+            }
             let mut out = vec![0.0; tables[0].len()];
             for (t, c) in tables.iter().zip(coefficients) {
                 for (o, v) in out.iter_mut().zip(t) {
@@ -688,12 +703,7 @@ impl Prepared {
             coarse_table: false,
         };
         let no_sky = self.point(surface, diffuse.f00, &centre, base)?;
-        let white: f64 = self
-            .nodes
-            .iter()
-            .map(|n| n.weight * (n.t_sun * self.sun.z + n.e_sky))
-            .sum::<f64>()
-            / PI;
+        let white = self.white_radiance();
         let scale = no_sky.total[0].abs().max(1e-3 * white).max(1e-300);
         let all = self.point(
             surface,
@@ -749,12 +759,7 @@ impl Prepared {
         // A white Lambertian surface's radiance: the floor of the first skylight estimate's
         // scale, so that a dark material seen away from the sun (skylight >> direct) does not
         // buy a needlessly tight coarse integral.
-        let white: f64 = self
-            .nodes
-            .iter()
-            .map(|n| n.weight * (n.t_sun * self.sun.z + n.e_sky))
-            .sum::<f64>()
-            / PI;
+        let white = self.white_radiance();
         let with_path = self.point(
             surface,
             f00,
