@@ -3,6 +3,7 @@
 //!
 //! * [`native::NativeDevice`]: our own firmware's rotation stage or filter wheel
 //!   (`firmware-protocol/SPEC.md`).
+//! * [`sim::Simulator`]: what every device simulator offers the transport and the tests.
 //! * [`motion`]: trapezoidal moves, backlash, encoder noise.
 //! * [`faults::FaultProfile`]: the fault knobs, loadable from TOML.
 //!
@@ -14,3 +15,4 @@
 pub mod faults;
 pub mod motion;
 pub mod native;
+pub mod sim;

@@ -2,8 +2,9 @@
 //! (`firmware-protocol/SPEC.md`): the host's bytes go in with the simulated time, the device's
 //! bytes come out, including the motion-done events that fall due as time passes.
 
-use crate::faults::{Dice, FaultProfile};
+use crate::faults::{Dice, DutyCycle, FaultProfile};
 use crate::motion::{output_from_motor, Profile};
+use crate::sim::{Simulator, Truth};
 use polar_firmware_protocol::{
     encode_vec, BootReason, Command, Decoder, DeviceKind, ErrorCode, Packet, Reply, StatusFlags,
     PROTOCOL_VERSION,
@@ -84,6 +85,7 @@ pub struct NativeDevice {
     motion: Option<(Profile, u8)>,
     /// Homing in progress: its end time and the command's seq.
     homing: Option<(f64, u8)>,
+    duty: DutyCycle,
 }
 
 impl NativeDevice {
@@ -105,6 +107,7 @@ impl NativeDevice {
             stalled: false,
             motion: None,
             homing: None,
+            duty: DutyCycle::default(),
         }
     }
 
@@ -180,19 +183,8 @@ impl NativeDevice {
 
     /// Encodes a reply, through the reply faults.
     fn send(&mut self, seq: u8, reply: Reply) -> Vec<u8> {
-        if self.dice.chance(self.faults.drop_reply) {
-            return Vec::new();
-        }
-        let mut bytes = encode_vec(seq, &reply);
-        if self.dice.chance(self.faults.corrupt_reply) && bytes.len() > 1 {
-            let i = self.dice.index(bytes.len() - 1);
-            bytes[i] ^= 1 << self.dice.index(8);
-        }
-        if self.dice.chance(self.faults.duplicate_reply) {
-            let again = bytes.clone();
-            bytes.extend(again);
-        }
-        bytes
+        let bytes = encode_vec(seq, &reply);
+        self.dice.reply_faults(&self.faults, bytes)
     }
 
     fn nack(&mut self, seq: u8, code: ErrorCode) -> Vec<u8> {
@@ -222,6 +214,7 @@ impl NativeDevice {
             p.target = (start + target) / 2.0;
             self.stalled = true;
         }
+        self.duty.record(now_s, p.end_s());
         self.motion = Some((p, seq));
         self.send(seq, Reply::Ack)
     }
@@ -279,7 +272,16 @@ impl NativeDevice {
                 self.send(seq, reply)
             }
             Command::Home if busy => self.nack(seq, ErrorCode::Busy),
+            Command::Home
+            | Command::MoveAbsolute { .. }
+            | Command::MoveRelative { .. }
+            | Command::SelectSlot { .. }
+                if self.duty.too_hot(&self.faults, now_s) =>
+            {
+                self.nack(seq, ErrorCode::OverTemperature)
+            }
             Command::Home => {
+                self.duty.record(now_s, now_s + c.homing_s);
                 self.motion = None;
                 self.homing = Some((now_s + c.homing_s, seq));
                 self.send(seq, Reply::Ack)
@@ -335,6 +337,10 @@ impl NativeDevice {
                     (self.homed, StatusFlags::HOMED),
                     (moving, StatusFlags::MOVING),
                     (self.stalled && !moving, StatusFlags::STALLED),
+                    (
+                        self.duty.too_hot(&self.faults, now_s),
+                        StatusFlags::OVER_TEMPERATURE,
+                    ),
                 ] {
                     if on {
                         flags |= bit;
@@ -385,6 +391,67 @@ impl NativeDevice {
                     },
                 ));
                 out
+            }
+        }
+    }
+}
+
+impl Simulator for NativeDevice {
+    fn describe(&self) -> String {
+        let kind = match self.config.kind {
+            DeviceKind::Rotator => "rotator",
+            _ => "filter wheel",
+        };
+        format!("native {kind} serial {:08x}", self.config.serial)
+    }
+
+    fn baud(&self) -> u32 {
+        115_200
+    }
+
+    fn receive(&mut self, now_s: f64, bytes: &[u8]) -> Vec<u8> {
+        NativeDevice::receive(self, now_s, bytes)
+    }
+
+    fn tick(&mut self, now_s: f64) -> Vec<u8> {
+        NativeDevice::tick(self, now_s)
+    }
+
+    fn next_event_s(&self) -> Option<f64> {
+        let homing = self.homing.map(|(end, _)| end);
+        let motion = self.motion.map(|(p, _)| p.end_s());
+        match (homing, motion) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    fn on_open(&mut self, _now_s: f64) -> Vec<u8> {
+        // The USB-serial bridge resets the controller on open (DTR): the host sees a boot notice.
+        self.boot_notice()
+    }
+
+    fn power_cycle(&mut self, _now_s: f64) {
+        self.reset();
+        self.motor = (self.dice.uniform() * self.config.counts_per_turn as f64).floor();
+    }
+
+    fn truth(&self, now_s: f64) -> Truth {
+        let c = self.config;
+        let output = self.true_output_counts(now_s);
+        let moving = self.busy(now_s);
+        if c.kind == DeviceKind::Rotator {
+            let turn = c.counts_per_turn as f64;
+            Truth::Angle {
+                output_rad: output.rem_euclid(turn) / turn * std::f64::consts::TAU,
+                moving,
+            }
+        } else {
+            let per = c.counts_per_turn as f64 / c.slots.max(1) as f64;
+            let s = (output / per).round();
+            let on_slot = !moving && (output - s * per).abs() < 0.5 && s >= 0.0;
+            Truth::Slot {
+                slot: on_slot.then_some(s as usize % c.slots.max(1) as usize),
             }
         }
     }
