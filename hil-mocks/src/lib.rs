@@ -3,7 +3,11 @@
 //!
 //! * [`native::NativeDevice`]: our own firmware's rotation stage or filter wheel
 //!   (`firmware-protocol/SPEC.md`).
+//! * [`elliptec::ElliptecDevice`]: Thorlabs Elliptec ELL14/ELL18 rotators, ELL6/ELL9 sliders.
+//! * [`fw102c::Fw102cDevice`]: a Thorlabs FW102C / FW212C filter wheel (ASCII, echo, `> `).
 //! * [`sim::Simulator`]: what every device simulator offers the transport and the tests.
+//! * [`serve::SimServer`]: serves a simulator over a real pseudo-terminal or in memory, with the
+//!   transport faults.
 //! * [`motion`]: trapezoidal moves, backlash, encoder noise.
 //! * [`faults::FaultProfile`]: the fault knobs, loadable from TOML.
 //!
@@ -12,7 +16,10 @@
 //! bytes.
 #![warn(missing_docs)]
 
+pub mod elliptec;
 pub mod faults;
+pub mod fw102c;
 pub mod motion;
 pub mod native;
+pub mod serve;
 pub mod sim;

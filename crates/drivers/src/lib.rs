@@ -1,0 +1,20 @@
+//! Serial drivers for the polarimeter's rotation stages and filter wheels, on tokio
+//! (`../shared/design/SYSTEM.md`, `../shared/design/DEVICES.md`).
+//!
+//! | dialect | module | devices |
+//! |---|---|---|
+//! | our firmware (`firmware-protocol/SPEC.md`) | [`native`] | [`native::NativeRotator`], [`native::NativeWheel`] |
+//!
+//! Every driver owns its port ([`link::Link`]) and is owned by one task; every operation ends
+//! within its [`link::Policy`]'s deadlines; idempotent requests are retried with backoff;
+//! stale, duplicated, corrupted and unsolicited bytes are skipped; a reset or reopen is followed
+//! by identification and homing; a device that goes away is reported
+//! [`polar_hal::ErrorKind::Disconnected`] and reopened at the same (stable) path on the next
+//! call; every move is verified by reading the position back. The default build needs no
+//! system library (no libudev).
+#![warn(missing_docs)]
+
+pub mod elliptec;
+pub mod fw102c;
+pub mod link;
+pub mod native;

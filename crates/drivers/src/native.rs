@@ -1,0 +1,630 @@
+//! Our firmware's stage and wheel (`firmware-protocol/SPEC.md`).
+//!
+//! * Replies are matched to requests by sequence number, so a late or duplicated reply to an
+//!   earlier request, a corrupted frame or line noise is skipped, never mistaken for the answer.
+//! * A boot notice (frame with sequence 0) at any time means the controller reset: the driver
+//!   re-identifies and re-homes before the next motion, and a motion in flight is repeated.
+//! * Queries and absolute moves are idempotent and retried with backoff; relative moves are
+//!   never sent. A move whose acknowledgement or completion is lost is judged by the position
+//!   read back, never by the absence of an error.
+
+use crate::link::{Connector, Link, Policy};
+use polar_firmware_protocol::{
+    encode_vec, next_seq, Command, Decoder, DeviceKind, ErrorCode, Packet, Reply, StatusFlags,
+    PROTOCOL_VERSION,
+};
+use polar_hal::{
+    signed_difference, wrap, DeviceError, ErrorKind, FilterWheel, Rotator, RotatorInfo, TURN_RAD,
+};
+use std::collections::VecDeque;
+use std::time::Duration;
+use tokio::time::Instant;
+
+/// The default policy for our firmware at 115200 baud.
+pub fn default_policy() -> Policy {
+    Policy {
+        open_timeout: Duration::from_secs(2),
+        query_timeout: Duration::from_millis(200),
+        move_timeout: Duration::from_secs(15),
+        home_timeout: Duration::from_secs(30),
+        attempts: 4,
+        backoff: Duration::from_millis(20),
+    }
+}
+
+/// What the controller said about itself.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Identity {
+    /// Firmware version.
+    pub firmware: [u8; 3],
+    /// Rotator or wheel.
+    pub device: DeviceKind,
+    /// Encoder counts per output turn.
+    pub counts_per_turn: u32,
+    /// Slots (wheels).
+    pub slots: u8,
+    /// Serial number.
+    pub serial: u32,
+}
+
+/// A status reading.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Status {
+    position_counts: i32,
+    flags: StatusFlags,
+    slot: u8,
+}
+
+/// A connection to one controller: sequence numbers, decoder, reset handling, retries.
+pub struct NativeSession {
+    link: Link,
+    policy: Policy,
+    kind: DeviceKind,
+    seq: u8,
+    decoder: Decoder<Reply>,
+    packets: VecDeque<Packet<Reply>>,
+    identity: Option<Identity>,
+    /// A reset or reopen happened: identify and home before the next motion.
+    needs_init: bool,
+    resets_seen: u32,
+    tolerance_counts: i32,
+}
+
+fn map_nack(link: &Link, code: ErrorCode, what: &str) -> DeviceError {
+    let kind = match code {
+        ErrorCode::Busy => ErrorKind::Busy,
+        ErrorCode::OutOfRange | ErrorCode::Unsupported => ErrorKind::OutOfRange,
+        ErrorCode::Stalled => ErrorKind::Stalled,
+        ErrorCode::UnknownCommand | ErrorCode::BadLength => ErrorKind::Protocol,
+        ErrorCode::NotHomed | ErrorCode::OverTemperature | ErrorCode::Unknown(_) => {
+            ErrorKind::Other
+        }
+    };
+    link.error(kind, format!("{what} refused: {code:?}"))
+}
+
+fn retryable(e: &DeviceError) -> bool {
+    matches!(
+        e.kind(),
+        ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Busy | ErrorKind::Stalled
+    )
+}
+
+impl NativeSession {
+    /// Opens the port, identifies the controller (which must be a `kind`, speaking our protocol
+    /// version) and homes it.
+    pub async fn connect(
+        connector: Box<dyn Connector>,
+        kind: DeviceKind,
+        policy: Policy,
+    ) -> Result<Self, DeviceError> {
+        let mut s = NativeSession {
+            link: Link::new(connector),
+            policy,
+            kind,
+            seq: 0,
+            decoder: Decoder::new(),
+            packets: VecDeque::new(),
+            identity: None,
+            needs_init: true,
+            resets_seen: 0,
+            tolerance_counts: 5,
+        };
+        s.ensure_ready().await?;
+        Ok(s)
+    }
+
+    /// The controller's identity.
+    pub fn identity(&self) -> Option<Identity> {
+        self.identity
+    }
+
+    /// Resets (boot notices) seen since connecting.
+    pub fn resets_seen(&self) -> u32 {
+        self.resets_seen
+    }
+
+    /// How many times the port has been opened.
+    pub fn opens(&self) -> u32 {
+        self.link.opens()
+    }
+
+    fn decode_buffer(&mut self) {
+        let bytes = std::mem::take(self.link.buffer());
+        for b in bytes {
+            match self.decoder.feed(b) {
+                Some(Ok(p)) => {
+                    if let Reply::Boot { reason } = p.message {
+                        tracing::warn!(port = %self.link.name(), ?reason, "controller reset");
+                        self.resets_seen += 1;
+                        self.needs_init = true;
+                    }
+                    self.packets.push_back(p);
+                }
+                Some(Err(e)) => {
+                    tracing::debug!(port = %self.link.name(), "skipped a bad frame: {e}")
+                }
+                None => {}
+            }
+        }
+    }
+
+    async fn next_packet(
+        &mut self,
+        deadline: Instant,
+        what: &str,
+    ) -> Result<Packet<Reply>, DeviceError> {
+        loop {
+            if let Some(p) = self.packets.pop_front() {
+                return Ok(p);
+            }
+            self.link.fill(deadline, what).await?;
+            self.decode_buffer();
+        }
+    }
+
+    fn reset_error(&self) -> DeviceError {
+        self.link.error(
+            ErrorKind::Protocol,
+            "the controller reset during the request",
+        )
+    }
+
+    /// One request and its reply (matched by sequence number), within the query timeout.
+    async fn exchange(&mut self, command: Command) -> Result<(u8, Reply), DeviceError> {
+        self.seq = next_seq(self.seq);
+        let seq = self.seq;
+        self.link
+            .write(&encode_vec(seq, &command), self.policy.query_timeout)
+            .await?;
+        let deadline = Instant::now() + self.policy.query_timeout;
+        loop {
+            let p = self.next_packet(deadline, "reply").await?;
+            match p.message {
+                Reply::Boot { .. } => return Err(self.reset_error()),
+                Reply::MotionDone { .. } => {}
+                reply if p.seq == seq => return Ok((seq, reply)),
+                _ => {} // a late or duplicated reply to an earlier request
+            }
+        }
+    }
+
+    /// An idempotent query, retried.
+    async fn query(&mut self, command: Command) -> Result<Reply, DeviceError> {
+        let mut last = None;
+        for k in 0..self.policy.attempts.max(1) {
+            if k > 0 {
+                tokio::time::sleep(self.policy.backoff(k - 1)).await;
+            }
+            match self.exchange(command).await {
+                Ok((_, r)) => return Ok(r),
+                Err(e) if matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol) => {
+                    last = Some(e)
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Err(last.unwrap_or_else(|| self.link.error(ErrorKind::Timeout, "no attempt made")))
+    }
+
+    async fn status(&mut self) -> Result<Status, DeviceError> {
+        match self.query(Command::GetStatus).await? {
+            Reply::Status {
+                position_counts,
+                flags,
+                slot,
+            } => Ok(Status {
+                position_counts,
+                flags,
+                slot,
+            }),
+            Reply::Nack { code } => Err(map_nack(&self.link, code, "status")),
+            other => Err(self.link.error(
+                ErrorKind::Protocol,
+                format!("expected a status, got {other:?}"),
+            )),
+        }
+    }
+
+    /// Waits for the MotionDone of request `seq`.
+    async fn wait_done(&mut self, seq: u8, timeout: Duration) -> Result<i32, DeviceError> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let p = self.next_packet(deadline, "motion-done event").await?;
+            match p.message {
+                Reply::Boot { .. } => return Err(self.reset_error()),
+                Reply::MotionDone { position_counts } if p.seq == seq => {
+                    return Ok(position_counts)
+                }
+                _ => {}
+            }
+        }
+    }
+
+    /// Polls the status until the axis stops (or the move timeout passes).
+    async fn wait_idle(&mut self) -> Result<Status, DeviceError> {
+        let deadline = Instant::now() + self.policy.move_timeout;
+        loop {
+            let s = self.status().await?;
+            if !s.flags.has(StatusFlags::MOVING) {
+                return Ok(s);
+            }
+            if Instant::now() >= deadline {
+                return Err(self.link.error(
+                    ErrorKind::Timeout,
+                    format!("still moving after {:?}", self.policy.move_timeout),
+                ));
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+
+    async fn home_once(&mut self) -> Result<(), DeviceError> {
+        let (seq, reply) = self.exchange(Command::Home).await?;
+        match reply {
+            Reply::Ack => {}
+            Reply::Nack { code } => return Err(map_nack(&self.link, code, "home")),
+            other => {
+                return Err(self.link.error(
+                    ErrorKind::Protocol,
+                    format!("expected an ack to home, got {other:?}"),
+                ))
+            }
+        }
+        let timeout = self.policy.home_timeout;
+        self.wait_done(seq, timeout).await?;
+        let s = self.status().await?;
+        if s.flags.has(StatusFlags::HOMED) {
+            Ok(())
+        } else {
+            Err(self
+                .link
+                .error(ErrorKind::Stalled, "homing ended without the homed flag"))
+        }
+    }
+
+    /// Opens the port if it is closed, and after a reset or reopen identifies and homes.
+    async fn ensure_ready(&mut self) -> Result<(), DeviceError> {
+        if !self.link.is_open() {
+            self.link.open(self.policy.open_timeout).await?;
+            self.decoder.clear();
+            self.packets.clear();
+            // The controller resets when the port opens (DTR) and announces it; wait for the
+            // notice so that it is not taken for a reset later.
+            let deadline = Instant::now() + self.policy.query_timeout;
+            loop {
+                match self.next_packet(deadline, "boot notice").await {
+                    Ok(Packet {
+                        message: Reply::Boot { .. },
+                        ..
+                    }) => break,
+                    Ok(_) => {}
+                    Err(e) if e.kind() == ErrorKind::Timeout => break,
+                    Err(e) => return Err(e),
+                }
+            }
+            self.needs_init = true;
+        }
+        let mut last = None;
+        for k in 0..self.policy.attempts.max(1) {
+            if !self.needs_init {
+                return Ok(());
+            }
+            if k > 0 {
+                tokio::time::sleep(self.policy.backoff(k - 1)).await;
+            }
+            self.needs_init = false;
+            match self.init().await {
+                Ok(()) => {}
+                Err(e) if retryable(&e) => {
+                    self.needs_init = true;
+                    last = Some(e);
+                }
+                Err(e) => {
+                    self.needs_init = true;
+                    return Err(e);
+                }
+            }
+        }
+        if self.needs_init {
+            return Err(last.unwrap_or_else(|| {
+                self.link
+                    .error(ErrorKind::Other, "could not initialise the controller")
+            }));
+        }
+        Ok(())
+    }
+
+    async fn init(&mut self) -> Result<(), DeviceError> {
+        let identity = match self.query(Command::Identify).await? {
+            Reply::Identity {
+                protocol_version,
+                firmware,
+                device,
+                counts_per_turn,
+                slots,
+                serial,
+            } => {
+                if protocol_version != PROTOCOL_VERSION {
+                    return Err(self.link.error(
+                        ErrorKind::Other,
+                        format!(
+                            "the controller speaks protocol version {protocol_version}; this driver speaks {PROTOCOL_VERSION}"
+                        ),
+                    ));
+                }
+                if device != self.kind {
+                    return Err(self.link.error(
+                        ErrorKind::Other,
+                        format!("the controller is a {device:?}, not a {:?}", self.kind),
+                    ));
+                }
+                if counts_per_turn == 0 || (device == DeviceKind::FilterWheel && slots == 0) {
+                    return Err(self.link.error(
+                        ErrorKind::Protocol,
+                        format!(
+                            "identity out of range: counts_per_turn = {counts_per_turn}, slots = {slots} (both must be > 0)"
+                        ),
+                    ));
+                }
+                Identity {
+                    firmware,
+                    device,
+                    counts_per_turn,
+                    slots,
+                    serial,
+                }
+            }
+            other => {
+                return Err(self.link.error(
+                    ErrorKind::Protocol,
+                    format!("expected an identity, got {other:?}"),
+                ))
+            }
+        };
+        self.identity = Some(identity);
+        tracing::info!(port = %self.link.name(), ?identity, "identified; homing");
+        self.home_once().await
+    }
+
+    /// Moves and checks the result by reading the position (or slot) back; repeats on a lost
+    /// reply, a refusal as busy, a reset or a stall, up to the policy's attempts.
+    async fn move_verified(&mut self, command: Command) -> Result<Status, DeviceError> {
+        let mut last = None;
+        for k in 0..self.policy.attempts.max(1) {
+            if k > 0 {
+                tokio::time::sleep(self.policy.backoff(k - 1)).await;
+            }
+            self.ensure_ready().await?;
+            match self.move_once(command).await {
+                Ok(s) => return Ok(s),
+                Err(e) if retryable(&e) => {
+                    tracing::warn!(port = %self.link.name(), "move attempt {} failed: {e}", k + 1);
+                    last = Some(e);
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Err(last.unwrap_or_else(|| self.link.error(ErrorKind::Other, "no attempt made")))
+    }
+
+    async fn move_once(&mut self, command: Command) -> Result<Status, DeviceError> {
+        match self.exchange(command).await {
+            Ok((seq, Reply::Ack)) => {
+                let timeout = self.policy.move_timeout;
+                match self.wait_done(seq, timeout).await {
+                    Ok(_) => {}
+                    // Judged by the readback below.
+                    Err(e) if e.kind() == ErrorKind::Timeout => {}
+                    Err(e) => return Err(e),
+                }
+            }
+            Ok((_, Reply::Nack { code })) => {
+                if code == ErrorCode::NotHomed {
+                    self.needs_init = true;
+                }
+                if code == ErrorCode::Busy {
+                    // Possibly our own earlier attempt still moving: let it end first.
+                    self.wait_idle().await?;
+                }
+                return Err(map_nack(&self.link, code, "move"));
+            }
+            Ok((_, other)) => {
+                return Err(self.link.error(
+                    ErrorKind::Protocol,
+                    format!("expected an ack to the move, got {other:?}"),
+                ))
+            }
+            // The command or its ack was lost: the move may be running. Judge by readback.
+            Err(e) if e.kind() == ErrorKind::Timeout => {}
+            Err(e) => return Err(e),
+        }
+        if self.needs_init {
+            return Err(self.reset_error());
+        }
+        let s = self.wait_idle().await?;
+        if self.needs_init {
+            return Err(self.reset_error());
+        }
+        let reached = match command {
+            Command::MoveAbsolute { position_counts } => {
+                (s.position_counts.wrapping_sub(position_counts)).abs() <= self.tolerance_counts
+            }
+            Command::SelectSlot { slot } => s.slot == slot,
+            _ => true,
+        };
+        if reached {
+            Ok(s)
+        } else {
+            let stalled = if s.flags.has(StatusFlags::STALLED) {
+                " (stall reported)"
+            } else {
+                ""
+            };
+            Err(self.link.error(
+                ErrorKind::Stalled,
+                format!(
+                    "{command:?} ended at {} counts, slot {}{stalled}",
+                    s.position_counts, s.slot
+                ),
+            ))
+        }
+    }
+}
+
+/// Our firmware's rotation stage.
+pub struct NativeRotator {
+    session: NativeSession,
+    info: RotatorInfo,
+    last_counts: i32,
+}
+
+impl NativeRotator {
+    /// Connects, identifies and homes.
+    pub async fn connect(
+        connector: Box<dyn Connector>,
+        policy: Policy,
+    ) -> Result<Self, DeviceError> {
+        let session = NativeSession::connect(connector, DeviceKind::Rotator, policy).await?;
+        let identity = session.identity().ok_or_else(|| {
+            session
+                .link
+                .error(ErrorKind::Other, "connected without an identity")
+        })?;
+        let counts_per_turn = identity.counts_per_turn;
+        Ok(NativeRotator {
+            info: RotatorInfo {
+                model: format!(
+                    "native rotator serial {:08x} firmware {}.{}.{}",
+                    identity.serial,
+                    identity.firmware[0],
+                    identity.firmware[1],
+                    identity.firmware[2]
+                ),
+                counts_per_turn,
+                tolerance_rad: session.tolerance_counts as f64 / counts_per_turn as f64 * TURN_RAD,
+            },
+            session,
+            last_counts: 0,
+        })
+    }
+
+    /// The session (identity, resets seen, opens).
+    pub fn session(&self) -> &NativeSession {
+        &self.session
+    }
+
+    fn angle(&self, counts: i32) -> f64 {
+        wrap(
+            counts as f64 / self.info.counts_per_turn as f64 * TURN_RAD,
+            TURN_RAD,
+        )
+    }
+}
+
+impl Rotator for NativeRotator {
+    fn info(&self) -> &RotatorInfo {
+        &self.info
+    }
+
+    async fn home(&mut self) -> Result<(), DeviceError> {
+        self.session.needs_init = true;
+        self.session.ensure_ready().await?;
+        self.last_counts = 0;
+        Ok(())
+    }
+
+    async fn move_to(&mut self, angle_rad: f64) -> Result<f64, DeviceError> {
+        if !angle_rad.is_finite() {
+            return Err(self.session.link.error(
+                ErrorKind::OutOfRange,
+                format!("angle_rad = {angle_rad} is not a finite angle"),
+            ));
+        }
+        self.session.ensure_ready().await?;
+        let current = self.session.status().await?.position_counts;
+        let cpt = self.info.counts_per_turn as f64;
+        let delta = signed_difference(angle_rad, self.angle(current), TURN_RAD) / TURN_RAD * cpt;
+        let target =
+            (current as f64 + delta.round()).clamp(i32::MIN as f64, i32::MAX as f64) as i32;
+        let s = self
+            .session
+            .move_verified(Command::MoveAbsolute {
+                position_counts: target,
+            })
+            .await?;
+        self.last_counts = s.position_counts;
+        Ok(self.angle(s.position_counts))
+    }
+
+    async fn position_rad(&mut self) -> Result<f64, DeviceError> {
+        self.session.ensure_ready().await?;
+        let s = self.session.status().await?;
+        self.last_counts = s.position_counts;
+        Ok(self.angle(s.position_counts))
+    }
+}
+
+/// Our firmware's filter wheel.
+pub struct NativeWheel {
+    session: NativeSession,
+    labels: Vec<String>,
+}
+
+impl NativeWheel {
+    /// Connects, identifies and homes; slots are labelled by number unless `labels` names them
+    /// (one per slot).
+    pub async fn connect(
+        connector: Box<dyn Connector>,
+        policy: Policy,
+        labels: Option<Vec<String>>,
+    ) -> Result<Self, DeviceError> {
+        let session = NativeSession::connect(connector, DeviceKind::FilterWheel, policy).await?;
+        let slots = session.identity().map_or(0, |i| i.slots as usize);
+        let labels = match labels {
+            Some(l) if l.len() == slots => l,
+            Some(l) => {
+                return Err(session.link.error(
+                    ErrorKind::OutOfRange,
+                    format!("{} slot labels given; the wheel has {slots} slots", l.len()),
+                ))
+            }
+            None => (0..slots).map(|s| format!("slot {s}")).collect(),
+        };
+        Ok(NativeWheel { session, labels })
+    }
+
+    /// The session (identity, resets seen, opens).
+    pub fn session(&self) -> &NativeSession {
+        &self.session
+    }
+}
+
+impl FilterWheel for NativeWheel {
+    fn slots(&self) -> &[String] {
+        &self.labels
+    }
+
+    async fn select(&mut self, slot: usize) -> Result<usize, DeviceError> {
+        if slot >= self.labels.len() {
+            return Err(self.session.link.error(
+                ErrorKind::OutOfRange,
+                format!(
+                    "slot = {slot} is out of range: allowed 0..={}",
+                    self.labels.len().saturating_sub(1)
+                ),
+            ));
+        }
+        let s = self
+            .session
+            .move_verified(Command::SelectSlot { slot: slot as u8 })
+            .await?;
+        Ok(s.slot as usize)
+    }
+
+    async fn slot(&mut self) -> Result<Option<usize>, DeviceError> {
+        self.session.ensure_ready().await?;
+        let s = self.session.status().await?;
+        Ok((s.slot != 0xff && !s.flags.has(StatusFlags::MOVING)).then_some(s.slot as usize))
+    }
+}
