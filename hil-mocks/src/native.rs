@@ -427,7 +427,9 @@ impl Simulator for NativeDevice {
     }
 
     fn on_open(&mut self, _now_s: f64) -> Vec<u8> {
-        // The USB-serial bridge resets the controller on open (DTR): the host sees a boot notice.
+        // The USB-serial bridge resets the controller on open (DTR): motion and datum are lost
+        // (the shaft stays where it is) and the host sees a boot notice.
+        self.reset();
         self.boot_notice()
     }
 

@@ -84,6 +84,7 @@ pub struct SimServer {
     memory: Option<MemoryPort>,
     link: Option<PathBuf>,
     stop: watch::Sender<bool>,
+    unplug: mpsc::UnboundedSender<f64>,
     task: Option<JoinHandle<()>>,
 }
 
@@ -137,6 +138,7 @@ impl SimServer {
             port: Mutex::new(port),
         });
         let (stop, stopped) = watch::channel(false);
+        let (unplug, unplugs) = mpsc::unbounded_channel();
         let task = tokio::spawn(run(
             shared.clone(),
             source,
@@ -144,12 +146,14 @@ impl SimServer {
             faults,
             seed,
             stopped,
+            unplugs,
         ));
         SimServer {
             shared,
             memory: None,
             link: None,
             stop,
+            unplug,
             task: Some(task),
         }
     }
@@ -192,6 +196,12 @@ impl SimServer {
     /// Counters so far.
     pub fn stats(&self) -> ServeStats {
         *self.shared.stats()
+    }
+
+    /// Unplugs the device now; it comes back power-cycled (at a new pseudo-terminal, behind the
+    /// same link) after `away_s` seconds.
+    pub fn unplug(&self, away_s: f64) {
+        let _ = self.unplug.send(away_s.clamp(0.0, 3600.0));
     }
 
     /// Stops serving and waits for the server to end.
@@ -327,8 +337,8 @@ trait Stream: AsyncRead + AsyncWrite + Unpin + Send {}
 impl<T: AsyncRead + AsyncWrite + Unpin + Send> Stream for T {}
 
 enum Ended {
-    /// The injected unplug.
-    Unplugged,
+    /// An unplug (a fault, or requested), away for this many seconds.
+    Unplugged(f64),
     /// The host closed the connection (in memory) or the pty failed.
     Closed,
     /// The host opened the port again (in memory): serve the new connection.
@@ -344,9 +354,11 @@ async fn run(
     faults: FaultProfile,
     seed: u64,
     mut stopped: watch::Receiver<bool>,
+    mut unplugs: mpsc::UnboundedReceiver<f64>,
 ) {
     let mut dice = Dice::new(seed ^ 0x7472_616e_7370_6f72);
     let mut pending: Option<ConnectRequest> = None;
+    let mut last_path: Option<String> = None;
     loop {
         // A connection.
         let (stream, _keep): (Box<dyn Stream>, Option<tokio_serial::SerialStream>) =
@@ -366,16 +378,33 @@ async fn run(
                     (Box::new(device), None)
                 }
                 Source::Pty(link) => {
+                    // A re-enumerated USB device usually comes back under a new name (ttyUSB0
+                    // becomes ttyUSB1); the kernel would hand out the freed pty number again,
+                    // so pairs with the old name are held until a new one is made.
                     let pair = match first_pty.take() {
                         Some(p) => p,
-                        None => match open_pty(link) {
-                            Ok(p) => p,
-                            Err(e) => {
-                                tracing::error!("simulator: cannot open a pseudo-terminal: {e}");
-                                return;
+                        None => {
+                            let mut held = Vec::new();
+                            loop {
+                                match open_pty(link) {
+                                    Ok(p)
+                                        if Some(&p.path) == last_path.as_ref()
+                                            && held.len() < 8 =>
+                                    {
+                                        held.push(p)
+                                    }
+                                    Ok(p) => break p,
+                                    Err(e) => {
+                                        tracing::error!(
+                                            "simulator: cannot open a pseudo-terminal: {e}"
+                                        );
+                                        return;
+                                    }
+                                }
                             }
-                        },
+                        }
                     };
+                    last_path = Some(pair.path.clone());
                     *shared.port.lock().unwrap_or_else(|e| e.into_inner()) =
                         Some(pair.path.clone());
                     (Box::new(pair.device), Some(pair._host))
@@ -389,6 +418,7 @@ async fn run(
             &faults,
             &mut dice,
             &mut stopped,
+            &mut unplugs,
         )
         .await;
         match ended {
@@ -399,11 +429,11 @@ async fn run(
                 }
             }
             Ended::Reopened(request) => pending = Some(request),
-            Ended::Unplugged => {
+            Ended::Unplugged(away_s) => {
                 shared.stats().unplugs += 1;
                 *shared.port.lock().unwrap_or_else(|e| e.into_inner()) = None;
                 drop(_keep);
-                let back = Instant::now() + Duration::from_secs_f64(faults.replug_s);
+                let back = Instant::now() + Duration::from_secs_f64(away_s);
                 // While away, opens fail.
                 loop {
                     let request = match &mut source {
@@ -441,6 +471,7 @@ async fn serve(
     faults: &FaultProfile,
     dice: &mut Dice,
     stopped: &mut watch::Receiver<bool>,
+    unplugs: &mut mpsc::UnboundedReceiver<f64>,
 ) -> Ended {
     let now = shared.now_s();
     let mut outbox = Outbox::new(shared.sim().baud());
@@ -493,7 +524,7 @@ async fn serve(
                 let reply = shared.sim().receive(now, &buf[..n]);
                 outbox.push(now, reply, faults, dice, &mut shared.stats());
                 if dice.chance(faults.unplug) {
-                    return Ended::Unplugged;
+                    return Ended::Unplugged(faults.replug_s);
                 }
             }
             _ = tokio::time::sleep_until(wake) => {}
@@ -501,6 +532,7 @@ async fn serve(
                 Some(r) => return Ended::Reopened(r),
                 None => return Ended::Stop,
             },
+            Some(away_s) = unplugs.recv() => return Ended::Unplugged(away_s),
             _ = stopped.changed() => return Ended::Stop,
         }
     }

@@ -40,3 +40,31 @@ pub trait Simulator: Send + 'static {
     /// The true state at `now_s`.
     fn truth(&self, now_s: f64) -> Truth;
 }
+
+/// A boxed simulator (a device chosen at run time) is served like any other.
+impl Simulator for Box<dyn Simulator> {
+    fn describe(&self) -> String {
+        (**self).describe()
+    }
+    fn baud(&self) -> u32 {
+        (**self).baud()
+    }
+    fn receive(&mut self, now_s: f64, bytes: &[u8]) -> Vec<u8> {
+        (**self).receive(now_s, bytes)
+    }
+    fn tick(&mut self, now_s: f64) -> Vec<u8> {
+        (**self).tick(now_s)
+    }
+    fn next_event_s(&self) -> Option<f64> {
+        (**self).next_event_s()
+    }
+    fn on_open(&mut self, now_s: f64) -> Vec<u8> {
+        (**self).on_open(now_s)
+    }
+    fn power_cycle(&mut self, now_s: f64) {
+        (**self).power_cycle(now_s)
+    }
+    fn truth(&self, now_s: f64) -> Truth {
+        (**self).truth(now_s)
+    }
+}

@@ -4,5 +4,7 @@
 
 pub mod batch;
 pub mod bench;
+pub mod bench_serial;
 pub mod commands;
+pub mod devices;
 pub mod figures;

@@ -1,11 +1,14 @@
-//! `polarimeter`: the instrument controller's command line. This part: `model`
-//! (evaluate the analytical model, one call or a JSON-lines batch) and `report figures`.
+//! `polarimeter`: the instrument controller's command line: `model` (evaluate the analytical
+//! model, one call or a JSON-lines batch), `report figures`, `bench`, `devices list`, `stage`
+//! (one command to a stage or wheel in any dialect) and `sim stage` (a simulated device on a
+//! pseudo-terminal).
 
 use anyhow::Context;
 use clap::error::{ContextKind, ContextValue, ErrorKind};
 use clap::{Parser, Subcommand};
 use polar_cli::batch::{self, Kind};
 use polar_cli::commands::{self, DiffuseCache};
+use polar_cli::devices::{self, Dialect, SimModel, StageAction};
 use std::io::{BufRead, BufReader, Write};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -30,15 +33,104 @@ enum Command {
         #[command(subcommand)]
         command: ReportCommand,
     },
-    /// Speed against error of the model.
+    /// Speed against error of the model and of the device links.
     Bench {
         #[command(subcommand)]
         command: BenchCommand,
+    },
+    /// Serial ports and devices.
+    Devices {
+        #[command(subcommand)]
+        command: DevicesCommand,
+    },
+    /// One command to a rotation stage or filter wheel.
+    Stage {
+        /// The serial port (prefer a stable /dev/serial/by-id/... path).
+        #[arg(long)]
+        port: String,
+        /// The device's protocol.
+        #[arg(long, value_enum)]
+        dialect: Dialect,
+        /// Elliptec bus address, 0..=15.
+        #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=15))]
+        address: u8,
+        /// JSON output.
+        #[arg(long, global = true)]
+        json: bool,
+        #[command(subcommand)]
+        action: StageCommand,
+    },
+    /// Simulated devices.
+    Sim {
+        #[command(subcommand)]
+        command: SimCommand,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum DevicesCommand {
+    /// Serial ports found, with their stable names (and simulated devices with --simulate).
+    List {
+        /// Also list the simulated devices running and on offer.
+        #[arg(long)]
+        simulate: bool,
+        /// JSON output.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum StageCommand {
+    /// Identify the device (without homing).
+    Info,
+    /// Home.
+    Home,
+    /// Move a rotator to an angle (the short way), verified by readback.
+    Move {
+        /// The angle, degrees.
+        #[arg(long, allow_negative_numbers = true)]
+        angle_deg: f64,
+    },
+    /// Select a wheel's or slider's slot (from 0), verified by readback.
+    Slot {
+        /// The slot, from 0.
+        #[arg(long)]
+        slot: usize,
+    },
+    /// Read the position.
+    Position,
+}
+
+#[derive(Debug, Subcommand)]
+enum SimCommand {
+    /// Start a simulated stage or wheel on a pseudo-terminal; prints {"port": PATH} and serves
+    /// until stopped (Ctrl-C).
+    Stage {
+        /// The protocol it speaks.
+        #[arg(long, value_enum)]
+        dialect: Dialect,
+        /// The model (default: the dialect's rotator, or the FW102C).
+        #[arg(long, value_enum)]
+        model: Option<SimModel>,
+        /// Fault profile (TOML; see hil-mocks/src/faults.rs for the knobs).
+        #[arg(long)]
+        faults: Option<PathBuf>,
+        /// Seed of every random choice (faults, noise, power-on position).
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
     },
 }
 
 #[derive(Debug, Subcommand)]
 enum BenchCommand {
+    /// Command round trip through a pseudo-terminal against in memory and against the simulated
+    /// device's wire time, for each dialect. Prints a Markdown table.
+    Serial {
+        /// Queries per row, 10..=100000.
+        #[arg(long, default_value_t = 200)]
+        queries: usize,
+    },
     /// Time per scene evaluation and actual error against a reference computed in the same run,
     /// for the example scenes (bench, rooftop, airborne) at tolerances 1e-2 .. 1e-8. Prints a
     /// Markdown table.
@@ -224,6 +316,23 @@ fn print_json(result: Result<serde_json::Value, commands::CommandError>) -> Exit
     }
 }
 
+fn print_device(result: Result<serde_json::Value, devices::DevicesError>, json: bool) -> ExitCode {
+    match result {
+        Ok(v) => {
+            if json {
+                println!("{v}");
+            } else {
+                print!("{}", devices::text(&v));
+            }
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
 fn bench_scene(reference_tol: f64, exponents: &[u32], min_runs: usize) -> anyhow::Result<ExitCode> {
     if !(1e-10..=1e-6).contains(&reference_tol) {
         anyhow::bail!(
@@ -321,6 +430,21 @@ fn main() -> ExitCode {
             }
         },
         Command::Bench {
+            command: BenchCommand::Serial { queries },
+        } => {
+            if !(10..=100_000).contains(&queries) {
+                eprintln!("error: --queries = {queries} is out of range: allowed 10..=100000");
+                return ExitCode::from(2);
+            }
+            match polar_cli::bench_serial::serial(queries) {
+                Ok(rows) => {
+                    print!("{}", polar_cli::bench_serial::markdown(&rows, queries));
+                    Ok(ExitCode::SUCCESS)
+                }
+                Err(e) => Err(anyhow::anyhow!("{e}")),
+            }
+        }
+        Command::Bench {
             command:
                 BenchCommand::Scene {
                     reference_tolerance,
@@ -328,6 +452,49 @@ fn main() -> ExitCode {
                     min_runs,
                 },
         } => bench_scene(reference_tolerance, &exponents, min_runs),
+        Command::Devices {
+            command: DevicesCommand::List { simulate, json },
+        } => Ok(print_device(devices::list(simulate), json)),
+        Command::Stage {
+            port,
+            dialect,
+            address,
+            json,
+            action,
+        } => {
+            let action = match action {
+                StageCommand::Info => StageAction::Info,
+                StageCommand::Home => StageAction::Home,
+                StageCommand::Move { angle_deg } => StageAction::Move { angle_deg },
+                StageCommand::Slot { slot } => StageAction::Slot { slot },
+                StageCommand::Position => StageAction::Position,
+            };
+            Ok(print_device(
+                devices::stage(&port, dialect, address, &action),
+                json,
+            ))
+        }
+        Command::Sim {
+            command:
+                SimCommand::Stage {
+                    dialect,
+                    model,
+                    faults,
+                    seed,
+                },
+        } => {
+            let faults = match faults {
+                Some(path) => devices::load_faults(&path),
+                None => Ok(Default::default()),
+            };
+            match faults.and_then(|f| devices::sim_stage(dialect, model, f, seed)) {
+                Ok(()) => Ok(ExitCode::SUCCESS),
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    Ok(ExitCode::from(2))
+                }
+            }
+        }
         Command::Report {
             command: ReportCommand::Figures { out },
         } => polar_cli::figures::draw_all(&out)

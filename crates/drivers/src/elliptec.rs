@@ -393,15 +393,16 @@ impl ElliptecSession {
         let line = self.query("in", "IN").await?;
         let info =
             ElliptecInfo::parse(&line.data).map_err(|e| self.error(ErrorKind::Protocol, e))?;
-        let rotary = matches!(info.model_code, 0x0E | 0x12);
+        let rotary = is_rotator(info.model_code);
         let slider = slider_positions(info.model_code).is_some();
         if (self.rotary && !rotary) || (!self.rotary && !slider) {
             return Err(self.error(
                 ErrorKind::Other,
                 format!(
-                    "module is an {} (type {:02X}); this driver wants a {}",
+                    "module is an {} (type {:02X}), a {}; this driver wants a {}",
                     info.model(),
                     info.model_code,
+                    if rotary { "rotation mount" } else { "slider" },
                     if self.rotary {
                         "rotation mount (ELL14, ELL18)"
                     } else {
@@ -577,6 +578,41 @@ impl ElliptecSession {
             format!("move from {start} to {target} counts ended at {p} counts"),
         ))
     }
+}
+
+/// Opens the port and reads module `address`'s `in` reply and position, without moving it.
+pub async fn probe(
+    connector: Box<dyn Connector>,
+    address: u8,
+    policy: Policy,
+) -> Result<(ElliptecInfo, i32), DeviceError> {
+    let mut s = ElliptecSession {
+        link: Link::new(connector),
+        policy,
+        address: address.min(15),
+        info: None,
+        needs_init: false,
+        last_move_end: None,
+        last_position: None,
+        rotary: true,
+        rehomes: 0,
+    };
+    if address > 15 {
+        return Err(s.error(
+            ErrorKind::OutOfRange,
+            format!("address = {address} is out of range: allowed 0..=15"),
+        ));
+    }
+    s.link.open(policy.open_timeout).await?;
+    let line = s.query("in", "IN").await?;
+    let info = ElliptecInfo::parse(&line.data).map_err(|e| s.error(ErrorKind::Protocol, e))?;
+    let position = s.position_counts().await?;
+    Ok((info, position))
+}
+
+/// Whether the `in` model code is a rotation mount.
+pub fn is_rotator(model_code: u8) -> bool {
+    matches!(model_code, 0x0E | 0x12)
 }
 
 /// An ELL14 or ELL18 rotation mount.

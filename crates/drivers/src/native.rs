@@ -472,6 +472,65 @@ impl NativeSession {
     }
 }
 
+/// What [`probe`] finds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Probe {
+    /// The identity.
+    pub identity: Identity,
+    /// The position, counts (meaningful once homed).
+    pub position_counts: i32,
+    /// Whether the axis has a datum.
+    pub homed: bool,
+    /// The slot (wheels at rest on one).
+    pub slot: Option<u8>,
+}
+
+/// Opens the port and asks the controller what it is and where it is, without moving it.
+pub async fn probe(connector: Box<dyn Connector>, policy: Policy) -> Result<Probe, DeviceError> {
+    let mut s = NativeSession {
+        link: Link::new(connector),
+        policy,
+        kind: DeviceKind::Unknown(0),
+        seq: 0,
+        decoder: Decoder::new(),
+        packets: VecDeque::new(),
+        identity: None,
+        needs_init: false,
+        resets_seen: 0,
+        tolerance_counts: 5,
+    };
+    s.link.open(policy.open_timeout).await?;
+    let identity = match s.query(Command::Identify).await? {
+        Reply::Identity {
+            firmware,
+            device,
+            counts_per_turn,
+            slots,
+            serial,
+            ..
+        } => Identity {
+            firmware,
+            device,
+            counts_per_turn,
+            slots,
+            serial,
+        },
+        other => {
+            return Err(s.link.error(
+                ErrorKind::Protocol,
+                format!("expected an identity, got {other:?}"),
+            ))
+        }
+    };
+    let status = s.status().await?;
+    Ok(Probe {
+        identity,
+        position_counts: status.position_counts,
+        homed: status.flags.has(StatusFlags::HOMED),
+        slot: (status.slot != 0xff).then_some(status.slot),
+    })
+}
+
 /// Our firmware's rotation stage.
 pub struct NativeRotator {
     session: NativeSession,

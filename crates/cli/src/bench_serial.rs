@@ -1,0 +1,208 @@
+//! `bench serial`: what a command round trip costs through a real pseudo-terminal, against the
+//! same driver and simulator over an in-memory pipe and against the simulated device's own
+//! time (the bytes on the wire at its baud rate), for each dialect.
+//!
+//! The query is each driver's position read (`GetStatus`, `gp`, `pos?`), which the simulated
+//! devices answer at once and send at their baud rate, so everything above the reply's wire
+//! time is overhead: the driver, tokio (whose timers round each wake up to the next
+//! millisecond, and the simulator's pacing uses them), the kernel's pty and the server. The pty
+//! row against the memory row isolates the pseudo-terminal's share.
+
+use crate::devices::DevicesError;
+use polar_drivers::elliptec::{self, ElliptecRotator};
+use polar_drivers::fw102c::{self, Fw102c};
+use polar_drivers::link::{BoxIo, Connector, FnConnector, SerialPath};
+use polar_drivers::native::{self, NativeRotator};
+use polar_hal::{FilterWheel, Rotator};
+use polar_hil_mocks::elliptec::{ElliptecConfig, ElliptecDevice};
+use polar_hil_mocks::faults::FaultProfile;
+use polar_hil_mocks::fw102c::{Fw102cConfig, Fw102cDevice};
+use polar_hil_mocks::native::{NativeConfig, NativeDevice};
+use polar_hil_mocks::serve::SimServer;
+use polar_hil_mocks::sim::Simulator;
+use std::time::{Duration, Instant};
+
+/// One measured row.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SerialRow {
+    /// The dialect and device.
+    pub device: String,
+    /// `pty` or `memory`.
+    pub transport: &'static str,
+    /// Baud rate of the simulated line.
+    pub baud: u32,
+    /// The simulated device's time for one query: its reply bytes at the baud rate (the
+    /// simulators answer queries at once and pace only their output), ms.
+    pub wire_ms: f64,
+    /// Median round trip, ms.
+    pub median_ms: f64,
+    /// 90th percentile, ms.
+    pub p90_ms: f64,
+    /// Median minus wire time, ms.
+    pub overhead_ms: f64,
+}
+
+#[derive(Clone, Copy)]
+enum Which {
+    Native,
+    Elliptec,
+    Fw102c,
+}
+
+fn sim(which: Which) -> Box<dyn Simulator> {
+    let f = FaultProfile::default();
+    match which {
+        Which::Native => Box::new(NativeDevice::new(NativeConfig::rotator(), f, 1)),
+        Which::Elliptec => Box::new(ElliptecDevice::new(ElliptecConfig::ell14(), f, 1)),
+        Which::Fw102c => Box::new(Fw102cDevice::new(Fw102cConfig::fw102c(), f, 1)),
+    }
+}
+
+async fn queries(
+    which: Which,
+    connector: Box<dyn Connector>,
+    server: &SimServer,
+    n: usize,
+) -> Result<(Vec<f64>, f64), DevicesError> {
+    let mut times = Vec::with_capacity(n);
+    let bytes_before;
+    match which {
+        Which::Native => {
+            let mut r = NativeRotator::connect(connector, native::default_policy()).await?;
+            let s = server.stats();
+            bytes_before = s.bytes_out;
+            for _ in 0..n {
+                let t = Instant::now();
+                r.position_rad().await?;
+                times.push(t.elapsed().as_secs_f64());
+            }
+        }
+        Which::Elliptec => {
+            let mut r = ElliptecRotator::connect(
+                connector,
+                0,
+                elliptec::default_policy(),
+                0.05f64.to_radians(),
+            )
+            .await?;
+            let s = server.stats();
+            bytes_before = s.bytes_out;
+            for _ in 0..n {
+                let t = Instant::now();
+                r.position_rad().await?;
+                times.push(t.elapsed().as_secs_f64());
+            }
+        }
+        Which::Fw102c => {
+            let mut w = Fw102c::connect(connector, fw102c::default_policy()).await?;
+            let s = server.stats();
+            bytes_before = s.bytes_out;
+            for _ in 0..n {
+                let t = Instant::now();
+                w.slot().await?;
+                times.push(t.elapsed().as_secs_f64());
+            }
+        }
+    }
+    let s = server.stats();
+    let bytes_per_query = (s.bytes_out - bytes_before) as f64 / n as f64;
+    Ok((times, bytes_per_query))
+}
+
+fn row(
+    device: &str,
+    transport: &'static str,
+    baud: u32,
+    mut times: Vec<f64>,
+    bytes: f64,
+) -> SerialRow {
+    times.sort_by(f64::total_cmp);
+    let q = |p: f64| times[((times.len() - 1) as f64 * p).round() as usize] * 1e3;
+    let wire_ms = bytes * 10.0 / baud as f64 * 1e3;
+    SerialRow {
+        device: device.to_string(),
+        transport,
+        baud,
+        wire_ms,
+        median_ms: q(0.5),
+        p90_ms: q(0.9),
+        overhead_ms: q(0.5) - wire_ms,
+    }
+}
+
+/// Measures `n` position queries per dialect and transport.
+pub fn serial(n: usize) -> Result<Vec<SerialRow>, DevicesError> {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| DevicesError(format!("cannot start the async runtime: {e}")))?;
+    let dir = std::env::temp_dir().join(format!("polarimeter-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)
+        .map_err(|e| DevicesError(format!("cannot create {}: {e}", dir.display())))?;
+    let result = rt.block_on(async {
+        let mut rows = Vec::new();
+        for (which, name) in [
+            (Which::Native, "native rotator"),
+            (Which::Elliptec, "elliptec ELL14"),
+            (Which::Fw102c, "fw102c"),
+        ] {
+            let baud = sim(which).baud();
+            // Through a pseudo-terminal.
+            let link = dir.join(name.replace(' ', "-"));
+            let server = SimServer::pty(sim(which), FaultProfile::default(), 1, &link)
+                .map_err(|e| DevicesError(format!("cannot open a pseudo-terminal: {e}")))?;
+            let connector = Box::new(SerialPath {
+                path: link.to_string_lossy().into_owned(),
+                baud,
+            });
+            let (times, bytes) = queries(which, connector, &server, n).await?;
+            rows.push(row(name, "pty", baud, times, bytes));
+            server.shutdown().await;
+            // In memory.
+            let server = SimServer::memory(sim(which), FaultProfile::default(), 1);
+            let port = server
+                .memory_port()
+                .ok_or_else(|| DevicesError("no memory port".into()))?;
+            let connector = Box::new(FnConnector::new("memory", move || {
+                let port = port.clone();
+                async move { port.open().await.map(|io| Box::new(io) as BoxIo) }
+            }));
+            let (times, bytes) = queries(which, connector, &server, n).await?;
+            rows.push(row(name, "memory", baud, times, bytes));
+            server.shutdown().await;
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        Ok(rows)
+    });
+    let _ = std::fs::remove_dir_all(&dir);
+    result
+}
+
+/// The rows as a Markdown table, with the pty's extra cost over memory per dialect.
+pub fn markdown(rows: &[SerialRow], n: usize) -> String {
+    let mut out = format!(
+        "Position query round trip, {n} queries per row (median and 90th percentile).\n\n\
+         | device | transport | baud | device time: reply on the wire (ms) | median (ms) | p90 (ms) | overhead over wire (ms) |\n\
+         |---|---|---:|---:|---:|---:|---:|\n"
+    );
+    for r in rows {
+        out.push_str(&format!(
+            "| {} | {} | {} | {:.2} | {:.2} | {:.2} | {:.2} |\n",
+            r.device, r.transport, r.baud, r.wire_ms, r.median_ms, r.p90_ms, r.overhead_ms
+        ));
+    }
+    out.push('\n');
+    for pair in rows.chunks(2) {
+        if let [pty, mem] = pair {
+            out.push_str(&format!(
+                "- {}: the pty adds {:.2} ms per round trip over memory ({:.2}x the in-memory median); the device's wire time is {:.1} % of the pty median.\n",
+                pty.device,
+                pty.median_ms - mem.median_ms,
+                pty.median_ms / mem.median_ms.max(1e-9),
+                100.0 * pty.wire_ms / pty.median_ms.max(1e-9),
+            ));
+        }
+    }
+    out
+}
