@@ -21,6 +21,7 @@ use polar_hil_mocks::sim::{Simulator, Truth};
 use std::time::Duration;
 
 /// What a fault is allowed to cost.
+#[derive(Clone)]
 struct Case {
     name: &'static str,
     faults: FaultProfile,
@@ -163,6 +164,16 @@ fn cases() -> Vec<Case> {
             min_success: 0.6,
         },
     ]
+}
+
+/// Each case runs with this many seeds (different faults, targets and power-on positions).
+const ROUNDS: u64 = 3;
+
+/// Every case under every seed: (round, case index, case).
+fn rounds() -> Vec<(u64, usize, Case)> {
+    (0..ROUNDS)
+        .flat_map(|r| cases().into_iter().enumerate().map(move |(k, c)| (r, k, c)))
+        .collect()
 }
 
 /// Operations per case.
@@ -338,8 +349,8 @@ fn serve(sim: impl Simulator, case: &Case, seed: u64) -> SimServer {
 #[tokio::test(start_paused = true)]
 async fn native_rotator_conformance() {
     let policy = native::default_policy();
-    for (k, case) in cases().iter().enumerate() {
-        let seed = 100 + k as u64;
+    for (round, k, case) in &rounds() {
+        let seed = 100 + *k as u64 + 1000 * round;
         let server = serve(
             NativeDevice::new(NativeConfig::rotator(), case.faults, seed),
             case,
@@ -350,6 +361,14 @@ async fn native_rotator_conformance() {
             Ok(r) => r,
             Err(e) => panic!("{}: could not connect: {e}", case.name),
         };
+        // Twice the default cruise (60 deg/s), kept across resets.
+        if let Err(e) = rotator.set_velocity(120f64.to_radians()).await {
+            assert!(
+                case.allowed.contains(&e.kind()),
+                "{}: set_velocity: {e}",
+                case.name
+            );
+        }
         // Backlash (20 counts) shifts the output by 10 counts; encoder noise 0.3 counts.
         let slack = 12.0 / NativeConfig::rotator().counts_per_turn as f64 * TURN_RAD;
         let ok = exercise_rotator(&mut rotator, &server, case, &policy, slack, seed).await;
@@ -368,8 +387,8 @@ async fn native_rotator_conformance() {
 #[tokio::test(start_paused = true)]
 async fn native_wheel_conformance() {
     let policy = native::default_policy();
-    for (k, case) in cases().iter().enumerate() {
-        let seed = 200 + k as u64;
+    for (round, k, case) in &rounds() {
+        let seed = 200 + *k as u64 + 1000 * round;
         let server = serve(
             NativeDevice::new(NativeConfig::wheel(), case.faults, seed),
             case,
@@ -391,8 +410,8 @@ async fn native_wheel_conformance() {
 #[tokio::test(start_paused = true)]
 async fn fw102c_conformance() {
     let policy = fw102c::default_policy();
-    for (k, case) in cases().iter().enumerate() {
-        let seed = 300 + k as u64;
+    for (round, k, case) in &rounds() {
+        let seed = 300 + *k as u64 + 1000 * round;
         let server = serve(
             Fw102cDevice::new(Fw102cConfig::fw102c(), case.faults, seed),
             case,
@@ -414,8 +433,8 @@ async fn fw102c_conformance() {
 async fn elliptec_rotator_conformance() {
     let policy = elliptec::default_policy();
     let config = ElliptecConfig::ell14();
-    for (k, case) in cases().iter().enumerate() {
-        let seed = 400 + k as u64;
+    for (round, k, case) in &rounds() {
+        let seed = 400 + *k as u64 + 1000 * round;
         let server = serve(ElliptecDevice::new(config, case.faults, seed), case, seed);
         let tolerance_rad = 0.05f64.to_radians();
         let connector =
@@ -443,8 +462,8 @@ async fn elliptec_rotator_conformance() {
 #[tokio::test(start_paused = true)]
 async fn elliptec_slider_conformance() {
     let policy = elliptec::default_policy();
-    for (k, case) in cases().iter().enumerate() {
-        let seed = 500 + k as u64;
+    for (round, k, case) in &rounds() {
+        let seed = 500 + *k as u64 + 1000 * round;
         let server = serve(
             ElliptecDevice::new(ElliptecConfig::ell9(), case.faults, seed),
             case,
@@ -459,4 +478,32 @@ async fn elliptec_slider_conformance() {
         report("elliptec ELL9", case, ok, &server, slider.session().opens());
         check_rate(case, "elliptec ELL9", ok, &server);
     }
+}
+
+/// `set_velocity` reaches the controller: a quarter turn at 120 deg/s takes about half as long
+/// as at the default 60 deg/s (1.5 s + 0.25 s ramp against 0.75 s + 0.25 s ramp, plus the same
+/// few milliseconds of queries; 0.7 leaves room for those).
+#[tokio::test(start_paused = true)]
+async fn native_velocity_is_applied() {
+    let policy = native::default_policy();
+    let server = SimServer::memory(
+        NativeDevice::new(NativeConfig::rotator(), FaultProfile::default(), 1),
+        FaultProfile::default(),
+        1,
+    );
+    let mut r = NativeRotator::connect(memory_connector(&server), policy)
+        .await
+        .expect("connect");
+    assert!(r.supports_velocity());
+    let t0 = tokio::time::Instant::now();
+    r.move_to(90f64.to_radians()).await.expect("move");
+    let slow = t0.elapsed().as_secs_f64();
+    r.set_velocity(120f64.to_radians()).await.expect("velocity");
+    let t0 = tokio::time::Instant::now();
+    r.move_to(180f64.to_radians()).await.expect("move");
+    let fast = t0.elapsed().as_secs_f64();
+    assert!(fast < 0.7 * slow, "{fast} s against {slow} s");
+    let e = r.set_velocity(-1.0).await.expect_err("negative");
+    assert_eq!(e.kind(), ErrorKind::OutOfRange);
+    assert!(e.to_string().contains("velocity = -1"), "{e}");
 }

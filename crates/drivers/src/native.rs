@@ -68,6 +68,9 @@ pub struct NativeSession {
     needs_init: bool,
     resets_seen: u32,
     tolerance_counts: i32,
+    /// Velocity and acceleration set by the user, counts/s and counts/s^2: applied again after
+    /// every reset (the controller boots with its defaults).
+    motion: Option<(u32, u32)>,
 }
 
 fn map_nack(link: &Link, code: ErrorCode, what: &str) -> DeviceError {
@@ -109,6 +112,7 @@ impl NativeSession {
             needs_init: true,
             resets_seen: 0,
             tolerance_counts: 5,
+            motion: None,
         };
         s.ensure_ready().await?;
         Ok(s)
@@ -383,8 +387,42 @@ impl NativeSession {
             }
         };
         self.identity = Some(identity);
+        if let Some(motion) = self.motion {
+            self.apply_motion(motion).await?;
+        }
         tracing::info!(port = %self.link.name(), ?identity, "identified; homing");
         self.home_once().await
+    }
+
+    async fn apply_motion(
+        &mut self,
+        (velocity, acceleration): (u32, u32),
+    ) -> Result<(), DeviceError> {
+        let command = Command::SetMotion {
+            velocity_counts_per_s: velocity,
+            acceleration_counts_per_s2: acceleration,
+        };
+        match self.query(command).await? {
+            Reply::Ack => Ok(()),
+            Reply::Nack { code } => Err(map_nack(&self.link, code, "set motion")),
+            other => Err(self.link.error(
+                ErrorKind::Protocol,
+                format!("expected an ack to set motion, got {other:?}"),
+            )),
+        }
+    }
+
+    /// Sets the cruise velocity and acceleration (kept and applied again after a reset).
+    pub async fn set_motion(
+        &mut self,
+        velocity_counts_per_s: u32,
+        acceleration_counts_per_s2: u32,
+    ) -> Result<(), DeviceError> {
+        self.ensure_ready().await?;
+        let motion = (velocity_counts_per_s, acceleration_counts_per_s2);
+        self.apply_motion(motion).await?;
+        self.motion = Some(motion);
+        Ok(())
     }
 
     /// Moves and checks the result by reading the position (or slot) back; repeats on a lost
@@ -498,6 +536,7 @@ pub async fn probe(connector: Box<dyn Connector>, policy: Policy) -> Result<Prob
         needs_init: false,
         resets_seen: 0,
         tolerance_counts: 5,
+        motion: None,
     };
     s.link.open(policy.open_timeout).await?;
     let identity = match s.query(Command::Identify).await? {
@@ -621,6 +660,26 @@ impl Rotator for NativeRotator {
         let s = self.session.status().await?;
         self.last_counts = s.position_counts;
         Ok(self.angle(s.position_counts))
+    }
+
+    fn supports_velocity(&self) -> bool {
+        true
+    }
+
+    /// Cruise at `rad_per_s` (up to 10 turns/s), accelerating to it in 0.25 s.
+    async fn set_velocity(&mut self, rad_per_s: f64) -> Result<(), DeviceError> {
+        let max = 10.0 * TURN_RAD;
+        if !(rad_per_s > 0.0 && rad_per_s <= max) {
+            return Err(self.session.link.error(
+                ErrorKind::OutOfRange,
+                format!("velocity = {rad_per_s} rad/s is out of range: allowed (0, {max:.1}]"),
+            ));
+        }
+        let cpt = self.info.counts_per_turn as f64;
+        let v = (rad_per_s / TURN_RAD * cpt)
+            .round()
+            .clamp(1.0, u32::MAX as f64 / 4.0) as u32;
+        self.session.set_motion(v, v.saturating_mul(4)).await
     }
 }
 
