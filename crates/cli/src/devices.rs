@@ -5,7 +5,7 @@ use polar_drivers::elliptec::{self, ElliptecRotator, ElliptecSlider};
 use polar_drivers::fw102c::{self, Fw102c};
 use polar_drivers::link::{Connector, Policy, SerialPath};
 use polar_drivers::native::{self, NativeRotator, NativeWheel};
-use polar_hal::{DeviceError, FilterWheel, Rotator};
+use polar_hal::{angle_from_counts, DeviceError, FilterWheel, Rotator};
 use polar_hil_mocks::elliptec::{ElliptecConfig, ElliptecDevice};
 use polar_hil_mocks::faults::FaultProfile;
 use polar_hil_mocks::fw102c::{Fw102cConfig, Fw102cDevice};
@@ -226,10 +226,8 @@ async fn stage_async(
                 "position_counts": p.position_counts,
             });
             if rotator {
-                v["position_deg"] = json!((p.position_counts as f64
-                    / id.counts_per_turn.max(1) as f64
-                    * 360.0)
-                    .rem_euclid(360.0));
+                let angle = angle_from_counts(i64::from(p.position_counts), id.counts_per_turn);
+                v["position_deg"] = json!(angle.to_degrees());
             } else {
                 v["slot"] = json!(p.slot);
             }
@@ -245,7 +243,7 @@ async fn stage_async(
             });
             if elliptec::is_rotator(info.model_code) {
                 v["position_deg"] =
-                    json!((counts as f64 / info.pulses.max(1) as f64 * 360.0).rem_euclid(360.0));
+                    json!(angle_from_counts(i64::from(counts), info.pulses).to_degrees());
             } else if let Some(slots) = elliptec::slider_positions(info.model_code) {
                 v["slot"] = json!(slots.iter().position(|&p| (p - counts).abs() <= 5));
             }

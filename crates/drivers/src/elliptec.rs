@@ -19,7 +19,8 @@
 
 use crate::link::{Connector, Link, Policy};
 use polar_hal::{
-    signed_difference, wrap, DeviceError, ErrorKind, FilterWheel, Rotator, RotatorInfo, TURN_RAD,
+    angle_from_counts, counts_toward, DeviceError, ErrorKind, FilterWheel, Rotator, RotatorInfo,
+    TURN_RAD,
 };
 use std::time::Duration;
 use tokio::time::Instant;
@@ -654,10 +655,7 @@ impl ElliptecRotator {
     }
 
     fn angle(&self, counts: i32) -> f64 {
-        wrap(
-            counts as f64 / self.info.counts_per_turn as f64 * TURN_RAD,
-            TURN_RAD,
-        )
+        angle_from_counts(i64::from(counts), self.info.counts_per_turn)
     }
 }
 
@@ -679,13 +677,8 @@ impl Rotator for ElliptecRotator {
             ));
         }
         let cpt = self.info.counts_per_turn;
-        let current_angle = |c: i32| wrap(c as f64 / cpt as f64 * TURN_RAD, TURN_RAD);
         // The short way round from where the stage is.
-        let target = move |current: i32| {
-            let d = signed_difference(angle_rad, current_angle(current), TURN_RAD);
-            (current as f64 + (d / TURN_RAD * cpt as f64).round())
-                .clamp(i32::MIN as f64, i32::MAX as f64) as i32
-        };
+        let target = move |current: i32| counts_toward(current, angle_rad, cpt);
         let p = self
             .session
             .move_verified(target, self.tolerance_counts, i64::from(cpt))

@@ -14,7 +14,8 @@ use polar_firmware_protocol::{
     PROTOCOL_VERSION,
 };
 use polar_hal::{
-    signed_difference, wrap, DeviceError, ErrorKind, FilterWheel, Rotator, RotatorInfo, TURN_RAD,
+    angle_from_counts, counts_toward, DeviceError, ErrorKind, FilterWheel, Rotator, RotatorInfo,
+    TURN_RAD,
 };
 use std::collections::VecDeque;
 use std::time::Duration;
@@ -84,6 +85,33 @@ fn map_nack(link: &Link, code: ErrorCode, what: &str) -> DeviceError {
         }
     };
     link.error(kind, format!("{what} refused: {code:?}"))
+}
+
+/// The protocol version and identity in an Identify reply.
+fn parse_identity(link: &Link, reply: Reply) -> Result<(u8, Identity), DeviceError> {
+    match reply {
+        Reply::Identity {
+            protocol_version,
+            firmware,
+            device,
+            counts_per_turn,
+            slots,
+            serial,
+        } => Ok((
+            protocol_version,
+            Identity {
+                firmware,
+                device,
+                counts_per_turn,
+                slots,
+                serial,
+            },
+        )),
+        other => Err(link.error(
+            ErrorKind::Protocol,
+            format!("expected an identity, got {other:?}"),
+        )),
+    }
 }
 
 fn retryable(e: &DeviceError) -> bool {
@@ -340,52 +368,36 @@ impl NativeSession {
     }
 
     async fn init(&mut self) -> Result<(), DeviceError> {
-        let identity = match self.query(Command::Identify).await? {
-            Reply::Identity {
-                protocol_version,
-                firmware,
-                device,
-                counts_per_turn,
-                slots,
-                serial,
-            } => {
-                if protocol_version != PROTOCOL_VERSION {
-                    return Err(self.link.error(
-                        ErrorKind::Other,
-                        format!(
-                            "the controller speaks protocol version {protocol_version}; this driver speaks {PROTOCOL_VERSION}"
-                        ),
-                    ));
-                }
-                if device != self.kind {
-                    return Err(self.link.error(
-                        ErrorKind::Other,
-                        format!("the controller is a {device:?}, not a {:?}", self.kind),
-                    ));
-                }
-                if counts_per_turn == 0 || (device == DeviceKind::FilterWheel && slots == 0) {
-                    return Err(self.link.error(
-                        ErrorKind::Protocol,
-                        format!(
-                            "identity out of range: counts_per_turn = {counts_per_turn}, slots = {slots} (both must be > 0)"
-                        ),
-                    ));
-                }
-                Identity {
-                    firmware,
-                    device,
-                    counts_per_turn,
-                    slots,
-                    serial,
-                }
-            }
-            other => {
-                return Err(self.link.error(
-                    ErrorKind::Protocol,
-                    format!("expected an identity, got {other:?}"),
-                ))
-            }
-        };
+        let reply = self.query(Command::Identify).await?;
+        let (protocol_version, identity) = parse_identity(&self.link, reply)?;
+        if protocol_version != PROTOCOL_VERSION {
+            return Err(self.link.error(
+                ErrorKind::Other,
+                format!(
+                    "the controller speaks protocol version {protocol_version}; this driver speaks {PROTOCOL_VERSION}"
+                ),
+            ));
+        }
+        let Identity {
+            device,
+            counts_per_turn,
+            slots,
+            ..
+        } = identity;
+        if device != self.kind {
+            return Err(self.link.error(
+                ErrorKind::Other,
+                format!("the controller is a {device:?}, not a {:?}", self.kind),
+            ));
+        }
+        if counts_per_turn == 0 || (device == DeviceKind::FilterWheel && slots == 0) {
+            return Err(self.link.error(
+                ErrorKind::Protocol,
+                format!(
+                    "identity out of range: counts_per_turn = {counts_per_turn}, slots = {slots} (both must be > 0)"
+                ),
+            ));
+        }
         self.identity = Some(identity);
         if let Some(motion) = self.motion {
             self.apply_motion(motion).await?;
@@ -539,28 +551,8 @@ pub async fn probe(connector: Box<dyn Connector>, policy: Policy) -> Result<Prob
         motion: None,
     };
     s.link.open(policy.open_timeout).await?;
-    let identity = match s.query(Command::Identify).await? {
-        Reply::Identity {
-            firmware,
-            device,
-            counts_per_turn,
-            slots,
-            serial,
-            ..
-        } => Identity {
-            firmware,
-            device,
-            counts_per_turn,
-            slots,
-            serial,
-        },
-        other => {
-            return Err(s.link.error(
-                ErrorKind::Protocol,
-                format!("expected an identity, got {other:?}"),
-            ))
-        }
-    };
+    let reply = s.query(Command::Identify).await?;
+    let (_, identity) = parse_identity(&s.link, reply)?;
     let status = s.status().await?;
     Ok(Probe {
         identity,
@@ -613,10 +605,7 @@ impl NativeRotator {
     }
 
     fn angle(&self, counts: i32) -> f64 {
-        wrap(
-            counts as f64 / self.info.counts_per_turn as f64 * TURN_RAD,
-            TURN_RAD,
-        )
+        angle_from_counts(i64::from(counts), self.info.counts_per_turn)
     }
 }
 
@@ -641,10 +630,7 @@ impl Rotator for NativeRotator {
         }
         self.session.ensure_ready().await?;
         let current = self.session.status().await?.position_counts;
-        let cpt = self.info.counts_per_turn as f64;
-        let delta = signed_difference(angle_rad, self.angle(current), TURN_RAD) / TURN_RAD * cpt;
-        let target =
-            (current as f64 + delta.round()).clamp(i32::MIN as f64, i32::MAX as f64) as i32;
+        let target = counts_toward(current, angle_rad, self.info.counts_per_turn);
         let s = self
             .session
             .move_verified(Command::MoveAbsolute {

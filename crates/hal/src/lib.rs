@@ -157,3 +157,48 @@ pub fn signed_difference(a: f64, b: f64, period: f64) -> f64 {
 
 /// A full turn, radians.
 pub const TURN_RAD: f64 = 2.0 * PI;
+
+/// The angle of an axis at `counts` with `counts_per_turn`, radians in `[0, 2 pi)`.
+pub fn angle_from_counts(counts: i64, counts_per_turn: u32) -> f64 {
+    wrap(
+        counts as f64 / counts_per_turn.max(1) as f64 * TURN_RAD,
+        TURN_RAD,
+    )
+}
+
+/// The absolute count nearest `current` at which the axis is at `angle_rad`: the target of a
+/// move the short way round (saturating at the ends of the i32 range).
+pub fn counts_toward(current: i32, angle_rad: f64, counts_per_turn: u32) -> i32 {
+    let cpt = counts_per_turn.max(1) as f64;
+    let delta = signed_difference(
+        angle_rad,
+        angle_from_counts(i64::from(current), counts_per_turn),
+        TURN_RAD,
+    ) / TURN_RAD
+        * cpt;
+    (current as f64 + delta.round()).clamp(i32::MIN as f64, i32::MAX as f64) as i32
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Counts and angles: a quarter of 143360 counts is 90 deg; a move from just below a full
+    /// turn to 1 deg goes forward across the turn (short way), and from 1 deg to 359 deg
+    /// backwards below zero, to the count of the target angle (rounding: half a count); the
+    /// target saturates at the end of the i32 range.
+    #[test]
+    fn counts_and_angles() {
+        let cpt = 143_360;
+        assert!((angle_from_counts(35_840, cpt).to_degrees() - 90.0).abs() < 1e-12);
+        assert!((angle_from_counts(-35_840, cpt).to_degrees() - 270.0).abs() < 1e-9);
+        let one_deg = cpt as f64 / 360.0;
+        let t = counts_toward(143_000, 1f64.to_radians(), cpt);
+        assert!((t as f64 - (143_360.0 + one_deg)).abs() <= 0.5, "{t}");
+        let t = counts_toward(398, 359f64.to_radians(), cpt);
+        assert!((t as f64 + one_deg).abs() <= 0.5, "{t}");
+        // Past the end of the i32 range the target saturates instead of overflowing.
+        let at_max = angle_from_counts(i64::from(i32::MAX), cpt);
+        assert_eq!(counts_toward(i32::MAX, at_max + 0.1, cpt), i32::MAX);
+    }
+}
