@@ -231,6 +231,24 @@ enum ModelCommand {
         #[arg(long)]
         batch: Option<PathBuf>,
     },
+    /// The N frames' mean and covariance (DN) for a scene radiance through a camera behind
+    /// analyzers: EMVA 1288 linear camera, shot, dark, read and quantisation noise.
+    Sensor {
+        #[command(flatten)]
+        args: commands::SensorArgs,
+    },
+    /// DoLP and AoP mean and spread of a Stokes estimate (Taylor or Rice regime), with an
+    /// optional Monte Carlo check.
+    DolpStats {
+        #[command(flatten)]
+        args: commands::DolpStatsArgs,
+    },
+    /// Analytic ROC of a detector (matched filter, RX) for a target against a background:
+    /// Pd at a Pfa, SCR and the curve.
+    Roc {
+        #[command(flatten)]
+        args: commands::RocArgs,
+    },
 }
 
 #[derive(Debug, Subcommand)]
@@ -428,6 +446,9 @@ fn main() -> ExitCode {
             ModelCommand::Polarimeter { args, batch: None } => {
                 Ok(print_json(commands::polarimeter(&args)))
             }
+            ModelCommand::Roc { args } => Ok(print_json(commands::roc(&args))),
+            ModelCommand::Sensor { args } => Ok(print_json(commands::sensor(&args))),
+            ModelCommand::DolpStats { args } => Ok(print_json(commands::dolp_stats(&args))),
         },
         Command::Bench {
             command: BenchCommand::Serial { queries },

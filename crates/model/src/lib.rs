@@ -32,14 +32,17 @@ pub mod atmosphere;
 pub mod error;
 pub mod fresnel;
 pub mod material;
+pub mod metrics;
 pub mod pbrdf;
 pub mod polarization;
 pub mod quadrature;
 pub mod scene;
 pub mod scene_file;
+pub mod sensor;
 pub mod sky;
 pub mod sky_table;
 pub mod skylight;
+pub mod stats;
 pub mod sun;
 pub mod tiles;
 
