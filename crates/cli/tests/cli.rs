@@ -803,19 +803,23 @@ fn simulated_devices_through_the_cli() {
 /// errors name the file or the field.
 #[test]
 fn sensor_command() {
-    let run = |t_ms: &str| -> serde_json::Value {
-        let out = polarimeter(&[
+    let sensor = |camera: &str, radiance: &str, t_ms: &str| {
+        polarimeter(&[
             "model",
             "sensor",
             "--camera",
-            "../../examples/cameras/cmos_modern.toml",
+            camera,
             "--angles-deg",
             "0,45,90,135",
             "--radiance-mean",
-            "1,0.2,0.1",
+            radiance,
             "--t-int-ms",
             t_ms,
-        ]);
+        ])
+    };
+    let cmos = "../../examples/cameras/cmos_modern.toml";
+    let run = |t_ms: &str| -> serde_json::Value {
+        let out = sensor(cmos, "1,0.2,0.1", t_ms);
         assert!(
             out.status.success(),
             "{}",
@@ -835,50 +839,13 @@ fn sensor_command() {
         let diag = a["cov"][k][k].as_f64().unwrap();
         assert!((var / diag - 1.0).abs() < 1e-12, "{var} {diag}");
     }
-    let e = polarimeter(&[
-        "model",
-        "sensor",
-        "--camera",
-        "/nonexistent.toml",
-        "--angles-deg",
-        "0",
-        "--radiance-mean",
-        "1,0,0",
-        "--t-int-ms",
-        "5",
-    ]);
-    assert_eq!(e.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&e.stderr).contains("/nonexistent.toml"));
-    let e = polarimeter(&[
-        "model",
-        "sensor",
-        "--camera",
-        "../../examples/cameras/cmos_modern.toml",
-        "--angles-deg",
-        "0",
-        "--radiance-mean",
-        "1,0",
-        "--t-int-ms",
-        "5",
-    ]);
-    assert!(String::from_utf8_lossy(&e.stderr).contains("radiance_mean has 2 values"));
-    let e = polarimeter(&[
-        "model",
-        "sensor",
-        "--camera",
-        "../../examples/cameras/cmos_modern.toml",
-        "--angles-deg",
-        "0",
-        "--radiance-mean",
-        "1,0,0",
-        "--t-int-ms",
-        "-1",
-    ]);
-    assert!(
-        String::from_utf8_lossy(&e.stderr).contains("t_int_s"),
-        "{}",
-        String::from_utf8_lossy(&e.stderr)
-    );
+    let stderr = |out: std::process::Output| {
+        assert_eq!(out.status.code(), Some(2));
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    assert!(stderr(sensor("/nonexistent.toml", "1,0,0", "5")).contains("/nonexistent.toml"));
+    assert!(stderr(sensor(cmos, "1,0", "5")).contains("radiance_mean has 2 values"));
+    assert!(stderr(sensor(cmos, "1,0,0", "-1")).contains("t_int_s"));
 }
 
 /// `model roc`: the curve rises from Pfa, Pd at the asked Pfa is on it, the matched filter
