@@ -972,6 +972,12 @@ pub struct SensorArgs {
     /// Relative frame-to-frame calibration drift, [0, 1].
     #[arg(long, default_value_t = 0.0)]
     pub drift: f64,
+    /// Frame sets for a Monte Carlo of the whole chain (0: none), up to 1e7.
+    #[arg(long, default_value_t = 0)]
+    pub monte_carlo: usize,
+    /// Monte Carlo seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
 }
 
 /// Evaluates [`SensorArgs`].
@@ -1028,7 +1034,26 @@ pub fn sensor(a: &SensorArgs) -> Result<Value, CommandError> {
     let v = |x: &nalgebra::DVector<f64>| x.iter().copied().collect::<Vec<f64>>();
     let mut warnings = model.warnings().to_vec();
     warnings.extend(s.warnings.iter().cloned());
+    let mc = if a.monte_carlo > 0 {
+        let mc = polar_model::montecarlo::simulate_frames(
+            &model,
+            &angles,
+            &exposure,
+            a.monte_carlo,
+            a.seed,
+        )?;
+        json!({
+            "sets": mc.sets,
+            "seed": a.seed,
+            "mean": v(&mc.mean_dn),
+            "cov": rows(&mc.cov_dn),
+            "saturated_fraction": mc.saturated_fraction,
+        })
+    } else {
+        Value::Null
+    };
     Ok(json!({
+        "mc": mc,
         "mean": v(&s.mean_dn),
         "cov": rows(&s.cov_dn),
         "saturated": s.saturated,

@@ -33,6 +33,7 @@ pub mod error;
 pub mod fresnel;
 pub mod material;
 pub mod metrics;
+pub mod montecarlo;
 pub mod pbrdf;
 pub mod polarization;
 pub mod quadrature;

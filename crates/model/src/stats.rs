@@ -897,10 +897,10 @@ pub fn dolp_aop_stats(
 
 /// SplitMix64 (Steele, Lea and Flood, OOPSLA 2014): a small seeded generator, ample for a
 /// statistics check (the crate has no `rand` dependency).
-struct SplitMix64(u64);
+pub(crate) struct SplitMix64(pub(crate) u64);
 
 impl SplitMix64 {
-    fn next_u64(&mut self) -> u64 {
+    pub(crate) fn next_u64(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
         let mut z = self.0;
         z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
@@ -909,12 +909,12 @@ impl SplitMix64 {
     }
 
     /// Uniform in the open interval (0, 1): 53 random bits, centred in their cell.
-    fn uniform_open(&mut self) -> f64 {
+    pub(crate) fn uniform_open(&mut self) -> f64 {
         ((self.next_u64() >> 11) as f64 + 0.5) * (1.0 / (1u64 << 53) as f64)
     }
 
     /// A pair of independent standard normals (Box-Muller).
-    fn normal_pair(&mut self) -> (f64, f64) {
+    pub(crate) fn normal_pair(&mut self) -> (f64, f64) {
         let r = (-2.0 * self.uniform_open().ln()).sqrt();
         let (s, c) = (2.0 * PI * self.uniform_open()).sin_cos();
         (r * c, r * s)
