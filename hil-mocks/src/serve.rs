@@ -361,7 +361,7 @@ async fn run(
     let mut last_path: Option<String> = None;
     loop {
         // A connection.
-        let (stream, _keep): (Box<dyn Stream>, Option<tokio_serial::SerialStream>) =
+        let (stream, host_side): (Box<dyn Stream>, Option<tokio_serial::SerialStream>) =
             match &mut source {
                 Source::Memory(requests) => {
                     let request = match pending.take() {
@@ -432,7 +432,7 @@ async fn run(
             Ended::Unplugged(away_s) => {
                 shared.stats().unplugs += 1;
                 *shared.port.lock().unwrap_or_else(|e| e.into_inner()) = None;
-                drop(_keep);
+                drop(host_side);
                 let back = Instant::now() + Duration::from_secs_f64(away_s);
                 // While away, opens fail.
                 loop {

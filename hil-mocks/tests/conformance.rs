@@ -17,7 +17,7 @@ use polar_hil_mocks::faults::{Dice, FaultProfile};
 use polar_hil_mocks::fw102c::{Fw102cConfig, Fw102cDevice};
 use polar_hil_mocks::native::{NativeConfig, NativeDevice};
 use polar_hil_mocks::serve::SimServer;
-use polar_hil_mocks::sim::{Simulator, Truth};
+use polar_hil_mocks::sim::Truth;
 use std::time::Duration;
 
 /// What a fault is allowed to cost.
@@ -340,20 +340,15 @@ async fn after_error(case: &Case, result: &Result<(), DeviceError>) {
     }
 }
 
-fn serve(sim: impl Simulator, case: &Case, seed: u64) -> SimServer {
-    // The device-level knobs go to the device, the transport ones to the server.
-    SimServer::memory(sim, case.faults, seed)
-}
-
 /// Our firmware's rotator under every fault.
 #[tokio::test(start_paused = true)]
 async fn native_rotator_conformance() {
     let policy = native::default_policy();
     for (round, k, case) in &rounds() {
         let seed = 100 + *k as u64 + 1000 * round;
-        let server = serve(
+        let server = SimServer::memory(
             NativeDevice::new(NativeConfig::rotator(), case.faults, seed),
-            case,
+            case.faults,
             seed,
         );
         let connector = || NativeRotator::connect(memory_connector(&server), policy);
@@ -389,9 +384,9 @@ async fn native_wheel_conformance() {
     let policy = native::default_policy();
     for (round, k, case) in &rounds() {
         let seed = 200 + *k as u64 + 1000 * round;
-        let server = serve(
+        let server = SimServer::memory(
             NativeDevice::new(NativeConfig::wheel(), case.faults, seed),
-            case,
+            case.faults,
             seed,
         );
         let connector = || NativeWheel::connect(memory_connector(&server), policy, None);
@@ -412,9 +407,9 @@ async fn fw102c_conformance() {
     let policy = fw102c::default_policy();
     for (round, k, case) in &rounds() {
         let seed = 300 + *k as u64 + 1000 * round;
-        let server = serve(
+        let server = SimServer::memory(
             Fw102cDevice::new(Fw102cConfig::fw102c(), case.faults, seed),
-            case,
+            case.faults,
             seed,
         );
         let connector = || Fw102c::connect(memory_connector(&server), policy);
@@ -435,7 +430,11 @@ async fn elliptec_rotator_conformance() {
     let config = ElliptecConfig::ell14();
     for (round, k, case) in &rounds() {
         let seed = 400 + *k as u64 + 1000 * round;
-        let server = serve(ElliptecDevice::new(config, case.faults, seed), case, seed);
+        let server = SimServer::memory(
+            ElliptecDevice::new(config, case.faults, seed),
+            case.faults,
+            seed,
+        );
         let tolerance_rad = 0.05f64.to_radians();
         let connector =
             || ElliptecRotator::connect(memory_connector(&server), 0, policy, tolerance_rad);
@@ -464,9 +463,9 @@ async fn elliptec_slider_conformance() {
     let policy = elliptec::default_policy();
     for (round, k, case) in &rounds() {
         let seed = 500 + *k as u64 + 1000 * round;
-        let server = serve(
+        let server = SimServer::memory(
             ElliptecDevice::new(ElliptecConfig::ell9(), case.faults, seed),
-            case,
+            case.faults,
             seed,
         );
         let connector = || ElliptecSlider::connect(memory_connector(&server), 0, policy);

@@ -20,7 +20,7 @@ use polar_hil_mocks::fw102c::{Fw102cConfig, Fw102cDevice};
 use polar_hil_mocks::native::{NativeConfig, NativeDevice};
 use polar_hil_mocks::serve::SimServer;
 use polar_hil_mocks::sim::Simulator;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 /// One measured row.
 #[derive(Debug, Clone, PartialEq)]
@@ -171,7 +171,6 @@ pub fn serial(n: usize) -> Result<Vec<SerialRow>, DevicesError> {
             let (times, bytes) = queries(which, connector, &server, n).await?;
             rows.push(row(name, "memory", baud, times, bytes));
             server.shutdown().await;
-            tokio::time::sleep(Duration::from_millis(10)).await;
         }
         Ok(rows)
     });

@@ -338,9 +338,7 @@ impl ElliptecSession {
     async fn query(&mut self, cmd: &str, code: &str) -> Result<Line, DeviceError> {
         let mut last = None;
         for k in 0..self.policy.attempts.max(1) {
-            if k > 0 {
-                tokio::time::sleep(self.policy.backoff(k - 1)).await;
-            }
+            self.policy.pause_before(k).await;
             let result = self
                 .exchange(cmd, "", &[code], self.policy.query_timeout)
                 .await;
@@ -375,9 +373,7 @@ impl ElliptecSession {
             if !self.needs_init {
                 return Ok(());
             }
-            if k > 0 {
-                tokio::time::sleep(self.policy.backoff(k - 1)).await;
-            }
+            self.policy.pause_before(k).await;
             match self.init().await {
                 Ok(()) => self.needs_init = false,
                 Err(e) if retryable(&e) => last = Some(e),
@@ -495,9 +491,7 @@ impl ElliptecSession {
     ) -> Result<i32, DeviceError> {
         let mut last = None;
         for k in 0..self.policy.attempts.max(1) {
-            if k > 0 {
-                tokio::time::sleep(self.policy.backoff(k - 1)).await;
-            }
+            self.policy.pause_before(k).await;
             self.ensure_ready().await?;
             let result = match self.check_datum(tolerance).await {
                 Ok(current) => {

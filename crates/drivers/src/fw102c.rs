@@ -160,9 +160,7 @@ impl Fw102c {
     async fn query(&mut self, command: &str) -> Result<String, DeviceError> {
         let mut last = None;
         for k in 0..self.policy.attempts.max(1) {
-            if k > 0 {
-                tokio::time::sleep(self.policy.backoff(k - 1)).await;
-            }
+            self.policy.pause_before(k).await;
             match self.exchange(command, self.policy.query_timeout).await {
                 Ok(answer) if answer.len() == 1 => return Ok(answer[0].clone()),
                 Ok(answer) => {
@@ -253,9 +251,7 @@ impl FilterWheel for Fw102c {
         }
         let mut last = None;
         for k in 0..self.policy.attempts.max(1) {
-            if k > 0 {
-                tokio::time::sleep(self.policy.backoff(k - 1)).await;
-            }
+            self.policy.pause_before(k).await;
             self.ensure_ready().await?;
             match self.select_once(slot).await {
                 Ok(s) => return Ok(s),

@@ -123,6 +123,13 @@ impl Policy {
     pub fn backoff(&self, k: u32) -> Duration {
         self.backoff * 2u32.saturating_pow(k.min(16))
     }
+
+    /// Waits before attempt `k` (from 0): nothing before the first, the backoff before the rest.
+    pub async fn pause_before(&self, attempt: u32) {
+        if attempt > 0 {
+            tokio::time::sleep(self.backoff(attempt - 1)).await;
+        }
+    }
 }
 
 /// An open-or-closed port with a receive buffer.

@@ -225,9 +225,7 @@ impl NativeSession {
     async fn query(&mut self, command: Command) -> Result<Reply, DeviceError> {
         let mut last = None;
         for k in 0..self.policy.attempts.max(1) {
-            if k > 0 {
-                tokio::time::sleep(self.policy.backoff(k - 1)).await;
-            }
+            self.policy.pause_before(k).await;
             match self.exchange(command).await {
                 Ok((_, r)) => return Ok(r),
                 Err(e) if matches!(e.kind(), ErrorKind::Timeout | ErrorKind::Protocol) => {
@@ -342,9 +340,7 @@ impl NativeSession {
             if !self.needs_init {
                 return Ok(());
             }
-            if k > 0 {
-                tokio::time::sleep(self.policy.backoff(k - 1)).await;
-            }
+            self.policy.pause_before(k).await;
             self.needs_init = false;
             match self.init().await {
                 Ok(()) => {}
@@ -442,9 +438,7 @@ impl NativeSession {
     async fn move_verified(&mut self, command: Command) -> Result<Status, DeviceError> {
         let mut last = None;
         for k in 0..self.policy.attempts.max(1) {
-            if k > 0 {
-                tokio::time::sleep(self.policy.backoff(k - 1)).await;
-            }
+            self.policy.pause_before(k).await;
             self.ensure_ready().await?;
             match self.move_once(command).await {
                 Ok(s) => return Ok(s),
@@ -566,7 +560,6 @@ pub async fn probe(connector: Box<dyn Connector>, policy: Policy) -> Result<Prob
 pub struct NativeRotator {
     session: NativeSession,
     info: RotatorInfo,
-    last_counts: i32,
 }
 
 impl NativeRotator {
@@ -595,7 +588,6 @@ impl NativeRotator {
                 tolerance_rad: session.tolerance_counts as f64 / counts_per_turn as f64 * TURN_RAD,
             },
             session,
-            last_counts: 0,
         })
     }
 
@@ -616,9 +608,7 @@ impl Rotator for NativeRotator {
 
     async fn home(&mut self) -> Result<(), DeviceError> {
         self.session.needs_init = true;
-        self.session.ensure_ready().await?;
-        self.last_counts = 0;
-        Ok(())
+        self.session.ensure_ready().await
     }
 
     async fn move_to(&mut self, angle_rad: f64) -> Result<f64, DeviceError> {
@@ -637,14 +627,12 @@ impl Rotator for NativeRotator {
                 position_counts: target,
             })
             .await?;
-        self.last_counts = s.position_counts;
         Ok(self.angle(s.position_counts))
     }
 
     async fn position_rad(&mut self) -> Result<f64, DeviceError> {
         self.session.ensure_ready().await?;
         let s = self.session.status().await?;
-        self.last_counts = s.position_counts;
         Ok(self.angle(s.position_counts))
     }
 

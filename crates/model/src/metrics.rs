@@ -413,21 +413,15 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
 
-    /// A seeded normal generator for the Monte Carlo checks (splitmix64 + Box-Muller).
-    struct Normals(u64);
+    /// Seeded normals for the Monte Carlo checks (the crate's SplitMix64 and Box-Muller).
+    struct Normals(crate::stats::SplitMix64);
 
     impl Normals {
-        fn uniform(&mut self) -> f64 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            z ^= z >> 31;
-            ((z >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        fn new(seed: u64) -> Self {
+            Normals(crate::stats::SplitMix64(seed))
         }
         fn normal(&mut self) -> f64 {
-            let (u1, u2) = (self.uniform(), self.uniform());
-            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+            self.0.normal_pair().0
         }
         fn sample(&mut self, c: &ClassStats) -> DVector<f64> {
             let l = c.cov.clone().cholesky().unwrap().l();
@@ -493,7 +487,7 @@ mod tests {
     fn ruben_matches_monte_carlo_for_unequal_weights() {
         let (l, d) = ([0.3, 1.0, 4.0], [0.5, 1.0, 2.0]);
         let d2: Vec<f64> = d.iter().map(|v| v * v).collect();
-        let mut g = Normals(11);
+        let mut g = Normals::new(11);
         let n = 200_000;
         let draws: Vec<f64> = (0..n)
             .map(|_| (0..3).map(|j| l[j] * (g.normal() + d[j]).powi(2)).sum())
@@ -547,7 +541,7 @@ mod tests {
         );
         let pfa = 1e-2;
         let n = 100_000;
-        let mut g = Normals(3);
+        let mut g = Normals::new(3);
         let xb: Vec<DVector<f64>> = (0..n).map(|_| g.sample(&b)).collect();
         let xt: Vec<DVector<f64>> = (0..n).map(|_| g.sample(&t)).collect();
         let se = |p: f64| (p * (1.0 - p) / n as f64).sqrt();
