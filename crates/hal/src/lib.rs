@@ -3,6 +3,7 @@
 //!
 //! * [`Rotator`]: a rotation stage (home, move to an absolute angle, read the position back).
 //! * [`FilterWheel`]: a wheel (or slider) of labelled slots.
+//! * [`Camera`]: a camera (exposure, gain, pixel format, region, trigger, grab with a deadline).
 //! * [`Analyzer`]: the view plans use. It speaks analyzer angles whether a rotator turns one
 //!   polarizer or a wheel holds fixed polarizers at known angles. It uses the polarizer's
 //!   180-degree period to take the shorter way, and always approaches a target from the same
@@ -14,8 +15,13 @@
 #![warn(missing_docs)]
 
 mod analyzer;
+pub mod camera;
 
 pub use analyzer::{Analyzer, Approach, OnRotator, OnWheel, SlotAngle};
+pub use camera::{
+    BlockingCamera, Camera, CameraInfo, Frame, GainUnit, Grabbed, PixelFormat, Roi, StreamStats,
+    TriggerMode,
+};
 
 use std::f64::consts::PI;
 
