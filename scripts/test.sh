@@ -1,20 +1,26 @@
 #!/usr/bin/env bash
 # The project's test command (README "Run the tests"). Installs what the tests need, then runs
-# the whole suite. Safe to re-run.
+# the whole suite. Safe to re-run. `--deps-only` installs the system packages and stops (.ci/run
+# calls it before clippy, which needs them too).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# System packages the tests need. The model and CLI crates need none beyond the Rust toolchain;
-# later issues (aravis, V4L2, GUI backends) add theirs here.
-APT_PACKAGES=()
+# System packages the build and tests need. The model and CLI crates need none beyond the Rust
+# toolchain; later issues (V4L2, GUI backends) add theirs here.
+# * polar-camera-aravis links libaravis (libaravis-dev; its aravis-0.8.pc also requires
+#   libusb-1.0, which libaravis-dev does not pull in).
+# * Its tests run Aravis's fake GigE Vision camera, arv-fake-gv-camera-0.8, which Debian 12
+#   ships in aravis-tools (aravis-tools-cli has arv-tool-0.8 only).
+APT_PACKAGES=(libaravis-dev libusb-1.0-0-dev aravis-tools-cli aravis-tools)
 if ((${#APT_PACKAGES[@]})); then
   missing=()
   for p in "${APT_PACKAGES[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
   if ((${#missing[@]})); then
     SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
-    $SUDO apt-get update -qq && $SUDO apt-get install -y -qq "${missing[@]}"
+    $SUDO apt-get update -qq && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}"
   fi
 fi
+if [ "${1:-}" = "--deps-only" ]; then exit 0; fi
 
 # The firmware protocol must build for a Cortex-M4F without std (thumbv7em-none-eabihf).
 rustup target add thumbv7em-none-eabihf >/dev/null

@@ -6,6 +6,8 @@
 //! * [`elliptec::ElliptecDevice`]: Thorlabs Elliptec ELL14/ELL18 rotators, ELL6/ELL9 sliders.
 //! * [`fw102c::Fw102cDevice`]: a Thorlabs FW102C / FW212C filter wheel (ASCII, echo, `> `).
 //! * [`sim::Simulator`]: what every device simulator offers the transport and the tests.
+//! * [`camera::SimCamera`]: a camera whose frames are rendered from the model through the
+//!   simulated stage's true analyzer angle ([`camera::SimScene`] is the ground truth).
 //! * [`serve::SimServer`]: serves a simulator over a real pseudo-terminal or in memory, with the
 //!   transport faults.
 //! * [`motion`]: trapezoidal moves, backlash, encoder noise.
@@ -16,6 +18,7 @@
 //! bytes.
 #![warn(missing_docs)]
 
+pub mod camera;
 pub mod elliptec;
 pub mod faults;
 pub mod fw102c;

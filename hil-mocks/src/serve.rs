@@ -78,6 +78,18 @@ impl MemoryPort {
     }
 }
 
+/// The ground truth of a served device, shareable across threads.
+#[derive(Clone)]
+pub struct TruthHandle(Arc<Shared>);
+
+impl TruthHandle {
+    /// Where the mechanism really is now.
+    pub fn truth(&self) -> Truth {
+        let now = self.0.now_s();
+        self.0.sim().truth(now)
+    }
+}
+
 /// A running simulated device. Dropping it stops the server (and removes a pty's link).
 pub struct SimServer {
     shared: Arc<Shared>,
@@ -186,6 +198,12 @@ impl SimServer {
     pub fn truth(&self) -> Truth {
         let now = self.shared.now_s();
         self.shared.sim().truth(now)
+    }
+
+    /// A handle on the device's ground truth that outlives borrows of the server (for the
+    /// simulated camera, which reads the analyzer's true angle at every exposure).
+    pub fn truth_handle(&self) -> TruthHandle {
+        TruthHandle(Arc::clone(&self.shared))
     }
 
     /// What the device is.

@@ -126,6 +126,9 @@ pub fn list(simulate: bool) -> Result<Value, DevicesError> {
             ],
         });
     }
+    let cameras = crate::camera::list(simulate);
+    out["cameras"] = cameras["cameras"].clone();
+    out["camera_backends"] = cameras["backends"].clone();
     Ok(out)
 }
 

@@ -5,6 +5,12 @@
 pub mod batch;
 pub mod bench;
 pub mod bench_serial;
+pub mod bench_stats;
+pub mod calibrate;
+pub mod camera;
 pub mod commands;
 pub mod devices;
 pub mod figures;
+pub mod plan;
+pub mod study;
+pub mod validation;

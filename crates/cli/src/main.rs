@@ -7,6 +7,7 @@ use anyhow::Context;
 use clap::error::{ContextKind, ContextValue, ErrorKind};
 use clap::{Parser, Subcommand};
 use polar_cli::batch::{self, Kind};
+use polar_cli::calibrate;
 use polar_cli::commands::{self, DiffuseCache};
 use polar_cli::devices::{self, Dialect, SimModel, StageAction};
 use std::io::{BufRead, BufReader, Write};
@@ -23,6 +24,38 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// One command to a camera: `sim` (rendered from the model), `genicam:ID` or `v4l:NAME`
+    /// (cargo features `genicam`, `v4l`).
+    Camera {
+        /// The camera: sim, genicam:ID or v4l:NAME.
+        #[arg(long)]
+        camera: String,
+        /// Simulated camera: the scene file (default: the rooftop example plus a metal panel).
+        #[arg(long)]
+        scene: Option<PathBuf>,
+        /// Simulated camera: the camera file (default: examples/cameras/cmos_modern.toml).
+        #[arg(long)]
+        camera_file: Option<PathBuf>,
+        /// Simulated camera: the analyzer angle, degrees.
+        #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+        analyzer_deg: f64,
+        /// Simulated camera: sensor width, pixels, 1..=4096.
+        #[arg(long, default_value_t = 320)]
+        width: u32,
+        /// Simulated camera: sensor height, pixels, 1..=4096.
+        #[arg(long, default_value_t = 240)]
+        height: u32,
+        /// Simulated camera: seed of the texture and the noise.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        #[command(subcommand)]
+        action: CameraCommand,
+    },
+    /// Plan analyzer angles from the model; JSON on stdout.
+    Plan {
+        #[command(subcommand)]
+        command: PlanCommand,
+    },
     /// Evaluate the analytical model; JSON on stdout.
     Model {
         #[command(subcommand)]
@@ -60,10 +93,22 @@ enum Command {
         #[command(subcommand)]
         action: StageCommand,
     },
+    /// Camera calibration from frames.
+    Calibrate {
+        #[command(subcommand)]
+        command: CalibrateCommand,
+    },
     /// Simulated devices.
     Sim {
         #[command(subcommand)]
         command: SimCommand,
+    },
+    /// The seed's Ch. 4 trade studies (sources, altitude, geometry, roughness, noise factor,
+    /// integration time): DoLP SNR and ROC of black paint and glass against asphalt; writes
+    /// <kind>.csv, <kind>_roc.csv and <kind>.png.
+    Study {
+        #[command(flatten)]
+        args: polar_cli::study::StudyArgs,
     },
 }
 
@@ -120,10 +165,113 @@ enum SimCommand {
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
+    /// Write a photon-transfer series of a camera (16-bit TIFF flats and darks, two each per
+    /// exposure, from dark to past saturation, and frames.csv) for `calibrate noise`; prints
+    /// the truth as JSON.
+    Frames {
+        /// The camera file (TOML, examples/cameras/).
+        #[arg(long)]
+        camera: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Frame width, pixels.
+        #[arg(long, default_value_t = 512)]
+        width: u32,
+        /// Frame height, pixels.
+        #[arg(long, default_value_t = 512)]
+        height: u32,
+        /// Exposure points up to --max-fill, 5..=1000 (six more near and past saturation).
+        #[arg(long, default_value_t = 20)]
+        exposures: usize,
+        /// Mean signal of the last of those points, fraction of the saturation capacity.
+        #[arg(long, default_value_t = 0.95)]
+        max_fill: f64,
+        /// Exposure time of that point, microseconds.
+        #[arg(long, default_value_t = 1e6)]
+        max_exposure_us: f64,
+        /// Wavelength of the uniform illumination, nm (sets the QE from the camera's curve).
+        #[arg(long, default_value_t = 550.0)]
+        wavelength_nm: f64,
+        /// PRNU pattern, rms relative gain, [0, 0.1].
+        #[arg(long, default_value_t = 0.0)]
+        prnu: f64,
+        /// DSNU pattern, rms DN (whole DN per pixel), [0, 100].
+        #[arg(long, default_value_t = 0.0)]
+        dsnu_dn: f64,
+        /// Leave frames.csv's photons_per_pixel empty (no QE).
+        #[arg(long)]
+        no_photons: bool,
+        /// Seed of every random draw.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum CalibrateCommand {
+    /// EMVA 1288 photon transfer from a frames directory (16-bit TIFFs and frames.csv: file,
+    /// exposure_us, kind = dark|flat, optional photons_per_pixel): K, read noise, dark current,
+    /// offset, saturation capacity and QE with uncertainties as JSON; writes
+    /// photon_transfer.png, noise.toml and, with --base-camera, camera.toml.
+    Noise {
+        /// The frames directory.
+        #[arg(long)]
+        frames: PathBuf,
+        /// Output directory (default: the frames directory).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// A camera file whose detector fields the measurement replaces, written as camera.toml.
+        #[arg(long)]
+        base_camera: Option<PathBuf>,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum CameraCommand {
+    /// Grab frames into 16-bit TIFF files, each with a JSON sidecar of its metadata; prints a
+    /// JSON summary.
+    Grab {
+        /// Exposure, microseconds.
+        #[arg(long)]
+        exposure_us: f64,
+        /// Gain, in the camera's unit (dB for the simulated camera).
+        #[arg(long)]
+        gain: Option<f64>,
+        /// Frames, 1..=100000.
+        #[arg(long, default_value_t = 1)]
+        count: usize,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Deadline of each grab, seconds, (0, 3600].
+        #[arg(long, default_value_t = 5.0)]
+        deadline_s: f64,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum PlanCommand {
+    /// The SCR-optimal analyzer angles for a target against a background, with the SCR and
+    /// matched-filter Pd of the conventional sets beside them.
+    Angles {
+        #[command(flatten)]
+        args: polar_cli::plan::PlanAnglesArgs,
+    },
 }
 
 #[derive(Debug, Subcommand)]
 enum BenchCommand {
+    /// The planner's optimum (to 0.01 deg) beside an exhaustive 1-degree grid search, in the
+    /// same run: times and SCRs. Prints a Markdown table.
+    Planner {
+        /// Largest number of channels, 1..=4 (the 1-degree grid grows as 180^N / N!).
+        #[arg(long, default_value_t = 3)]
+        max_channels: usize,
+        /// Timing runs of the optimiser per row (median), 1..=1000.
+        #[arg(long, default_value_t = 21)]
+        runs: usize,
+    },
     /// Command round trip through a pseudo-terminal against in memory and against the simulated
     /// device's wire time, for each dialect. Prints a Markdown table.
     Serial {
@@ -142,6 +290,23 @@ enum BenchCommand {
         #[arg(long, value_delimiter = ',', default_values_t = [2u32, 8])]
         exponents: Vec<u32>,
         /// Minimum timing runs per row.
+        #[arg(long, default_value_t = 3)]
+        min_runs: usize,
+    },
+    /// Speed against error of the analytic DoLP/AoP statistics (each order, each regime) and of
+    /// the whole-chain Monte Carlo at 1e3 .. 1e6 sets, against a reference Monte Carlo computed
+    /// in the same run; the Monte Carlo sets and time at equal error. Prints Markdown.
+    Stats {
+        /// Reference Monte Carlo frame sets per state, 10^max_exponent ..= 1e8.
+        #[arg(long, default_value_t = 10_000_000)]
+        reference_sets: usize,
+        /// Largest Monte Carlo size, as a power of ten, 3..=7.
+        #[arg(long, default_value_t = 6)]
+        max_exponent: u32,
+        /// Seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Minimum timing runs per Monte Carlo size.
         #[arg(long, default_value_t = 3)]
         min_runs: usize,
     },
@@ -258,6 +423,19 @@ enum ReportCommand {
         /// Output directory.
         #[arg(long, default_value = "docs/figures")]
         out: PathBuf,
+    },
+    /// Validate the analytic DoLP and AoP statistics against a seeded, parallel Monte Carlo of
+    /// the whole sensor chain over a grid of states, angle sets and noise levels (Markdown).
+    Validation {
+        /// Output file.
+        #[arg(long, default_value = "docs/VALIDATION.md")]
+        out: PathBuf,
+        /// Frame sets per grid point, 2..=10000000.
+        #[arg(long, default_value_t = 20_000)]
+        sets: usize,
+        /// Seed of the run.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
     },
 }
 
@@ -399,6 +577,84 @@ fn main() -> ExitCode {
         }
     };
     let result = match cli.command {
+        Command::Camera {
+            camera,
+            scene,
+            camera_file,
+            analyzer_deg,
+            width,
+            height,
+            seed,
+            action:
+                CameraCommand::Grab {
+                    exposure_us,
+                    gain,
+                    count,
+                    out,
+                    deadline_s,
+                },
+        } => {
+            if !(deadline_s > 0.0 && deadline_s <= 3600.0) {
+                eprintln!("error: --deadline-s = {deadline_s} is out of range: allowed (0, 3600]");
+                return ExitCode::from(2);
+            }
+            let sim = polar_cli::camera::SimOptions {
+                scene,
+                camera_file,
+                analyzer_deg,
+                width,
+                height,
+                seed,
+            };
+            let opts = polar_cli::camera::GrabOptions {
+                exposure_us,
+                gain,
+                count,
+                out,
+                deadline: std::time::Duration::from_secs_f64(deadline_s),
+            };
+            let run = async {
+                let mut cam = polar_cli::camera::open(&camera, &sim)?;
+                polar_cli::camera::grab(&mut cam, &opts).await
+            };
+            let result = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()
+                .context("tokio runtime")
+                .map(|rt| rt.block_on(run));
+            match result {
+                Ok(Ok(v)) => {
+                    println!("{v}");
+                    Ok(ExitCode::SUCCESS)
+                }
+                Ok(Err(e)) => {
+                    eprintln!("error: {e}");
+                    Ok(ExitCode::from(2))
+                }
+                Err(e) => Err(e),
+            }
+        }
+        Command::Plan {
+            command: PlanCommand::Angles { args },
+        } => Ok(print_json(polar_cli::plan::angles(&args))),
+        Command::Bench {
+            command: BenchCommand::Planner { max_channels, runs },
+        } => {
+            if !(1..=4).contains(&max_channels) || !(1..=1000).contains(&runs) {
+                eprintln!(
+                    "error: max_channels = {max_channels} (allowed 1..=4), runs = {runs} (allowed 1..=1000)"
+                );
+                return ExitCode::from(2);
+            }
+            match polar_cli::plan::bench(max_channels, runs) {
+                Ok(rows) => {
+                    print!("{}", polar_cli::plan::markdown(&rows));
+                    Ok(ExitCode::SUCCESS)
+                }
+                Err(e) => Err(anyhow::anyhow!("{e}")),
+            }
+        }
         Command::Model { command } => match command {
             ModelCommand::Fresnel { batch: Some(p), .. } => run_batch(Kind::Fresnel, &p),
             ModelCommand::Fresnel { args, batch: None } => Ok(print_json(commands::fresnel(&args))),
@@ -473,6 +729,29 @@ fn main() -> ExitCode {
                     min_runs,
                 },
         } => bench_scene(reference_tolerance, &exponents, min_runs),
+        Command::Bench {
+            command:
+                BenchCommand::Stats {
+                    reference_sets,
+                    max_exponent,
+                    seed,
+                    min_runs,
+                },
+        } => {
+            let opt = polar_cli::bench_stats::BenchOptions {
+                reference_sets,
+                max_exponent,
+                seed,
+                min_runs,
+            };
+            polar_cli::bench_stats::states()
+                .and_then(|s| polar_cli::bench_stats::run(&s, &opt))
+                .map(|r| {
+                    print!("{}", polar_cli::bench_stats::markdown(&r, &opt));
+                    ExitCode::SUCCESS
+                })
+                .map_err(anyhow::Error::from)
+        }
         Command::Devices {
             command: DevicesCommand::List { simulate, json },
         } => Ok(print_device(devices::list(simulate), json)),
@@ -497,6 +776,55 @@ fn main() -> ExitCode {
         }
         Command::Sim {
             command:
+                SimCommand::Frames {
+                    camera,
+                    out,
+                    width,
+                    height,
+                    exposures,
+                    max_fill,
+                    max_exposure_us,
+                    wavelength_nm,
+                    prnu,
+                    dsnu_dn,
+                    no_photons,
+                    seed,
+                },
+        } => {
+            let opts = calibrate::SimFramesOptions {
+                width,
+                height,
+                exposures,
+                max_fill,
+                max_exposure_us,
+                wavelength_nm,
+                prnu,
+                dsnu_dn,
+                photons: !no_photons,
+                seed,
+                ..calibrate::SimFramesOptions::new(camera, out)
+            };
+            Ok(calibrate::print_result(
+                calibrate::sim_frames(&opts).map(|s| s.to_json()),
+            ))
+        }
+        Command::Calibrate {
+            command:
+                CalibrateCommand::Noise {
+                    frames,
+                    out,
+                    base_camera,
+                },
+        } => Ok(calibrate::print_result(
+            calibrate::calibrate_noise(&calibrate::NoiseOptions {
+                frames,
+                out,
+                base_camera,
+            })
+            .map(|r| r.to_json()),
+        )),
+        Command::Sim {
+            command:
                 SimCommand::Stage {
                     dialect,
                     model,
@@ -516,6 +844,18 @@ fn main() -> ExitCode {
                 }
             }
         }
+        Command::Study { args } => match polar_cli::study::execute(&args) {
+            Ok(files) => {
+                for f in files {
+                    println!("{}", f.display());
+                }
+                Ok(ExitCode::SUCCESS)
+            }
+            Err(e) => {
+                eprintln!("error: {e}");
+                Ok(ExitCode::from(2))
+            }
+        },
         Command::Report {
             command: ReportCommand::Figures { out },
         } => polar_cli::figures::draw_all(&out)
@@ -526,6 +866,20 @@ fn main() -> ExitCode {
                 ExitCode::SUCCESS
             })
             .map_err(anyhow::Error::from),
+        Command::Report {
+            command: ReportCommand::Validation { out, sets, seed },
+        } => {
+            let command = format!(
+                "polarimeter report validation --out {} --sets {sets} --seed {seed}",
+                out.display()
+            );
+            polar_cli::validation::write_report(&out, sets, seed, &command)
+                .map(|rows| {
+                    println!("{} ({} grid points)", out.display(), rows.len());
+                    ExitCode::SUCCESS
+                })
+                .map_err(anyhow::Error::from)
+        }
     };
     match result {
         Ok(code) => code,

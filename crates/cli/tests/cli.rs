@@ -1003,3 +1003,159 @@ fn dolp_stats_command() {
     ]);
     assert!(String::from_utf8_lossy(&e.stderr).contains("angles_deg"));
 }
+
+/// `plan angles`: the optimum of 3 channels does at least as well as either 3-channel
+/// conventional set (it searches a space containing them), its Pd is reported beside theirs,
+/// no set beats the clutter limit `d^T Sigma_b^-1 d`, and a wheel's best subset is one of
+/// its slots. A bad covariance is refused naming the field.
+#[test]
+fn plan_angles_command() {
+    let common = [
+        "plan",
+        "angles",
+        "--target-mean",
+        "1040,30,-12",
+        "--background-mean",
+        "1000,0,0",
+        "--background-cov",
+        "400,30,-20,30,60,12,-20,12,45",
+        "--noise-var",
+        "80",
+    ];
+    let out = polarimeter(&[&common[..], &["--channels", "3"]].concat());
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let scr = v["scr"].as_f64().unwrap();
+    for set in ["0/45/90", "0/60/120"] {
+        let conv = v["scr_conventional"][set].as_f64().unwrap();
+        assert!(scr >= conv * (1.0 - 1e-12), "{set}: {conv} > {scr}");
+        assert!(v["pd_conventional"][set].as_f64().unwrap() <= v["pd"].as_f64().unwrap() + 1e-12);
+    }
+    assert!(scr <= v["scr_clutter_limit"].as_f64().unwrap() * (1.0 + 1e-12));
+    assert_eq!(v["angles_deg"].as_array().unwrap().len(), 3);
+
+    let out = polarimeter(
+        &[
+            &common[..],
+            &[
+                "--channels",
+                "2",
+                "--fixed-angles-deg",
+                "0,30,60,90,120,150",
+            ],
+        ]
+        .concat(),
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for a in v["angles_deg"].as_array().unwrap() {
+        let a = a.as_f64().unwrap();
+        assert!(
+            (a / 30.0 - (a / 30.0).round()).abs() < 1e-9,
+            "{a} is not a slot"
+        );
+    }
+
+    let out = polarimeter(&[
+        "plan",
+        "angles",
+        "--target-mean",
+        "1,0,0",
+        "--background-mean",
+        "0,0,0",
+        "--background-cov",
+        "1,0,0,0,-1,0,0,0,1",
+        "--noise-var",
+        "1",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("background_cov") && err.contains("positive semidefinite"),
+        "{err}"
+    );
+}
+
+/// `camera --camera sim grab`: every frame is a 16-bit TIFF of the sensor's size with a JSON
+/// sidecar carrying the applied exposure, gain (rounded to the simulated camera's 0.1 dB step)
+/// and increasing frame ids; each mean lies between the black level (16 DN) and the ADC's top
+/// code. A bad camera spec and an exposure below the range are refused with the reason.
+#[test]
+fn camera_grab_command() {
+    let out_dir = std::env::temp_dir().join(format!("polar-cli-grab-{}", std::process::id()));
+    let out = polarimeter(&[
+        "camera",
+        "--camera",
+        "sim",
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "grab",
+        "--exposure-us",
+        "300",
+        "--gain",
+        "1.04",
+        "--count",
+        "3",
+        "--out",
+        out_dir.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["files"].as_array().unwrap().len(), 3);
+    assert_eq!(v["gain"].as_f64(), Some(1.0), "0.1 dB steps");
+    let mut ids = Vec::new();
+    for i in 0..3 {
+        let meta: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(out_dir.join(format!("frame_{i:04}.json"))).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(meta["exposure_us"].as_f64(), Some(300.0));
+        assert_eq!(
+            (meta["width"].as_u64(), meta["height"].as_u64()),
+            (Some(64), Some(48))
+        );
+        let mean = meta["mean"].as_f64().unwrap();
+        assert!(mean > 16.0 && mean < 4095.0, "{mean}");
+        ids.push(meta["frame_id"].as_u64().unwrap());
+        let file = std::fs::File::open(out_dir.join(format!("frame_{i:04}.tif"))).unwrap();
+        let mut dec = tiff::decoder::Decoder::new(file).unwrap();
+        assert_eq!(dec.dimensions().unwrap(), (64, 48));
+        assert_eq!(dec.colortype().unwrap(), tiff::ColorType::Gray(16));
+    }
+    assert!(ids.windows(2).all(|w| w[1] > w[0]), "{ids:?}");
+    let _ = std::fs::remove_dir_all(&out_dir);
+
+    let out = polarimeter(&[
+        "camera",
+        "--camera",
+        "usb:0",
+        "grab",
+        "--exposure-us",
+        "100",
+        "--out",
+        "/tmp/x",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("allowed sim, genicam:ID or v4l:NAME"));
+    let out = polarimeter(&[
+        "camera",
+        "--camera",
+        "sim",
+        "grab",
+        "--exposure-us",
+        "5",
+        "--out",
+        "/tmp/x",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("exposure_us = 5 is out of range"));
+}

@@ -78,6 +78,7 @@ impl Shared {
 pub struct ThreadedCamera {
     info: CameraInfo,
     hardware_trigger: bool,
+    software_trigger: bool,
     policy: ThreadPolicy,
     commands: std_mpsc::Sender<Command>,
     shared: Arc<Shared>,
@@ -92,6 +93,7 @@ impl ThreadedCamera {
     ) -> Result<ThreadedCamera, DeviceError> {
         let info = camera.info();
         let hardware_trigger = camera.supports_hardware_trigger();
+        let software_trigger = camera.supports_software_trigger();
         let policy = ThreadPolicy {
             queue_frames: policy.queue_frames.max(1),
             ..policy
@@ -115,6 +117,7 @@ impl ThreadedCamera {
         Ok(ThreadedCamera {
             info,
             hardware_trigger,
+            software_trigger,
             policy,
             commands: tx,
             shared,
@@ -200,11 +203,22 @@ impl Camera for ThreadedCamera {
                 "trigger = hardware is not offered by this camera: allowed free-run, software",
             ));
         }
+        if mode == TriggerMode::Software && !self.software_trigger {
+            return Err(DeviceError::new(
+                ErrorKind::OutOfRange,
+                &self.info.id,
+                "trigger = software is not offered by this camera: allowed free-run",
+            ));
+        }
         self.call(|r| Command::Trigger(mode, r)).await
     }
 
     fn supports_hardware_trigger(&self) -> bool {
         self.hardware_trigger
+    }
+
+    fn supports_software_trigger(&self) -> bool {
+        self.software_trigger
     }
 
     async fn start(&mut self) -> Result<(), DeviceError> {

@@ -376,6 +376,10 @@ pub trait BlockingCamera: Send + 'static {
     fn supports_hardware_trigger(&self) -> bool {
         false
     }
+    /// As [`Camera::supports_software_trigger`].
+    fn supports_software_trigger(&self) -> bool {
+        true
+    }
     /// As [`Camera::start`].
     fn start(&mut self) -> Result<(), DeviceError>;
     /// As [`Camera::stop`].

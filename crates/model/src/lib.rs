@@ -29,6 +29,7 @@
 
 pub mod analyzer;
 pub mod atmosphere;
+pub mod calibration;
 pub mod error;
 pub mod fresnel;
 pub mod material;
@@ -46,5 +47,6 @@ pub mod skylight;
 pub mod stats;
 pub mod sun;
 pub mod tiles;
+pub mod validation;
 
 pub use error::ModelError;

@@ -9,9 +9,9 @@
 //! Mathematics and Economics 12, 1993) above.
 
 use crate::error::ModelError;
-use crate::sensor::{Exposure, SensorModel};
+use crate::sensor::{Exposure, SensorModel, SensorSignal};
 use crate::stats::SplitMix64;
-use nalgebra::{DMatrix, DVector, Matrix3, SymmetricEigen};
+use nalgebra::{DMatrix, DVector, Matrix3, SymmetricEigen, Vector3};
 use statrs::function::gamma::ln_gamma;
 
 /// The most frame sets one run may draw.
@@ -31,7 +31,7 @@ pub struct FrameStats {
 }
 
 /// A Poisson deviate of mean `lambda >= 0`.
-fn poisson(rng: &mut SplitMix64, lambda: f64) -> f64 {
+pub(crate) fn poisson(rng: &mut SplitMix64, lambda: f64) -> f64 {
     if lambda <= 0.0 {
         return 0.0;
     }
@@ -74,6 +74,113 @@ fn poisson(rng: &mut SplitMix64, lambda: f64) -> f64 {
     }
 }
 
+/// One exposure's sensor chain, validated and ready to draw frame sets: the per-set draw shared
+/// by [`simulate_frames`] and [`crate::validation`], so that both simulate the same camera.
+#[derive(Debug, Clone)]
+pub(crate) struct FrameChain {
+    /// The measurement matrix `W` (`N x 3`).
+    w: DMatrix<f64>,
+    /// `G`, electrons per W m^-2 sr^-1 in one frame.
+    electrons_from_radiance: f64,
+    /// Mean dark electrons per frame.
+    dark_electrons: f64,
+    /// `K`, DN per electron.
+    gain_dn_per_e: f64,
+    /// `sigma_d`, electrons.
+    read_noise_e: f64,
+    /// `b`, DN.
+    offset_dn: f64,
+    /// Full well, electrons.
+    full_well_e: f64,
+    /// The ADC's top code, DN.
+    adc_max_dn: f64,
+    /// Relative drift per frame.
+    eps_cal: f64,
+    /// `Q sqrt(max(lambda, 0))` of the clutter covariance `Sigma_LS = Q diag(lambda) Q^T`.
+    clutter_factor: Matrix3<f64>,
+    /// `L_mean`, W m^-2 sr^-1.
+    l_mean: Vector3<f64>,
+}
+
+impl FrameChain {
+    /// The chain of `model` at `angles_rad` and `exposure`, with the analytic frame statistics
+    /// ([`SensorModel::signal`], which validates every input). The sensor noise factor must be 1
+    /// (a physical chain has no knob for it): anything else is an error naming `noise_factor`.
+    pub(crate) fn new(
+        model: &SensorModel,
+        angles_rad: &[f64],
+        exposure: &Exposure,
+    ) -> Result<(FrameChain, SensorSignal), ModelError> {
+        let reference = model.signal(angles_rad, exposure)?;
+        if (reference.noise_variance_factor - 1.0).abs() > 1e-12 {
+            return Err(ModelError::OutOfRange {
+                field: "noise_factor",
+                value: reference.noise_variance_factor,
+                allowed: "1 in a Monte Carlo of the physical chain",
+            });
+        }
+        let cam = model.camera();
+        // Clutter factor: Sigma = Q diag(l) Q^T, draws Q sqrt(max(l, 0)) z.
+        let sigma: Matrix3<f64> = exposure.radiance_cov_w2_m4_sr2;
+        let eig = SymmetricEigen::new(0.5 * (sigma + sigma.transpose()));
+        let clutter_factor =
+            eig.eigenvectors * Matrix3::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt()));
+        let chain = FrameChain {
+            w: reference.intensities_from_stokes.clone(),
+            electrons_from_radiance: reference.electrons_from_radiance,
+            dark_electrons: reference.dark_electrons,
+            gain_dn_per_e: cam.gain_dn_per_e,
+            read_noise_e: cam.read_noise_e,
+            offset_dn: cam.offset_dn,
+            full_well_e: cam.full_well_e,
+            adc_max_dn: cam.adc_max_dn(),
+            eps_cal: exposure.eps_cal,
+            clutter_factor,
+            l_mean: exposure.radiance_mean_w_m2_sr.0,
+        };
+        Ok((chain, reference))
+    }
+
+    /// Frames per set, `N`.
+    pub(crate) fn frames(&self) -> usize {
+        self.w.nrows()
+    }
+
+    /// Draws one set of `N` frames into `y` (DN; `y.len()` must be `N`, extra entries are left
+    /// alone) and calls `on_saturated(i)` for each frame `i` at the ADC's top code or the full
+    /// well: the radiance from its mean and clutter covariance, then per frame Poisson
+    /// photo-electrons and dark electrons, the full well, Gaussian read noise, the gain and
+    /// offset, the drift, rounding and the ADC's range.
+    pub(crate) fn draw(
+        &self,
+        rng: &mut SplitMix64,
+        y: &mut [f64],
+        mut on_saturated: impl FnMut(usize),
+    ) {
+        let (z0, z1) = rng.normal_pair();
+        let (z2, _) = rng.normal_pair();
+        let l = self.l_mean + self.clutter_factor * Vector3::new(z0, z1, z2);
+        let (g, k, top) = (
+            self.electrons_from_radiance,
+            self.gain_dn_per_e,
+            self.adc_max_dn,
+        );
+        for (i, dn_out) in y.iter_mut().enumerate().take(self.w.nrows()) {
+            let intensity = self.w[(i, 0)] * l[0] + self.w[(i, 1)] * l[1] + self.w[(i, 2)] * l[2];
+            let signal = poisson(rng, (g * intensity).max(0.0));
+            let electrons = (signal + poisson(rng, self.dark_electrons)).min(self.full_well_e);
+            let (read, drift) = rng.normal_pair();
+            let analog = k * (electrons + self.read_noise_e * read) + self.offset_dn;
+            let analog = analog * (1.0 + self.eps_cal * drift);
+            let dn = analog.round().clamp(0.0, top);
+            if dn >= top || electrons >= self.full_well_e {
+                on_saturated(i);
+            }
+            *dn_out = dn;
+        }
+    }
+}
+
 /// Simulates `sets` sets of frames at `angles_rad` and returns their sample statistics. The
 /// sensor noise factor must be 1 (a physical chain has no knob for it): anything else is an
 /// error naming `noise_factor`.
@@ -92,49 +199,15 @@ pub fn simulate_frames(
         });
     }
     // Validates everything (and gives the analytic reference's shape).
-    let reference = model.signal(angles_rad, exposure)?;
-    if (reference.noise_variance_factor - 1.0).abs() > 1e-12 {
-        return Err(ModelError::OutOfRange {
-            field: "noise_factor",
-            value: reference.noise_variance_factor,
-            allowed: "1 in a Monte Carlo of the physical chain",
-        });
-    }
-    let cam = model.camera();
-    let w = &reference.intensities_from_stokes;
-    let n = angles_rad.len();
-    let g = reference.electrons_from_radiance;
-    let dark = reference.dark_electrons;
-    let k = cam.gain_dn_per_e;
-    let top = cam.adc_max_dn();
-    // Clutter factor: Sigma = Q diag(l) Q^T, draws Q sqrt(max(l, 0)) z.
-    let sigma: Matrix3<f64> = exposure.radiance_cov_w2_m4_sr2;
-    let eig = SymmetricEigen::new(0.5 * (sigma + sigma.transpose()));
-    let factor =
-        eig.eigenvectors * Matrix3::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt()));
-    let l_mean = exposure.radiance_mean_w_m2_sr.0;
+    let (chain, _reference) = FrameChain::new(model, angles_rad, exposure)?;
+    let n = chain.frames();
     let mut rng = SplitMix64(seed ^ 0x6d6f_6e74_6563_6172);
     let mut sum = DVector::<f64>::zeros(n);
     let mut sum_sq = DMatrix::<f64>::zeros(n, n);
     let mut saturated = vec![0usize; n];
     let mut y = DVector::<f64>::zeros(n);
     for _ in 0..sets {
-        let (z0, z1) = rng.normal_pair();
-        let (z2, _) = rng.normal_pair();
-        let l = l_mean + factor * nalgebra::Vector3::new(z0, z1, z2);
-        let intensity = w * l;
-        for i in 0..n {
-            let signal = poisson(&mut rng, (g * intensity[i]).max(0.0));
-            let electrons = (signal + poisson(&mut rng, dark)).min(cam.full_well_e);
-            let (read, drift) = rng.normal_pair();
-            let analog = k * (electrons + cam.read_noise_e * read) + cam.offset_dn;
-            let analog = analog * (1.0 + exposure.eps_cal * drift);
-            let dn = analog.round().clamp(0.0, top);
-            if dn >= top || electrons >= cam.full_well_e {
-                saturated[i] += 1;
-            }
-            y[i] = dn;
-        }
+        chain.draw(&mut rng, y.as_mut_slice(), |i| saturated[i] += 1);
         sum += &y;
         sum_sq += &y * y.transpose();
     }
@@ -147,6 +220,122 @@ pub fn simulate_frames(
         cov_dn,
         saturated_fraction: saturated.iter().map(|&s| s as f64 / m).collect(),
     })
+}
+
+/// Largest mean photo-electron count per pixel accepted by [`expose_pixels`] (far past any full
+/// well: the camera file allows at most 1e9 e-).
+pub const MAX_MEAN_PHOTOELECTRONS: f64 = 1e12;
+
+/// Most pixels in one frame accepted by [`expose_pixels`] and [`fixed_pattern`] (2^28, a
+/// 16384 x 16384 sensor).
+pub const MAX_FRAME_PIXELS: usize = 1 << 28;
+
+/// Salt mixed into the seed of [`expose_pixels`], so a frame never repeats the draws of
+/// [`simulate_frames`] or [`fixed_pattern`] with the same seed.
+const EXPOSE_SALT: u64 = 0x6578_706f_7365_7078;
+/// Salt mixed into the seed of [`fixed_pattern`].
+const PATTERN_SALT: u64 = 0x7061_7474_6572_6e73;
+
+fn check_frame_len(field: &'static str, pixels: usize) -> Result<(), ModelError> {
+    if pixels == 0 || pixels > MAX_FRAME_PIXELS {
+        return Err(ModelError::Invalid {
+            field,
+            reason: format!("{pixels} pixels; allowed 1 to {MAX_FRAME_PIXELS}"),
+        });
+    }
+    Ok(())
+}
+
+/// One frame of a camera, pixel by pixel, as the sensor chain of [`simulate_frames`] draws it
+/// (EMVA 1288 Release 4.0 Linear, Sec. 2: the linear signal and noise model) for a simulated
+/// camera: for pixel `i` with mean photo-electrons `mu_i`,
+///
+/// `y_i = clamp(round(K (min(P(mu_i) + P(mu_I t_int), full_well) + sigma_d z_i) + b), 0, 2^bits - 1)`
+///
+/// with `P` a Poisson deviate, `z_i` a standard normal, `K`, `sigma_d`, `mu_I`, `b`, the full
+/// well and the bit depth from `camera`. Photo-electrons are the caller's: the mean photon
+/// count times the QE, times a PRNU pattern if wanted; a DSNU pattern is added by the caller.
+/// Pixels are independent; the same `seed` gives the same frame (SplitMix64, see
+/// [`crate::stats`]), and different seeds independent frames.
+///
+/// Errors name the field: the camera's (see [`crate::sensor::Camera::validate`]), `t_int_s` outside
+/// `[0, 1e5]` s, `mean_photoelectrons` empty, longer than [`MAX_FRAME_PIXELS`], or with an
+/// entry not finite or outside `[0, MAX_MEAN_PHOTOELECTRONS]` (the message gives its index).
+pub fn expose_pixels(
+    camera: &crate::sensor::Camera,
+    mean_photoelectrons: &[f64],
+    t_int_s: f64,
+    seed: u64,
+) -> Result<Vec<u16>, ModelError> {
+    camera.validate()?;
+    ModelError::check_range(
+        "t_int_s",
+        t_int_s,
+        0.0,
+        crate::sensor::MAX_T_INT_S,
+        "[0, 1e5] s",
+    )?;
+    check_frame_len("mean_photoelectrons", mean_photoelectrons.len())?;
+    if let Some((i, m)) = mean_photoelectrons
+        .iter()
+        .enumerate()
+        .find(|(_, m)| !(m.is_finite() && (0.0..=MAX_MEAN_PHOTOELECTRONS).contains(*m)))
+    {
+        return Err(ModelError::Invalid {
+            field: "mean_photoelectrons",
+            reason: format!("pixel {i}: {m}; allowed finite, in [0, 1e12] e-"),
+        });
+    }
+    let dark_e = camera.dark_current_e_per_s * t_int_s;
+    let k = camera.gain_dn_per_e;
+    let top = camera.adc_max_dn();
+    let mut rng = SplitMix64(seed ^ EXPOSE_SALT);
+    let mut spare: Option<f64> = None;
+    let mut frame = Vec::with_capacity(mean_photoelectrons.len());
+    for &mu in mean_photoelectrons {
+        let electrons = (poisson(&mut rng, mu) + poisson(&mut rng, dark_e)).min(camera.full_well_e);
+        let z = match spare.take() {
+            Some(z) => z,
+            None => {
+                let (a, b) = rng.normal_pair();
+                spare = Some(b);
+                a
+            }
+        };
+        let dn = (k * (electrons + camera.read_noise_e * z) + camera.offset_dn)
+            .round()
+            .clamp(0.0, top);
+        // In [0, 2^bit_depth - 1] with bit_depth <= 16: exact in u16.
+        frame.push(dn as u16);
+    }
+    Ok(frame)
+}
+
+/// A fixed (frame-to-frame constant) pattern of `pixels` values for simulating PRNU (relative
+/// gain) or DSNU (offset): Gaussian with standard deviation `rms`, and **exactly zero mean**:
+/// value `n - 1 - i` is minus value `i` (the middle one is 0 when `n` is odd), so the pattern
+/// changes no frame's mean (in an image, pixel `(r, c)` mirrors `(h - 1 - r, w - 1 - c)`). The
+/// same `seed` gives the same pattern.
+///
+/// Errors: `pixels` 0 or above [`MAX_FRAME_PIXELS`], `rms` not finite or outside `[0, 1e6]`.
+pub fn fixed_pattern(pixels: usize, rms: f64, seed: u64) -> Result<Vec<f64>, ModelError> {
+    check_frame_len("pixels", pixels)?;
+    ModelError::check_range("rms", rms, 0.0, 1e6, "[0, 1e6]")?;
+    let mut rng = SplitMix64(seed ^ PATTERN_SALT);
+    let mut pattern = vec![0.0; pixels];
+    let half = pixels / 2;
+    let mut i = 0;
+    while i < half {
+        let (a, b) = rng.normal_pair();
+        for z in [a, b] {
+            if i < half {
+                pattern[i] = rms * z;
+                pattern[pixels - 1 - i] = -rms * z;
+                i += 1;
+            }
+        }
+    }
+    Ok(pattern)
 }
 
 #[cfg(test)]

@@ -1,0 +1,46 @@
+//! The planner: which analyzer angles (and, later, which integration time) best separate a
+//! target from its background, from the model alone (MODEL.md section 9; the seed's Chapter 5,
+//! reconstructed). Pure: it depends on the model's maths, never on devices.
+//!
+//! * [`scr`]: the signal-to-clutter ratio of an analyzer set and its gradient.
+//! * [`optimize`]: the SCR-optimal set of `N = 1..6` angles under a rotator's or a wheel's
+//!   constraints, and the conventional sets it is compared with.
+#![warn(missing_docs)]
+
+pub mod optimize;
+pub mod scr;
+
+pub use optimize::{conventional, optimise, Constraints, Optimum};
+pub use scr::Contrast;
+
+/// Errors of the planner: the field, the value and what is allowed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PlanError {
+    /// A number out of its range.
+    #[error("{field} = {value} is out of range: allowed {allowed}")]
+    OutOfRange {
+        /// The field.
+        field: &'static str,
+        /// The value.
+        value: f64,
+        /// The allowed range.
+        allowed: &'static str,
+    },
+    /// A value that is not acceptable, and why.
+    #[error("{field}: {reason}")]
+    Invalid {
+        /// The field.
+        field: &'static str,
+        /// Why.
+        reason: String,
+    },
+}
+
+impl PlanError {
+    pub(crate) fn invalid(field: &'static str, reason: impl Into<String>) -> PlanError {
+        PlanError::Invalid {
+            field,
+            reason: reason.into(),
+        }
+    }
+}

@@ -1,0 +1,746 @@
+//! The simulated camera: every frame rendered from the model (`../shared/design/SYSTEM.md`,
+//! "Simulated devices").
+//!
+//! * [`SimScene`]: the scene as the camera sees it. It is a layout of regions (panels of paint,
+//!   glass or metal on asphalt and grass), each pixel holding a Stokes radiance. Each region takes
+//!   the mean of its material from the scene model (`polar_model::scene::evaluate` for the
+//!   scene's sun, sky, atmosphere and view geometry). Each pixel adds a seeded draw from that
+//!   material's covariance (geometry and texture variation, MODEL.md section 11), so the
+//!   per-pixel texture stays fixed from frame to frame. It is the ground truth the tests check
+//!   against.
+//! * [`SimCamera`]: a [`BlockingCamera`].
+//!   - It reads the analyzer's true angle from the simulated stage (an [`AngleSource`], usually
+//!     [`crate::serve::TruthHandle::angle_source`]) at the start and end of each exposure.
+//!   - It averages the two analyzer rows, so a move during the exposure smears the frame as it
+//!     would on a real camera.
+//!   - It turns the radiance into mean photo-electrons with the sensor model (camera equation,
+//!     real analyzer, fore-optics: `polar_model::sensor::SensorModel`).
+//!   - It draws the frame with `polar_model::montecarlo::expose_pixels`: Poisson electrons and
+//!     dark electrons, full well, read noise, gain, rounding and the ADC's range.
+//!   - The analog gain is in dB and scales the system gain `K` by `10^(gain_db / 20)`.
+//! * [`CameraFaults`]: dropped frames, truncated frames, stalls (timeouts), a stuck frame
+//!   (the same pixels again under a new id) and a disconnect, all seeded.
+
+use crate::serve::TruthHandle;
+use crate::sim::Truth;
+use nalgebra::{Matrix3, Vector3};
+use polar_hal::{
+    BlockingCamera, CameraInfo, DeviceError, ErrorKind, Frame, GainUnit, Grabbed, PixelFormat, Roi,
+    TriggerMode,
+};
+use polar_model::atmosphere::Band;
+use polar_model::error::ModelError;
+use polar_model::scene::{self, SceneMaterial, SceneSpec};
+use polar_model::sensor::{Camera, SensorModel};
+use rand_core::{Rng, SeedableRng};
+use rand_xorshift::XorShiftRng;
+use serde::Deserialize;
+use std::sync::Arc;
+use std::time::{Duration, Instant, SystemTime};
+
+/// Where the analyzer is, radians (the simulated stage's true output angle).
+pub type AngleSource = Arc<dyn Fn() -> f64 + Send + Sync>;
+
+impl TruthHandle {
+    /// The stage's true angle as an [`AngleSource`] (a wheel or slider reads as angle 0).
+    pub fn angle_source(&self) -> AngleSource {
+        let handle = self.clone();
+        Arc::new(move || match handle.truth() {
+            Truth::Angle { output_rad, .. } => output_rad,
+            Truth::Slot { .. } => 0.0,
+        })
+    }
+}
+
+/// Errors building the simulated scene or camera.
+#[derive(Debug, thiserror::Error)]
+pub enum SimCameraError {
+    /// The model refused an input (names the field).
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    /// A layout or configuration value out of range.
+    #[error("{field} = {value} is invalid: {allowed}")]
+    Invalid {
+        /// The field.
+        field: &'static str,
+        /// Its value.
+        value: String,
+        /// What is allowed.
+        allowed: String,
+    },
+}
+
+/// One region of the layout: a material over a rectangle given as fractions of the frame.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Region {
+    /// The material's name in the scene.
+    pub material: String,
+    /// `[x0, y0, x1, y1]`, fractions of the width and height, `0 <= x0 < x1 <= 1`.
+    pub rect: [f64; 4],
+}
+
+/// Regions drawn in order, later over earlier; the first should cover the frame.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Layout {
+    /// The regions.
+    pub regions: Vec<Region>,
+}
+
+impl Layout {
+    /// Panels on the ground for the scene's materials.
+    /// - The background is `asphalt` over the frame, with a band of `grass` along the top if
+    ///   the scene has them. Otherwise the last material is the background.
+    /// - Every other material is a panel, in file order, side by side across the middle of the
+    ///   frame.
+    pub fn panels_on_ground(materials: &[String]) -> Layout {
+        let has = |n: &str| materials.iter().any(|m| m == n);
+        let mut regions = Vec::new();
+        let mut ground: Vec<&str> = Vec::new();
+        if has("asphalt") {
+            ground.push("asphalt");
+            regions.push(Region {
+                material: "asphalt".into(),
+                rect: [0.0, 0.0, 1.0, 1.0],
+            });
+            if has("grass") {
+                ground.push("grass");
+                regions.push(Region {
+                    material: "grass".into(),
+                    rect: [0.0, 0.0, 1.0, 0.25],
+                });
+            }
+        } else if let Some(last) = materials.last() {
+            ground.push(last);
+            regions.push(Region {
+                material: last.clone(),
+                rect: [0.0, 0.0, 1.0, 1.0],
+            });
+        }
+        let panels: Vec<&String> = materials
+            .iter()
+            .filter(|m| !ground.contains(&m.as_str()))
+            .collect();
+        let n = panels.len().max(1) as f64;
+        for (i, m) in panels.into_iter().enumerate() {
+            let (x0, x1) = (i as f64 / n, (i as f64 + 1.0) / n);
+            let margin = 0.15 * (x1 - x0);
+            regions.push(Region {
+                material: m.clone(),
+                rect: [x0 + margin, 0.4, x1 - margin, 0.85],
+            });
+        }
+        Layout { regions }
+    }
+}
+
+/// The scene as the camera sees it: per-pixel Stokes radiance (W m^-2 sr^-1, camera frame) over
+/// the full sensor.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimScene {
+    /// Sensor width, pixels.
+    pub width: u32,
+    /// Sensor height, pixels.
+    pub height: u32,
+    /// Row-major per-pixel Stokes radiance `[S0, S1, S2]`.
+    pub stokes: Vec<[f64; 3]>,
+    /// Row-major region index per pixel (into `materials`).
+    pub region: Vec<u8>,
+    /// The materials' names, by region index.
+    pub materials: Vec<String>,
+    /// Each material's mean Stokes radiance from the scene model.
+    pub material_means: Vec<[f64; 3]>,
+    /// The band the scene was evaluated in.
+    pub band: Band,
+}
+
+/// A symmetric positive semidefinite 3x3 matrix's factor `L` with `L L^T = cov` (eigenvalues
+/// below zero, from rounding, taken as zero).
+fn psd_factor(cov: &Matrix3<f64>) -> Matrix3<f64> {
+    let sym = 0.5 * (cov + cov.transpose());
+    if let Some(ch) = sym.cholesky() {
+        return ch.l();
+    }
+    let eig = sym.symmetric_eigen();
+    let mut f = eig.eigenvectors;
+    for (j, mut col) in f.column_iter_mut().enumerate() {
+        col *= eig.eigenvalues[j].max(0.0).sqrt();
+    }
+    f
+}
+
+/// A standard normal deviate (Box-Muller; one of the pair is used).
+fn normal(rng: &mut XorShiftRng) -> f64 {
+    let u1 = (f64::from(rng.next_u32()) + 0.5) / 4_294_967_296.0;
+    let u2 = f64::from(rng.next_u32()) / 4_294_967_296.0;
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+impl SimScene {
+    /// Evaluates the scene's materials at relative tolerance `tol`, then draws the
+    /// `width x height` layout with seeded per-pixel variation. Errors name the field: an
+    /// unknown material, a bad rectangle, a size of 0 or over 4096.
+    pub fn render(
+        spec: &SceneSpec,
+        materials: &[SceneMaterial],
+        layout: &Layout,
+        width: u32,
+        height: u32,
+        tol: f64,
+        seed: u64,
+    ) -> Result<SimScene, SimCameraError> {
+        for (field, v) in [("width", width), ("height", height)] {
+            if !(1..=4096).contains(&v) {
+                return Err(SimCameraError::Invalid {
+                    field,
+                    value: v.to_string(),
+                    allowed: "1 to 4096 pixels".into(),
+                });
+            }
+        }
+        if layout.regions.is_empty() || layout.regions.len() > 255 {
+            return Err(SimCameraError::Invalid {
+                field: "layout.regions",
+                value: layout.regions.len().to_string(),
+                allowed: "1 to 255 regions".into(),
+            });
+        }
+        let names: Vec<String> = materials.iter().map(|m| m.name.clone()).collect();
+        let mut used: Vec<usize> = Vec::new();
+        for r in &layout.regions {
+            let Some(i) = names.iter().position(|n| *n == r.material) else {
+                return Err(SimCameraError::Invalid {
+                    field: "layout.regions.material",
+                    value: r.material.clone(),
+                    allowed: format!("a material of the scene: {}", names.join(", ")),
+                });
+            };
+            let [x0, y0, x1, y1] = r.rect;
+            let ok = [x0, y0, x1, y1].iter().all(|v| v.is_finite())
+                && 0.0 <= x0
+                && x0 < x1
+                && x1 <= 1.0
+                && 0.0 <= y0
+                && y0 < y1
+                && y1 <= 1.0;
+            if !ok {
+                return Err(SimCameraError::Invalid {
+                    field: "layout.regions.rect",
+                    value: format!("{:?}", r.rect),
+                    allowed: "[x0, y0, x1, y1] with 0 <= x0 < x1 <= 1 and 0 <= y0 < y1 <= 1".into(),
+                });
+            }
+            if !used.contains(&i) {
+                used.push(i);
+            }
+        }
+        let chosen: Vec<SceneMaterial> = used.iter().map(|&i| materials[i].clone()).collect();
+        let results = scene::evaluate(spec, &chosen, tol)?;
+        let factors: Vec<Matrix3<f64>> = results.iter().map(|r| psd_factor(&r.cov)).collect();
+        let means: Vec<Vector3<f64>> = results.iter().map(|r| r.mean.0).collect();
+
+        let (w, h) = (width as usize, height as usize);
+        let mut region = vec![0u8; w * h];
+        for r in &layout.regions {
+            let idx = chosen
+                .iter()
+                .position(|m| m.name == r.material)
+                .unwrap_or_default() as u8;
+            let [x0, y0, x1, y1] = r.rect;
+            let (c0, c1) = (
+                (x0 * w as f64).round() as usize,
+                (x1 * w as f64).round() as usize,
+            );
+            let (r0, r1) = (
+                (y0 * h as f64).round() as usize,
+                (y1 * h as f64).round() as usize,
+            );
+            for row in r0..r1.min(h) {
+                for col in c0..c1.min(w) {
+                    region[row * w + col] = idx;
+                }
+            }
+        }
+        let mut rng = XorShiftRng::seed_from_u64(seed);
+        let stokes = region
+            .iter()
+            .map(|&k| {
+                let k = usize::from(k);
+                let z = Vector3::new(normal(&mut rng), normal(&mut rng), normal(&mut rng));
+                let mut s = means[k] + factors[k] * z;
+                // A physical Stokes vector: S0 >= 0 and DoLP <= 1.
+                s[0] = s[0].max(0.0);
+                let p = s[1].hypot(s[2]);
+                if p > s[0] && p > 0.0 {
+                    s[1] *= s[0] / p;
+                    s[2] *= s[0] / p;
+                }
+                [s[0], s[1], s[2]]
+            })
+            .collect();
+        Ok(SimScene {
+            width,
+            height,
+            stokes,
+            region,
+            materials: chosen.into_iter().map(|m| m.name).collect(),
+            material_means: means.iter().map(|m| [m[0], m[1], m[2]]).collect(),
+            band: spec.band.clone(),
+        })
+    }
+}
+
+/// The simulated camera's fault knobs (TOML: every field optional; all off by default).
+/// Probabilities are per frame, in `[0, 1]`.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraFaults {
+    /// A frame is never delivered (its id is skipped).
+    pub drop_frame: f64,
+    /// A frame arrives truncated (an incomplete buffer).
+    pub truncate_frame: f64,
+    /// The camera stops delivering for `stall_s` (grabs time out).
+    pub stall: f64,
+    /// How long a stall lasts, seconds, `[0, 60]` (default 0.5).
+    pub stall_s: f64,
+    /// A frame repeats the previous frame's pixels under a new id (a stuck sensor or buffer).
+    pub stuck_frame: f64,
+    /// The camera disconnects after this many frames (0 = never).
+    pub disconnect_after_frames: u64,
+}
+
+impl Default for CameraFaults {
+    fn default() -> Self {
+        CameraFaults {
+            drop_frame: 0.0,
+            truncate_frame: 0.0,
+            stall: 0.0,
+            stall_s: 0.5,
+            stuck_frame: 0.0,
+            disconnect_after_frames: 0,
+        }
+    }
+}
+
+impl CameraFaults {
+    /// Checks every knob's range; the error names the field.
+    pub fn validate(&self) -> Result<(), SimCameraError> {
+        for (field, p) in [
+            ("drop_frame", self.drop_frame),
+            ("truncate_frame", self.truncate_frame),
+            ("stall", self.stall),
+            ("stuck_frame", self.stuck_frame),
+        ] {
+            if !(0.0..=1.0).contains(&p) {
+                return Err(SimCameraError::Invalid {
+                    field,
+                    value: p.to_string(),
+                    allowed: "a probability in [0, 1]".into(),
+                });
+            }
+        }
+        if !(0.0..=60.0).contains(&self.stall_s) {
+            return Err(SimCameraError::Invalid {
+                field: "stall_s",
+                value: self.stall_s.to_string(),
+                allowed: "[0, 60] s".into(),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// How the simulated camera is built.
+#[derive(Debug, Clone)]
+pub struct SimCameraConfig {
+    /// The id it reports.
+    pub id: String,
+    /// The camera (detector, optics, analyzer) as the sensor model knows it.
+    pub camera: Camera,
+    /// The scene it looks at (its size is the sensor's).
+    pub scene: Arc<SimScene>,
+    /// Free-run frame rate limit, Hz, `(0, 1000]`.
+    pub max_frame_rate_hz: f64,
+    /// Fault knobs.
+    pub faults: CameraFaults,
+    /// Seed of the noise and the faults.
+    pub seed: u64,
+}
+
+/// An exposure under way.
+#[derive(Debug, Clone, Copy)]
+struct Exposing {
+    end: Instant,
+    psi_start_rad: f64,
+}
+
+/// The simulated camera (a [`BlockingCamera`]; wrap it in `polar_drivers::camera_thread` for
+/// the async [`polar_hal::Camera`]).
+pub struct SimCamera {
+    config: SimCameraConfig,
+    sensor: SensorModel,
+    angle: AngleSource,
+    info: CameraInfo,
+    exposure_us: f64,
+    gain_db: f64,
+    format: PixelFormat,
+    roi: Roi,
+    trigger_mode: TriggerMode,
+    streaming: bool,
+    triggers: u32,
+    next_start: Instant,
+    exposing: Option<Exposing>,
+    stalled_until: Option<Instant>,
+    frame_id: u64,
+    last_pixels: Option<Vec<u16>>,
+    disconnected: bool,
+    rng: XorShiftRng,
+    /// The device clock's zero (device timestamps are exposure ends since it).
+    epoch: Instant,
+}
+
+/// The analog gain range, dB.
+pub const GAIN_RANGE_DB: [f64; 2] = [0.0, 24.0];
+
+impl SimCamera {
+    /// A simulated camera looking at `config.scene` through the analyzer at `angle()`. Errors
+    /// name the field (the camera's, the scene's band, the frame rate, a fault knob).
+    pub fn new(config: SimCameraConfig, angle: AngleSource) -> Result<SimCamera, SimCameraError> {
+        config.faults.validate()?;
+        if !(config.max_frame_rate_hz > 0.0 && config.max_frame_rate_hz <= 1000.0) {
+            return Err(SimCameraError::Invalid {
+                field: "max_frame_rate_hz",
+                value: config.max_frame_rate_hz.to_string(),
+                allowed: "(0, 1000] Hz".into(),
+            });
+        }
+        let sensor = SensorModel::new(&config.camera, &config.scene.band)?;
+        let bits = config.camera.bit_depth;
+        let mut formats = vec![PixelFormat::Mono8];
+        if bits == 12 {
+            formats.push(PixelFormat::Mono12);
+        }
+        if bits > 8 {
+            formats.push(PixelFormat::Mono16);
+        }
+        let native = match bits {
+            8 => PixelFormat::Mono8,
+            12 => PixelFormat::Mono12,
+            _ => PixelFormat::Mono16,
+        };
+        let info = CameraInfo {
+            id: config.id.clone(),
+            vendor: "polarimeter".into(),
+            model: format!("simulated {}", config.camera.name),
+            serial: format!("SIM{:08X}", config.seed as u32),
+            sensor_width: config.scene.width,
+            sensor_height: config.scene.height,
+            exposure_range_us: [10.0, 10_000_000.0],
+            gain_range: GAIN_RANGE_DB,
+            gain_unit: GainUnit::Decibel,
+            formats,
+        };
+        let roi = Roi::full(config.scene.width, config.scene.height);
+        let rng = XorShiftRng::seed_from_u64(config.seed ^ 0x5eed_ca3e);
+        Ok(SimCamera {
+            sensor,
+            angle,
+            info,
+            exposure_us: 10_000.0,
+            gain_db: 0.0,
+            format: native,
+            roi,
+            trigger_mode: TriggerMode::FreeRun,
+            streaming: false,
+            triggers: 0,
+            next_start: Instant::now(),
+            exposing: None,
+            stalled_until: None,
+            frame_id: 0,
+            last_pixels: None,
+            disconnected: false,
+            rng,
+            epoch: Instant::now(),
+            config,
+        })
+    }
+
+    /// The ground truth.
+    pub fn scene(&self) -> &Arc<SimScene> {
+        &self.config.scene
+    }
+
+    /// The sensor model the frames are drawn from.
+    pub fn sensor(&self) -> &SensorModel {
+        &self.sensor
+    }
+
+    /// The camera with the analog gain applied (`K` scaled by `10^(gain_db / 20)`).
+    pub fn camera_at_gain(&self, gain_db: f64) -> Camera {
+        let mut c = self.config.camera.clone();
+        c.gain_dn_per_e *= 10f64.powf(gain_db / 20.0);
+        c
+    }
+
+    /// Mean photo-electrons of each pixel of `roi` (row-major) for an analyzer at `psi_rad`
+    /// (the average of the rows at `psi_rad` and `psi_end_rad`, for a move during the exposure)
+    /// and an exposure of `exposure_us`: `G m(psi)^T S`, `G` the camera equation's electrons per
+    /// radiance (MODEL.md section 6), clamped at 0.
+    pub fn mean_electrons(
+        &self,
+        roi: Roi,
+        psi_rad: f64,
+        psi_end_rad: f64,
+        exposure_us: f64,
+    ) -> Result<Vec<f64>, SimCameraError> {
+        let w = self
+            .sensor
+            .intensities_from_stokes(&[psi_rad, psi_end_rad])?;
+        let g = self.sensor.responsivity_e_per_s() * exposure_us * 1e-6;
+        let row = [
+            0.5 * (w[(0, 0)] + w[(1, 0)]) * g,
+            0.5 * (w[(0, 1)] + w[(1, 1)]) * g,
+            0.5 * (w[(0, 2)] + w[(1, 2)]) * g,
+        ];
+        let scene = &self.config.scene;
+        let mut out = Vec::with_capacity(roi.pixels());
+        for y in roi.y..roi.y + roi.height {
+            let base = y as usize * scene.width as usize;
+            for x in roi.x..roi.x + roi.width {
+                let s = scene.stokes[base + x as usize];
+                out.push((row[0] * s[0] + row[1] * s[1] + row[2] * s[2]).max(0.0));
+            }
+        }
+        Ok(out)
+    }
+
+    fn error(&self, kind: ErrorKind, message: impl Into<String>) -> DeviceError {
+        DeviceError::new(kind, &self.info.id, message)
+    }
+
+    fn check_stopped(&self, what: &str) -> Result<(), DeviceError> {
+        if self.streaming {
+            Err(self.error(
+                ErrorKind::Busy,
+                format!("{what} can only be changed while stopped"),
+            ))
+        } else {
+            Ok(())
+        }
+    }
+
+    fn chance(&mut self, p: f64) -> bool {
+        p > 0.0 && (f64::from(self.rng.next_u32()) / 4_294_967_296.0) < p
+    }
+
+    /// Draws the frame whose exposure just ended.
+    fn finish(&mut self, started: Exposing) -> Result<Grabbed, DeviceError> {
+        let psi_end = (self.angle)();
+        let id = self.frame_id;
+        self.frame_id += 1;
+        let faults = self.config.faults;
+        if faults.disconnect_after_frames > 0 && id >= faults.disconnect_after_frames {
+            self.disconnected = true;
+            return Err(self.error(ErrorKind::Disconnected, "the camera went away (fault)"));
+        }
+        if self.chance(faults.stall) {
+            self.stalled_until = Some(Instant::now() + Duration::from_secs_f64(faults.stall_s));
+            return Ok(Grabbed::Nothing);
+        }
+        if self.chance(faults.drop_frame) {
+            return Ok(Grabbed::Nothing);
+        }
+        let truncated = self.chance(faults.truncate_frame);
+        let stuck = self.chance(faults.stuck_frame) && self.last_pixels.is_some();
+        let pixels = match (stuck, &self.last_pixels) {
+            (true, Some(last)) => last.clone(),
+            _ => {
+                let electrons = self
+                    .mean_electrons(self.roi, started.psi_start_rad, psi_end, self.exposure_us)
+                    .map_err(|e| self.error(ErrorKind::Other, e.to_string()))?;
+                let camera = self.camera_at_gain(self.gain_db);
+                let seed = self.config.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ id;
+                let raw = polar_model::montecarlo::expose_pixels(
+                    &camera,
+                    &electrons,
+                    self.exposure_us * 1e-6,
+                    seed,
+                )
+                .map_err(|e| self.error(ErrorKind::Other, e.to_string()))?;
+                let shift = self.config.camera.bit_depth as i32 - self.format.bits() as i32;
+                raw.into_iter()
+                    .map(|v| {
+                        if shift >= 0 {
+                            v >> shift
+                        } else {
+                            v << (-shift)
+                        }
+                    })
+                    .collect()
+            }
+        };
+        if truncated {
+            return Ok(Grabbed::Incomplete {
+                frame_id: Some(id),
+                reason: format!(
+                    "truncated: {} of {} bytes",
+                    pixels.len(),
+                    2 * self.roi.pixels()
+                ),
+            });
+        }
+        self.last_pixels = Some(pixels.clone());
+        let frame = Frame {
+            pixels,
+            width: self.roi.width,
+            height: self.roi.height,
+            format: self.format,
+            host_time: SystemTime::now(),
+            device_timestamp_ns: Some(
+                started.end.saturating_duration_since(self.epoch).as_nanos() as u64
+            ),
+            frame_id: id,
+            exposure_us: self.exposure_us,
+            gain: self.gain_db,
+        };
+        frame.check(&self.info.id)?;
+        Ok(Grabbed::Frame(frame))
+    }
+}
+
+impl BlockingCamera for SimCamera {
+    fn info(&self) -> CameraInfo {
+        self.info.clone()
+    }
+
+    fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, DeviceError> {
+        // The simulated sensor's exposure step is 1 us.
+        self.exposure_us = self.info.check_exposure_us(exposure_us)?.round();
+        Ok(self.exposure_us)
+    }
+
+    fn set_gain(&mut self, gain: f64) -> Result<f64, DeviceError> {
+        // 0.1 dB steps.
+        self.gain_db = (self.info.check_gain(gain)? * 10.0).round() / 10.0;
+        Ok(self.gain_db)
+    }
+
+    fn set_pixel_format(&mut self, format: PixelFormat) -> Result<(), DeviceError> {
+        self.check_stopped("pixel_format")?;
+        self.format = self.info.check_format(format)?;
+        Ok(())
+    }
+
+    fn set_roi(&mut self, roi: Roi) -> Result<Roi, DeviceError> {
+        self.check_stopped("roi")?;
+        roi.check(
+            &self.info.id,
+            self.info.sensor_width,
+            self.info.sensor_height,
+        )?;
+        self.roi = roi;
+        Ok(roi)
+    }
+
+    fn set_trigger(&mut self, mode: TriggerMode) -> Result<(), DeviceError> {
+        self.check_stopped("trigger")?;
+        if mode == TriggerMode::Hardware {
+            return Err(self.error(
+                ErrorKind::OutOfRange,
+                "trigger = hardware is not offered: allowed free-run, software",
+            ));
+        }
+        self.trigger_mode = mode;
+        Ok(())
+    }
+
+    fn start(&mut self) -> Result<(), DeviceError> {
+        if self.disconnected {
+            return Err(self.error(ErrorKind::Disconnected, "the camera is gone"));
+        }
+        self.streaming = true;
+        self.triggers = 0;
+        self.exposing = None;
+        self.next_start = Instant::now();
+        Ok(())
+    }
+
+    fn stop(&mut self) -> Result<(), DeviceError> {
+        self.streaming = false;
+        self.exposing = None;
+        Ok(())
+    }
+
+    fn trigger(&mut self) -> Result<(), DeviceError> {
+        if self.disconnected {
+            return Err(self.error(ErrorKind::Disconnected, "the camera is gone"));
+        }
+        if !self.streaming || self.trigger_mode != TriggerMode::Software {
+            return Err(self.error(
+                ErrorKind::Other,
+                "a software trigger needs trigger = software and a started stream",
+            ));
+        }
+        // One trigger waits while the sensor is busy; more are ignored, as on real cameras.
+        self.triggers = (self.triggers + 1).min(1 + u32::from(self.exposing.is_some()));
+        Ok(())
+    }
+
+    fn wait_frame(&mut self, wait: Duration) -> Result<Grabbed, DeviceError> {
+        if self.disconnected {
+            return Err(self.error(ErrorKind::Disconnected, "the camera is gone"));
+        }
+        let deadline = Instant::now() + wait;
+        if !self.streaming {
+            std::thread::sleep(wait);
+            return Ok(Grabbed::Nothing);
+        }
+        if let Some(until) = self.stalled_until {
+            if Instant::now() < until {
+                std::thread::sleep(wait.min(until - Instant::now()));
+                return Ok(Grabbed::Nothing);
+            }
+            self.stalled_until = None;
+            self.next_start = self.next_start.max(Instant::now());
+        }
+        if self.exposing.is_none() {
+            let exposure = Duration::from_secs_f64(self.exposure_us * 1e-6);
+            let start = match self.trigger_mode {
+                TriggerMode::Software if self.triggers > 0 => {
+                    self.triggers -= 1;
+                    Instant::now()
+                }
+                TriggerMode::Software | TriggerMode::Hardware => {
+                    std::thread::sleep(wait);
+                    return Ok(Grabbed::Nothing);
+                }
+                TriggerMode::FreeRun => {
+                    if self.next_start > deadline {
+                        std::thread::sleep(wait);
+                        return Ok(Grabbed::Nothing);
+                    }
+                    std::thread::sleep(self.next_start.saturating_duration_since(Instant::now()));
+                    Instant::now()
+                }
+            };
+            let period = Duration::from_secs_f64(1.0 / self.config.max_frame_rate_hz);
+            self.next_start = start + exposure.max(period);
+            self.exposing = Some(Exposing {
+                end: start + exposure,
+                psi_start_rad: (self.angle)(),
+            });
+        }
+        let Some(exposing) = self.exposing else {
+            return Ok(Grabbed::Nothing);
+        };
+        let now = Instant::now();
+        if exposing.end > deadline {
+            std::thread::sleep(deadline.saturating_duration_since(now));
+            return Ok(Grabbed::Nothing);
+        }
+        std::thread::sleep(exposing.end.saturating_duration_since(now));
+        self.exposing = None;
+        self.finish(exposing)
+    }
+}
