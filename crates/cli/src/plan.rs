@@ -248,6 +248,14 @@ pub fn bench(max_n: usize, runs: usize) -> Result<Vec<PlannerRow>, CommandError>
 
 /// The rows as a Markdown table.
 pub fn markdown(rows: &[PlannerRow]) -> String {
+    let time = |d: Duration| {
+        let us = d.as_secs_f64() * 1e6;
+        if us < 1000.0 {
+            format!("{us:.1} us")
+        } else {
+            format!("{:.2} ms", us / 1e3)
+        }
+    };
     let deg = |a: &[f64]| {
         a.iter()
             .map(|v| format!("{:.2}", v.to_degrees()))
@@ -259,12 +267,12 @@ pub fn markdown(rows: &[PlannerRow]) -> String {
     );
     for r in rows {
         out.push_str(&format!(
-            "| {} | {:.3} ms | {:.6} | {} | {:.1} ms | {:.6} | {} | {:.0}x | {:.9} |\n",
+            "| {} | {} | {:.6} | {} | {} | {:.6} | {} | {:.1}x | {:.9} |\n",
             r.channels,
-            r.ours.0.as_secs_f64() * 1e3,
+            time(r.ours.0),
             r.ours.1.scr,
             deg(&r.ours.1.angles_rad),
-            r.grid.0.as_secs_f64() * 1e3,
+            time(r.grid.0),
             r.grid.1.scr,
             r.grid.1.evaluations,
             r.grid.0.as_secs_f64() / r.ours.0.as_secs_f64().max(1e-12),

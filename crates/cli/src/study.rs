@@ -31,10 +31,9 @@
 //! * SCR `d^T Sigma_b^-1 d` in the N frames (`d` the difference of the class means in DN,
 //!   `Sigma_b` the background's full frame covariance);
 //! * the linear matched filter and the RX detector on the N frames ([`metrics::matched_filter`],
-//!   [`metrics::rx`]); RX only up to SCR [`RX_MAX_SCR`] and only where the model's own error
-//!   bound `pd_error` is below [`RX_MAX_PD_ERROR`] (its Ruben series starts from the weight
-//!   `exp(-delta^2 / 2)`, which underflows at large non-centrality: the model then reports
-//!   `pd_error = 1`, no information, after its longest loop); elsewhere the CSV leaves it empty;
+//!   [`metrics::rx`]); RX only where the model's own error bound `pd_error` is below
+//!   [`RX_MAX_PD_ERROR`] (far in the tail a Chernoff bound answers for Ruben's series);
+//!   elsewhere the CSV leaves it empty;
 //! * the DoLP threshold detector on the two classes' DoLP moments ([`metrics::dolp_threshold`]),
 //!   where both S0 estimates are good to [`DOLP_MAX_S0_REL_STD`] (the moments expand
 //!   `1 / S0_hat`); elsewhere the CSV leaves it empty and gives `s0_rel_std` per class.
@@ -88,11 +87,6 @@ use std::path::{Path, PathBuf};
 
 /// The false-alarm rate at which Pd is reported by default.
 pub const DEFAULT_PFA: f64 = 1e-3;
-
-/// Largest frame-space SCR at which the RX ROC is computed (module docs): Ruben's series in
-/// [`metrics::rx`] starts from `exp(-delta^2 / 2)` with `delta^2` about the SCR, which
-/// underflows past about 1490.
-pub const RX_MAX_SCR: f64 = 1000.0;
 
 /// Largest relative noise of the S0 estimate, `sqrt(Var[S0_hat]) / S0`, at which the DoLP
 /// detector is reported: the DoLP moments expand `1 / S0_hat` about its mean (MODEL.md
@@ -754,12 +748,8 @@ impl Study {
             let pfa = self.settings.pfa;
             let (scr, _) = metrics::scr(&tc.frames, &bc.frames).map_err(at(context))?;
             let mf = metrics::matched_filter(&tc.frames, &bc.frames, pfa).map_err(at(context))?;
-            let rx = if scr <= RX_MAX_SCR {
-                let r = metrics::rx(&tc.frames, &bc.frames, pfa).map_err(at(context))?;
-                (r.pd_error <= RX_MAX_PD_ERROR).then_some(r)
-            } else {
-                None
-            };
+            let rx = Some(metrics::rx(&tc.frames, &bc.frames, pfa).map_err(at(context))?)
+                .filter(|r| r.pd_error <= RX_MAX_PD_ERROR);
             // Out of the detector's domain only when the moments themselves are unreliable.
             let reliable = tc.s0_rel_std.max(bc.s0_rel_std) <= DOLP_MAX_S0_REL_STD;
             let dolp = if reliable {

@@ -107,7 +107,9 @@ pub enum Texture {
     /// the reflected (surface) part of the mean.
     Cv(f64),
     /// Measured over a uniform region: the standard deviation of each of `S0, S1, S2` divided by
-    /// the region's mean `S0`, each `[0, 1]`: `Sigma_v = diag((c_k S0)^2)`.
+    /// the region's mean surface-leaving `S0` (measure close to the surface, or subtract the
+    /// path radiance first), each `[0, 1]`: `Sigma_v = diag((c_k S0_surface)^2)`, so that the
+    /// texture does not grow with the path radiance of a higher sensor.
     Measured([f64; 3]),
 }
 
@@ -961,9 +963,11 @@ impl Prepared {
         let cov_v = match material.texture {
             Texture::None => Matrix3::zeros(),
             Texture::Cv(cv) => Matrix3::from_diagonal(&surface_mean.map(|x| (cv * x).powi(2))),
-            Texture::Measured(c) => {
-                Matrix3::from_diagonal(&Vector3::new(c[0], c[1], c[2]).map(|x| (x * s0).powi(2)))
-            }
+            // Texture is a property of the surface: scaled by the surface-leaving S0, so path
+            // radiance (which grows with altitude) does not inflate it.
+            Texture::Measured(c) => Matrix3::from_diagonal(
+                &Vector3::new(c[0], c[1], c[2]).map(|x| (x * surface_mean[0]).powi(2)),
+            ),
         };
         let texture_report = TermReport {
             evaluated: cov_v != Matrix3::zeros(),
@@ -1170,6 +1174,30 @@ mod tests {
         let t = &r[0].terms;
         assert!(t.path.evaluated);
         assert!(t.path.relative_size > 0.05, "{:?}", t.path);
+    }
+
+    /// A measured texture scales with the surface-leaving S0, not with the total: from 10 km,
+    /// where path radiance is over 5 % of the signal, the texture variance of S0 is
+    /// `(c0 (S0 - S0_path))^2` to 2 % (the field's spread of the path term over a 1-degree field
+    /// is far smaller), and clearly below `(c0 S0)^2`.
+    #[test]
+    fn measured_texture_ignores_path_radiance() {
+        let sp = spec(10_000.0, 20.0, 0.0, 1.0);
+        let mut textured = glass(0.2);
+        textured.texture = Texture::Measured([0.1, 0.01, 0.01]);
+        let mut plain = glass(0.2);
+        plain.texture = Texture::None;
+        let r = evaluate(&sp, &[textured.clone(), plain], 1e-4).unwrap();
+        let var_v = r[0].cov[(0, 0)] - r[1].cov[(0, 0)];
+        let path = Prepared::new(&sp, 1e-4)
+            .unwrap()
+            .boresight_terms(&textured)
+            .unwrap()[2];
+        let s0 = r[0].mean.0[0];
+        assert!(path.0[0] > 0.05 * s0, "path {} of S0 {s0}", path.0[0]);
+        let want = (0.1 * (s0 - path.0[0])).powi(2);
+        assert!((var_v / want - 1.0).abs() < 0.02, "{var_v} vs {want}");
+        assert!(var_v < 0.95 * (0.1 * s0).powi(2));
     }
 
     /// Looking into a smooth metal's glint, the skylight is orders of magnitude below the

@@ -156,8 +156,9 @@ pub fn optimise(
         Some((lo, hi)) => (lo, hi - lo, false),
         None => (0.0, PI, true),
     };
-    // The finest grid within the budget, at most 720 points (0.25 deg).
-    let mut m = 720usize;
+    // The finest grid within the budget, at most 90 points (2 deg: the SCR's features are on
+    // the 45-degree scale of cos 4psi, and the refinement does the rest).
+    let mut m = 90usize;
     while m > 4 && multisets(m, n) > GRID_BUDGET {
         m -= 1;
     }
