@@ -34,7 +34,6 @@ use serde_json::{json, Value};
 use std::collections::{BTreeMap, HashSet};
 use std::io::{BufReader, BufWriter, Write};
 use std::path::{Path, PathBuf};
-use std::process::ExitCode;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 use tiff::decoder::{Decoder, DecodingResult};
@@ -98,30 +97,6 @@ fn file_err(path: &Path, message: impl Into<String>) -> CalibrateError {
     CalibrateError::File {
         path: path.to_path_buf(),
         message: message.into(),
-    }
-}
-
-/// Prints a command's JSON on stdout (and its `warnings` on stderr) and returns exit status 0,
-/// or prints `error: ...` on stderr and returns 2.
-pub fn print_result(result: Result<Value, CalibrateError>) -> ExitCode {
-    match result {
-        Ok(v) => {
-            if let Some(w) = v.get("warnings").and_then(|w| w.as_array()) {
-                for warning in w {
-                    eprintln!("warning: {}", warning.as_str().unwrap_or_default());
-                }
-            }
-            let mut out = std::io::stdout().lock();
-            if serde_json::to_writer(&mut out, &v).is_ok() && writeln!(out).is_ok() {
-                ExitCode::SUCCESS
-            } else {
-                ExitCode::FAILURE
-            }
-        }
-        Err(e) => {
-            eprintln!("error: {e}");
-            ExitCode::from(2)
-        }
     }
 }
 

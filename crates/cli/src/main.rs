@@ -51,10 +51,16 @@ enum Command {
         #[command(subcommand)]
         action: CameraCommand,
     },
-    /// Plan analyzer angles from the model; JSON on stdout.
+    /// Plan from the model; JSON on stdout. `plan --scene FILE --camera FILE --target M
+    /// --background M`: angles, integration time and a forecast (SCR, Pd, DoLP sigma,
+    /// saturation margin, frames, duration); `plan angles`: the optimal angles for given class
+    /// statistics.
+    #[command(args_conflicts_with_subcommands = true)]
     Plan {
         #[command(subcommand)]
-        command: PlanCommand,
+        command: Option<PlanCommand>,
+        #[command(flatten)]
+        scene: polar_cli::plan::PlanSceneArgs,
     },
     /// Evaluate the analytical model; JSON on stdout.
     Model {
@@ -489,7 +495,9 @@ fn run_batch(kind: Kind, path: &PathBuf) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-fn print_json(result: Result<serde_json::Value, commands::CommandError>) -> ExitCode {
+/// Prints a command's JSON on stdout (and its `warnings` on stderr) and returns exit status 0,
+/// or prints `error: ...` on stderr and returns 2.
+fn print_json<E: std::fmt::Display>(result: Result<serde_json::Value, E>) -> ExitCode {
     match result {
         Ok(v) => {
             if let Some(w) = v.get("warnings").and_then(|w| w.as_array()) {
@@ -636,8 +644,13 @@ fn main() -> ExitCode {
             }
         }
         Command::Plan {
-            command: PlanCommand::Angles { args },
+            command: Some(PlanCommand::Angles { args }),
+            ..
         } => Ok(print_json(polar_cli::plan::angles(&args))),
+        Command::Plan {
+            command: None,
+            scene,
+        } => Ok(print_json(polar_cli::plan::scene_plan(&scene))),
         Command::Bench {
             command: BenchCommand::Planner { max_channels, runs },
         } => {
@@ -804,7 +817,7 @@ fn main() -> ExitCode {
                 seed,
                 ..calibrate::SimFramesOptions::new(camera, out)
             };
-            Ok(calibrate::print_result(
+            Ok(print_json(
                 calibrate::sim_frames(&opts).map(|s| s.to_json()),
             ))
         }
@@ -815,7 +828,7 @@ fn main() -> ExitCode {
                     out,
                     base_camera,
                 },
-        } => Ok(calibrate::print_result(
+        } => Ok(print_json(
             calibrate::calibrate_noise(&calibrate::NoiseOptions {
                 frames,
                 out,

@@ -281,3 +281,346 @@ pub fn markdown(rows: &[PlannerRow]) -> String {
     }
     out
 }
+
+/// `plan --scene FILE --camera FILE --target M --background M`: angles, integration time and a
+/// forecast from the model alone.
+#[derive(Debug, Clone, Args)]
+pub struct PlanSceneArgs {
+    /// The scene (TOML, examples/*.toml).
+    #[arg(long)]
+    pub scene: Option<std::path::PathBuf>,
+    /// The camera (TOML, examples/cameras/*.toml).
+    #[arg(long)]
+    pub camera: Option<std::path::PathBuf>,
+    /// The target material's name in the scene.
+    #[arg(long)]
+    pub target: Option<String>,
+    /// The background material's name in the scene.
+    #[arg(long)]
+    pub background: Option<String>,
+    /// Channels (frames per set), 1..=6.
+    #[arg(long, default_value_t = 3)]
+    pub channels: usize,
+    /// Time budget for one set, seconds (frames, moves and settling); none by default.
+    #[arg(long)]
+    pub time_budget_s: Option<f64>,
+    /// Smallest separation between two angles, degrees, [0, 90): 0 lets the SCR-optimal set
+    /// repeat an angle (then no Stokes image can be formed from it); 30 or more with 3
+    /// channels keeps the set a polarimeter.
+    #[arg(long, default_value_t = 0.0)]
+    pub min_separation_deg: f64,
+    /// The SCR to reach, as a fraction of the clutter-limited SCR, (0, 1).
+    #[arg(long, default_value_t = 0.9)]
+    pub scr_fraction: f64,
+    /// Saturation margin: every class's mean plus this many standard deviations stays below
+    /// the saturation level at every angle, [0, 10].
+    #[arg(long, default_value_t = 3.0)]
+    pub saturation_sigma: f64,
+    /// The stage's speed, degrees per second, (0, 10000].
+    #[arg(long, default_value_t = 60.0)]
+    pub stage_deg_per_s: f64,
+    /// Settling time after each move, seconds, [0, 60].
+    #[arg(long, default_value_t = 0.1)]
+    pub settle_s: f64,
+    /// False-alarm rate of the Pd forecast, (0, 1).
+    #[arg(long, default_value_t = 1e-3)]
+    pub pfa: f64,
+    /// Relative tolerance of the scene evaluation.
+    #[arg(long, default_value_t = 1e-3)]
+    pub tolerance: f64,
+}
+
+fn need<T: Clone>(v: &Option<T>, flag: &str, what: &str) -> Result<T, CommandError> {
+    v.clone()
+        .ok_or_else(|| CommandError(format!("--{flag} is missing: allowed {what}")))
+}
+
+fn check_range(field: &str, v: f64, lo: f64, hi: f64, lo_open: bool) -> Result<f64, CommandError> {
+    let ok = v.is_finite() && v <= hi && if lo_open { v > lo } else { v >= lo };
+    if ok {
+        Ok(v)
+    } else {
+        let open = if lo_open { "(" } else { "[" };
+        Err(CommandError(format!(
+            "{field} = {v} is out of range: allowed {open}{lo}, {hi}]"
+        )))
+    }
+}
+
+/// The frames' statistics of one class at `angles_rad` for `t_int_s`.
+fn frames(
+    sensor: &polar_model::sensor::SensorModel,
+    angles_rad: &[f64],
+    t_int_s: f64,
+    class: &polar_model::scene::MaterialResult,
+) -> Result<polar_model::sensor::SensorSignal, CommandError> {
+    let mut exposure = polar_model::sensor::Exposure::new(t_int_s, class.mean);
+    exposure.radiance_cov_w2_m4_sr2 = 0.5 * (class.cov + class.cov.transpose());
+    Ok(sensor.signal(angles_rad, &exposure)?)
+}
+
+/// The longest integration time at which neither class saturates at any analyzer angle (1-degree
+/// grid over 180 deg), with `k` standard deviations of margin: bisection on `log t` over
+/// `[1 us, 100 s]`.
+fn saturation_limit_s(
+    sensor: &polar_model::sensor::SensorModel,
+    classes: &[&polar_model::scene::MaterialResult],
+    k: f64,
+) -> Result<f64, CommandError> {
+    let grid: Vec<f64> = (0..180).map(|d| f64::from(d).to_radians()).collect();
+    let ok = |t: f64| -> Result<bool, CommandError> {
+        for c in classes {
+            let s = frames(sensor, &grid, t, c)?;
+            for i in 0..grid.len() {
+                if s.mean_dn[i] + k * s.cov_dn[(i, i)].max(0.0).sqrt() > s.saturation_dn {
+                    return Ok(false);
+                }
+            }
+        }
+        Ok(true)
+    };
+    let (mut lo, mut hi) = (1e-6f64.ln(), 100f64.ln());
+    if !ok(lo.exp())? {
+        return Err(CommandError(
+            "the scene saturates the camera even at 1 us: use a darker band, a smaller \
+             aperture or a neutral-density filter"
+                .into(),
+        ));
+    }
+    if ok(hi.exp())? {
+        return Ok(hi.exp());
+    }
+    for _ in 0..40 {
+        let mid = 0.5 * (lo + hi);
+        if ok(mid.exp())? {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    Ok(lo.exp())
+}
+
+/// The planner's contrast in radiance units at `t_int_s`: the class mean difference, the
+/// background clutter, and the per-frame sensor noise of the background's unpolarised mean
+/// frame (shot, dark, read and quantisation noise at the mean of 0 and 90 deg), converted to
+/// radiance by `1 / (K G)`.
+fn contrast_at(
+    sensor: &polar_model::sensor::SensorModel,
+    t: &polar_model::scene::MaterialResult,
+    b: &polar_model::scene::MaterialResult,
+    t_int_s: f64,
+) -> Result<Contrast, CommandError> {
+    let quiet = polar_model::scene::MaterialResult {
+        cov: nalgebra::Matrix3::zeros(),
+        ..b.clone()
+    };
+    let s = frames(sensor, &[0.0, std::f64::consts::FRAC_PI_2], t_int_s, &quiet)?;
+    let dn_per_radiance = sensor.camera().gain_dn_per_e * s.electrons_from_radiance;
+    let noise_dn2 = 0.5 * (s.cov_dn[(0, 0)] + s.cov_dn[(1, 1)]);
+    let noise_var = noise_dn2 / (dn_per_radiance * dn_per_radiance);
+    Contrast::new(
+        t.mean.0 - b.mean.0,
+        0.5 * (b.cov + b.cov.transpose()),
+        noise_var,
+    )
+    .map_err(planner_error)
+}
+
+/// `plan --scene ...`.
+pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
+    let scene_path = need(&args.scene, "scene", "a scene file")?;
+    let camera_path = need(&args.camera, "camera", "a camera file")?;
+    let target = need(&args.target, "target", "a material of the scene")?;
+    let background = need(&args.background, "background", "a material of the scene")?;
+    if !(1..=MAX_CHANNELS).contains(&args.channels) {
+        return Err(CommandError(format!(
+            "channels = {} is out of range: allowed 1 to {MAX_CHANNELS}",
+            args.channels
+        )));
+    }
+    check_range("scr_fraction", args.scr_fraction, 0.0, 0.999, true)?;
+    check_range("saturation_sigma", args.saturation_sigma, 0.0, 10.0, false)?;
+    check_range("stage_deg_per_s", args.stage_deg_per_s, 0.0, 1e4, true)?;
+    check_range("settle_s", args.settle_s, 0.0, 60.0, false)?;
+    check_range("pfa", args.pfa, 0.0, 0.5, true)?;
+    check_range("tolerance", args.tolerance, 1e-8, 0.1, false)?;
+    if let Some(b) = args.time_budget_s {
+        check_range("time_budget_s", b, 0.0, 1e6, true)?;
+    }
+    let scene = crate::commands::load_scene(&scene_path)?;
+    let camera = polar_model::sensor::Camera::from_toml_str(
+        &std::fs::read_to_string(&camera_path).map_err(|e| {
+            CommandError(format!(
+                "--camera {}: cannot read: {e}",
+                camera_path.display()
+            ))
+        })?,
+    )
+    .map_err(|e| CommandError(format!("--camera {}: {e}", camera_path.display())))?;
+    let names: Vec<&str> = scene.materials.iter().map(|m| m.name.as_str()).collect();
+    let pick = |flag: &str, name: &str| {
+        scene
+            .materials
+            .iter()
+            .find(|m| m.name == name)
+            .cloned()
+            .ok_or_else(|| {
+                CommandError(format!(
+                    "--{flag} {name:?} is not a material of the scene: allowed {}",
+                    names.join(", ")
+                ))
+            })
+    };
+    let materials = [pick("target", &target)?, pick("background", &background)?];
+    let results = polar_model::scene::evaluate(&scene.spec, &materials, args.tolerance)?;
+    let (t_class, b_class) = (&results[0], &results[1]);
+    let sensor = polar_model::sensor::SensorModel::new(&camera, &scene.spec.band)?;
+    let mut notes: Vec<String> = sensor.warnings().to_vec();
+
+    // Integration time: the shortest reaching the SCR fraction, below saturation and budget.
+    let n = args.channels;
+    let tol_rad = 0.01f64.to_radians();
+    let constraints = Constraints {
+        min_separation_rad: args.min_separation_deg.to_radians(),
+        ..Constraints::default()
+    };
+    let best_at = |t_int_s: f64| -> Result<(Contrast, Optimum), CommandError> {
+        let c = contrast_at(&sensor, t_class, b_class, t_int_s)?;
+        let o = optimise(&c, n, &constraints, tol_rad).map_err(planner_error)?;
+        Ok((c, o))
+    };
+    let t_sat = saturation_limit_s(&sensor, &[t_class, b_class], args.saturation_sigma)?;
+    let (c_sat, _) = best_at(t_sat)?;
+    // Clutter limit: the optimum with the sensor noise removed (the planner's noise floor).
+    let quiet = Contrast::new(c_sat.d, c_sat.sigma_b, 0.0).map_err(planner_error)?;
+    let limit = optimise(&quiet, n, &constraints, tol_rad)
+        .map_err(planner_error)?
+        .scr;
+    if limit <= 0.0 {
+        return Err(CommandError(format!(
+            "no contrast between {target} and {background}: their Stokes means are equal, so no \
+             analyzer set or integration time separates them"
+        )));
+    }
+    let goal = args.scr_fraction * limit;
+    let move_s = |angles: &[f64]| -> f64 {
+        // Sorted angles visited in order, then back to the first for the next set.
+        let span = angles.last().copied().unwrap_or(0.0) - angles.first().copied().unwrap_or(0.0);
+        2.0 * span.to_degrees() / args.stage_deg_per_s
+    };
+    let mut t_max = t_sat;
+    if let Some(budget) = args.time_budget_s {
+        // A conservative move allowance: a full half turn and back.
+        let overhead = 2.0 * 180.0 / args.stage_deg_per_s + n as f64 * args.settle_s;
+        let t_budget = (budget - overhead) / n as f64;
+        if t_budget < 1e-6 {
+            return Err(CommandError(format!(
+                "time_budget_s = {budget} does not cover {n} moves and settles ({overhead:.3} s): \
+                 allowed more than that"
+            )));
+        }
+        if t_budget < t_max {
+            notes.push(format!(
+                "the time budget limits the integration time to {:.4} ms (saturation allows {:.4} ms)",
+                t_budget * 1e3,
+                t_sat * 1e3
+            ));
+            t_max = t_budget;
+        }
+    }
+    let (_, at_max) = best_at(t_max)?;
+    let t_int_s = if at_max.scr < goal {
+        notes.push(format!(
+            "the SCR reaches only {:.3} of the clutter limit at the longest allowed integration \
+             time ({:.4} ms); asked {}",
+            at_max.scr / limit,
+            t_max * 1e3,
+            args.scr_fraction
+        ));
+        t_max
+    } else {
+        // SCR rises with t (the sensor noise falls relative to the signal): bisection on log t.
+        let (mut lo, mut hi) = (1e-6f64.ln().min(t_max.ln() - 1e-9), t_max.ln());
+        if best_at(lo.exp())?.1.scr >= goal {
+            hi = lo;
+        }
+        for _ in 0..40 {
+            if hi - lo < 1e-4 {
+                break;
+            }
+            let mid = 0.5 * (lo + hi);
+            if best_at(mid.exp())?.1.scr >= goal {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        hi.exp()
+    };
+    let (contrast, opt) = best_at(t_int_s)?;
+    notes.extend(contrast.notes.iter().cloned());
+    let distinct = {
+        let mut a: Vec<f64> = opt.angles_rad.clone();
+        a.dedup_by(|x, y| (*x - *y).abs() < 1e-9);
+        a.len()
+    };
+    if distinct < 3 {
+        notes.push(format!(
+            "the SCR-optimal set has {distinct} distinct angle(s): it detects in the intensity \
+             frames but forms no Stokes image; --min-separation-deg (e.g. 30) keeps 3 distinct \
+             angles"
+        ));
+    }
+
+    // Forecast with the full sensor model (real analyzer, exact frame statistics).
+    let st = frames(&sensor, &opt.angles_rad, t_int_s, t_class)?;
+    let sb = frames(&sensor, &opt.angles_rad, t_int_s, b_class)?;
+    let class = |field, s: &polar_model::sensor::SensorSignal| {
+        ClassStats::new(field, s.mean_dn.clone(), s.cov_dn.clone())
+    };
+    let roc = matched_filter(&class("target", &st)?, &class("background", &sb)?, args.pfa)?;
+    let margin = |s: &polar_model::sensor::SensorSignal| -> f64 {
+        (0..s.mean_dn.len())
+            .map(|i| (s.saturation_dn - s.mean_dn[i]) / s.cov_dn[(i, i)].max(1e-300).sqrt())
+            .fold(f64::INFINITY, f64::min)
+    };
+    let dolp_sigma = |m: &polar_model::scene::MaterialResult| -> Value {
+        let mut exposure = polar_model::sensor::Exposure::new(t_int_s, m.mean);
+        exposure.radiance_cov_w2_m4_sr2 = 0.5 * (m.cov + m.cov.transpose());
+        match polar_model::validation::analytic_products(
+            &sensor,
+            &opt.angles_rad,
+            &exposure,
+            polar_model::stats::MethodChoice::default(),
+            polar_model::stats::RegimeChoice::Auto,
+        ) {
+            Ok(p) => json!(p.stats.dolp_std),
+            Err(e) => json!({ "none": e.to_string() }),
+        }
+    };
+    let frame_s = n as f64 * (t_int_s + args.settle_s) + move_s(&opt.angles_rad);
+    let conv: serde_json::Map<String, Value> = conventional(&contrast)
+        .into_iter()
+        .map(|(name, scr)| (name.to_string(), json!(scr)))
+        .collect();
+    Ok(json!({
+        "angles_deg": opt.angles_rad.iter().map(|a| a.to_degrees()).collect::<Vec<_>>(),
+        "t_int_ms": t_int_s * 1e3,
+        "forecast": {
+            "scr": roc.scr,
+            "scr_planner": opt.scr,
+            "scr_clutter_limit": limit,
+            "scr_conventional": conv,
+            "pd_at_pfa": roc.pd,
+            "pfa": args.pfa,
+            "dolp_sigma": { target.clone(): dolp_sigma(t_class), background.clone(): dolp_sigma(b_class) },
+            "saturation_margin_sigma": { target.clone(): margin(&st), background.clone(): margin(&sb) },
+            "saturation_limit_ms": t_sat * 1e3,
+            "frames": n,
+            "duration_s": frame_s,
+        },
+        "notes": notes,
+        "warnings": roc.warnings,
+    }))
+}

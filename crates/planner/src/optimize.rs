@@ -177,7 +177,7 @@ pub fn optimise(
     let mut idx = vec![0usize; n];
     let mut set = vec![0.0; n];
     let mut evaluations = 0usize;
-    'tuples: loop {
+    loop {
         for (s, &i) in set.iter_mut().zip(&idx) {
             *s = grid[i];
         }
@@ -190,20 +190,9 @@ pub fn optimise(
                 best.truncate(REFINED_STARTS);
             }
         }
-        // The next nondecreasing tuple.
-        let mut k = n;
-        while k > 0 {
-            k -= 1;
-            if idx[k] + 1 < m {
-                idx[k] += 1;
-                let v = idx[k];
-                for j in idx.iter_mut().skip(k + 1) {
-                    *j = v;
-                }
-                continue 'tuples;
-            }
+        if !next_nondecreasing(&mut idx, m) {
+            break;
         }
-        break;
     }
     if best.is_empty() {
         return Err(PlanError::invalid(
@@ -236,6 +225,24 @@ pub fn optimise(
         scr,
         evaluations,
     })
+}
+
+/// Advances `idx` to the next nondecreasing tuple of indices below `m` (lexicographic order);
+/// false after the last.
+fn next_nondecreasing(idx: &mut [usize], m: usize) -> bool {
+    let mut k = idx.len();
+    while k > 0 {
+        k -= 1;
+        if idx[k] + 1 < m {
+            idx[k] += 1;
+            let v = idx[k];
+            for j in idx.iter_mut().skip(k + 1) {
+                *j = v;
+            }
+            return true;
+        }
+    }
+    false
 }
 
 /// Sorted, and in `[0, pi)` when periodic.
@@ -400,7 +407,7 @@ pub fn grid_search(contrast: &Contrast, n: usize, step_rad: f64) -> Optimum {
     let mut set = vec![0.0; idx.len()];
     let mut best = (f64::NEG_INFINITY, Vec::new());
     let mut evaluations = 0;
-    'outer: loop {
+    loop {
         for (s, &i) in set.iter_mut().zip(&idx) {
             *s = grid[i];
         }
@@ -409,19 +416,9 @@ pub fn grid_search(contrast: &Contrast, n: usize, step_rad: f64) -> Optimum {
         if scr > best.0 {
             best = (scr, set.clone());
         }
-        let mut k = idx.len();
-        while k > 0 {
-            k -= 1;
-            if idx[k] + 1 < m {
-                idx[k] += 1;
-                let v = idx[k];
-                for j in idx.iter_mut().skip(k + 1) {
-                    *j = v;
-                }
-                continue 'outer;
-            }
+        if !next_nondecreasing(&mut idx, m) {
+            break;
         }
-        break;
     }
     Optimum {
         angles_rad: best.1,
