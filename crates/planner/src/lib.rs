@@ -3,10 +3,13 @@
 //! reconstructed). Pure: it depends on the model's maths, never on devices.
 //!
 //! * [`scr`]: the signal-to-clutter ratio of an analyzer set and its gradient.
+//! * [`aptd`]: adaptive polarimetric target detection as a state machine (frames in, the next
+//!   set out, with a decision record).
 //! * [`optimize`]: the SCR-optimal set of `N = 1..6` angles under a rotator's or a wheel's
 //!   constraints, and the conventional sets it is compared with.
 #![warn(missing_docs)]
 
+pub mod aptd;
 pub mod optimize;
 pub mod scr;
 
