@@ -13,4 +13,5 @@ pub mod devices;
 pub mod figures;
 pub mod plan;
 pub mod study;
+pub mod study_aptd;
 pub mod validation;

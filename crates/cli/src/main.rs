@@ -857,6 +857,20 @@ fn main() -> ExitCode {
                 }
             }
         }
+        Command::Study { args } if args.kind == polar_cli::study::StudySelection::Aptd => {
+            match polar_cli::study_aptd::execute(&args) {
+                Ok(files) => {
+                    for f in files {
+                        println!("{}", f.display());
+                    }
+                    Ok(ExitCode::SUCCESS)
+                }
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    Ok(ExitCode::from(2))
+                }
+            }
+        }
         Command::Study { args } => match polar_cli::study::execute(&args) {
             Ok(files) => {
                 for f in files {

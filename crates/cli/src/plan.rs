@@ -93,7 +93,7 @@ fn planner_error(e: polar_planner::PlanError) -> CommandError {
 
 /// Matched-filter Pd at `pfa` of the set: the classes in intensity space, `W mu` and
 /// `W Sigma W^T + V I` (ideal analyzer rows).
-fn pd(
+pub(crate) fn pd(
     angles_rad: &[f64],
     t_mean: &Vector3<f64>,
     t_cov: &Matrix3<f64>,

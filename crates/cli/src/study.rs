@@ -193,6 +193,9 @@ pub enum StudySelection {
     IntegrationTime,
     /// All six.
     All,
+    /// Adaptive polarimetric target detection against conventional sets (the seed's Table 5.2;
+    /// `study_aptd`).
+    Aptd,
 }
 
 impl StudySelection {
@@ -206,6 +209,7 @@ impl StudySelection {
             StudySelection::NoiseFactor => vec![StudyKind::NoiseFactor],
             StudySelection::IntegrationTime => vec![StudyKind::IntegrationTime],
             StudySelection::All => StudyKind::ALL.to_vec(),
+            StudySelection::Aptd => Vec::new(),
         }
     }
 }
@@ -1110,9 +1114,9 @@ pub fn roc_csv(result: &StudyResult) -> String {
 // Figures
 // ---------------------------------------------------------------------------------------------
 
-const FONT: &str = "sans-serif";
+pub(crate) const FONT: &str = "sans-serif";
 
-fn register_font() {
+pub(crate) fn register_font() {
     // The same embedded font as `figures`; registering twice is harmless.
     let _ = plotters::style::register_font(
         FONT,
