@@ -121,7 +121,7 @@ fn describe_color(c: ColorType) -> String {
     }
 }
 
-fn open_tiff(path: &Path) -> Result<Decoder<BufReader<std::fs::File>>, String> {
+pub(crate) fn open_tiff(path: &Path) -> Result<Decoder<BufReader<std::fs::File>>, String> {
     let f = std::fs::File::open(path).map_err(|e| format!("cannot open: {e}"))?;
     Decoder::new(BufReader::new(f)).map_err(|e| format!("not a readable TIFF: {e}"))
 }
@@ -143,7 +143,7 @@ fn tiff_header(path: &Path) -> Result<(u32, u32), String> {
 }
 
 /// The pixels of a 16-bit single-channel TIFF of the expected size.
-fn read_tiff(path: &Path, width: u32, height: u32) -> Result<Vec<u16>, CalibrateError> {
+pub(crate) fn read_tiff(path: &Path, width: u32, height: u32) -> Result<Vec<u16>, CalibrateError> {
     let mut dec = open_tiff(path).map_err(|m| file_err(path, m))?;
     let dims = dec
         .dimensions()

@@ -258,6 +258,13 @@ enum CameraCommand {
 
 #[derive(Debug, Subcommand)]
 enum PlanCommand {
+    /// APTD offline over an image stack (`frames.csv`: file,angle_deg; 16-bit TIFFs): the sets
+    /// it chooses among the stack's angles, its decisions, and RX and matched-filter detection
+    /// on the final Stokes image.
+    Aptd {
+        #[command(flatten)]
+        args: polar_cli::plan::PlanAptdArgs,
+    },
     /// The SCR-optimal analyzer angles for a target against a background, with the SCR and
     /// matched-filter Pd of the conventional sets beside them.
     Angles {
@@ -647,6 +654,10 @@ fn main() -> ExitCode {
             command: Some(PlanCommand::Angles { args }),
             ..
         } => Ok(print_json(polar_cli::plan::angles(&args))),
+        Command::Plan {
+            command: Some(PlanCommand::Aptd { args }),
+            ..
+        } => Ok(print_json(polar_cli::plan::aptd_offline(&args))),
         Command::Plan {
             command: None,
             scene,

@@ -624,3 +624,201 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
         "warnings": roc.warnings,
     }))
 }
+
+/// `plan aptd --frames DIR`: APTD offline over an image stack.
+#[derive(Debug, Clone, Args)]
+pub struct PlanAptdArgs {
+    /// The stack: `frames.csv` (`file,angle_deg`) and the 16-bit TIFFs it names.
+    #[arg(long)]
+    pub frames: std::path::PathBuf,
+    /// Per-frame sensor noise variance, DN^2 (from the calibrated camera), >= 0.
+    #[arg(long)]
+    pub noise_var: f64,
+    /// Black level subtracted from every pixel, DN.
+    #[arg(long, default_value_t = 0.0)]
+    pub dark_dn: f64,
+    /// Channels per set, 1..=6.
+    #[arg(long, default_value_t = 3)]
+    pub channels: usize,
+    /// The first set, degrees (angles of the stack).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, default_values_t = [0.0, 60.0, 120.0])]
+    pub initial_angles_deg: Vec<f64>,
+    /// A known target region X0,Y0,X1,Y1 (pixels, end exclusive).
+    #[arg(long, value_delimiter = ',')]
+    pub target_region: Option<Vec<u32>>,
+    /// Otherwise: this fraction of pixels with the highest RX score, (0, 0.5).
+    #[arg(long, default_value_t = 0.01)]
+    pub anomalies: f64,
+    /// Frames the loop may use, first set included.
+    #[arg(long, default_value_t = 15)]
+    pub frame_budget: usize,
+    /// False-alarm rate of the empirical Pd, (0, 1).
+    #[arg(long, default_value_t = 1e-3)]
+    pub pfa: f64,
+}
+
+/// `plan aptd`: runs the loop over the stack. The sets are restricted to the stack's angles (the
+/// best subset each round); a frame asked for again is served by the next unused copy at that
+/// angle, or by the first copy again once all are used (then the "re-acquired" frame repeats,
+/// and the JSON counts the reuses).
+pub fn aptd_offline(args: &PlanAptdArgs) -> Result<Value, CommandError> {
+    use polar_planner::aptd::{detection_scores, empirical_pd, stokes_images};
+    use polar_planner::aptd::{Aptd, AptdConfig, AptdFrame, Step, TargetSpec};
+    let dir = &args.frames;
+    let list = dir.join("frames.csv");
+    let text = std::fs::read_to_string(&list)
+        .map_err(|e| CommandError(format!("{}: cannot read: {e}", list.display())))?;
+    let mut stack: Vec<(f64, std::path::PathBuf)> = Vec::new();
+    for (i, line) in text.lines().enumerate().skip(1) {
+        if line.trim().is_empty() {
+            continue;
+        }
+        let mut cols = line.split(',').map(str::trim);
+        let (Some(file), Some(angle)) = (cols.next(), cols.next()) else {
+            return Err(CommandError(format!(
+                "{} line {}: expected file,angle_deg",
+                list.display(),
+                i + 1
+            )));
+        };
+        let angle: f64 = angle
+            .parse()
+            .ok()
+            .filter(|a: &f64| a.is_finite())
+            .ok_or_else(|| {
+                CommandError(format!(
+                    "{} line {}: angle_deg = {angle:?} is not a finite number",
+                    list.display(),
+                    i + 1
+                ))
+            })?;
+        stack.push((angle, dir.join(file)));
+    }
+    if stack.len() < 3 {
+        return Err(CommandError(format!(
+            "{}: {} frames; allowed at least 3 at distinct angles",
+            list.display(),
+            stack.len()
+        )));
+    }
+    let (width, height) = crate::calibrate::open_tiff(&stack[0].1)
+        .and_then(|mut d| d.dimensions().map_err(|e| e.to_string()))
+        .map_err(|e| CommandError(format!("{}: {e}", stack[0].1.display())))?;
+    let mut images = Vec::with_capacity(stack.len());
+    for (angle, path) in &stack {
+        let px = crate::calibrate::read_tiff(path, width, height)
+            .map_err(|e| CommandError(e.to_string()))?;
+        images.push((
+            *angle,
+            px.iter()
+                .map(|&v| f64::from(v) - args.dark_dn)
+                .collect::<Vec<f64>>(),
+        ));
+    }
+    let n_px = (width * height) as usize;
+    let target = match &args.target_region {
+        Some(r) if r.len() == 4 && r[0] < r[2] && r[1] < r[3] && r[2] <= width && r[3] <= height => {
+            let mut mask = vec![false; n_px];
+            for y in r[1]..r[3] {
+                for x in r[0]..r[2] {
+                    mask[(y * width + x) as usize] = true;
+                }
+            }
+            TargetSpec::Region(mask)
+        }
+        Some(r) => {
+            return Err(CommandError(format!(
+                "target_region = {r:?} is invalid: allowed X0,Y0,X1,Y1 with X0 < X1 <= {width}, Y0 < Y1 <= {height}"
+            )))
+        }
+        None => TargetSpec::Anomalies {
+            fraction: args.anomalies,
+        },
+    };
+    let mut available: Vec<f64> = images.iter().map(|(a, _)| a.to_radians()).collect();
+    available.sort_by(f64::total_cmp);
+    available.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+    let initial: Vec<f64> = args
+        .initial_angles_deg
+        .iter()
+        .map(|d| d.to_radians())
+        .collect();
+    for a in &initial {
+        if !available.iter().any(|b| (a - b).abs() < 1e-6) {
+            return Err(CommandError(format!(
+                "initial_angles_deg: {} is not an angle of the stack (allowed {:?})",
+                a.to_degrees(),
+                available.iter().map(|b| b.to_degrees()).collect::<Vec<_>>()
+            )));
+        }
+    }
+    let (mut aptd, mut step) = Aptd::new(AptdConfig {
+        channels: args.channels,
+        initial_angles_rad: initial,
+        noise_var: args.noise_var,
+        target,
+        constraints: Constraints {
+            fixed_angles_rad: Some(available),
+            ..Constraints::default()
+        },
+        angle_tol_rad: 0.01f64.to_radians(),
+        scr_rel_tol: 0.01,
+        frame_budget: args.frame_budget,
+    })
+    .map_err(planner_error)?;
+    let mut used = vec![false; images.len()];
+    let mut reused = 0usize;
+    let mut last_set = Vec::new();
+    while let Step::Acquire(angles) = step {
+        last_set = angles.clone();
+        let mut frames = Vec::new();
+        for a in &angles {
+            let same = |i: &usize| (images[*i].0.to_radians() - a).abs() < 1e-6;
+            let pick = (0..images.len())
+                .find(|i| same(i) && !used[*i])
+                .or_else(|| {
+                    reused += 1;
+                    (0..images.len()).find(|i| same(i))
+                })
+                .ok_or_else(|| CommandError(format!("no frame at {} deg", a.to_degrees())))?;
+            used[pick] = true;
+            frames.push(AptdFrame {
+                angle_rad: *a,
+                pixels: images[pick].1.clone(),
+            });
+        }
+        step = aptd.on_frames(frames).map_err(planner_error)?;
+    }
+    // Detection on the Stokes image of every frame used.
+    let (s, _) = stokes_images(aptd.frames()).map_err(planner_error)?;
+    let mask = aptd.target_mask().to_vec();
+    let (rx, mf) = detection_scores(&s, &mask).map_err(planner_error)?;
+    let decisions: Vec<Value> = aptd
+        .decisions()
+        .iter()
+        .map(|d| {
+            json!({
+                "round": d.round,
+                "frames_used": d.frames_used,
+                "target_pixels": d.target_pixels,
+                "scr_last_set": d.scr_last_set,
+                "next_angles_deg": d.next_angles_rad.iter().map(|a| a.to_degrees()).collect::<Vec<_>>(),
+                "scr_next": d.scr_next,
+                "reason": d.reason,
+            })
+        })
+        .collect();
+    Ok(json!({
+        "angles_deg": last_set.iter().map(|a| a.to_degrees()).collect::<Vec<_>>(),
+        "stop": format!("{step:?}"),
+        "decisions": decisions,
+        "frames_used": aptd.frames().len(),
+        "frames_reused": reused,
+        "detection": {
+            "pfa": args.pfa,
+            "pd_rx": empirical_pd(&rx, &mask, args.pfa),
+            "pd_matched_filter": empirical_pd(&mf, &mask, args.pfa),
+            "target_pixels": mask.iter().filter(|&&t| t).count(),
+        },
+    }))
+}

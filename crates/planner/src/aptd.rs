@@ -121,10 +121,13 @@ pub struct Aptd {
     last_scr: Option<f64>,
     round: usize,
     decisions: Vec<Decision>,
+    last_target: Vec<bool>,
 }
 
-/// Per-pixel least-squares Stokes from frames (ideal analyzer rows): `(W^T W)^-1 W^T y`.
-fn stokes_images(frames: &[AptdFrame]) -> Result<(Vec<Vector3<f64>>, Matrix3<f64>), PlanError> {
+/// Per-pixel least-squares Stokes from frames (ideal analyzer rows): `(W^T W)^-1 W^T y`, and
+/// `(W^T W)^-1` (the estimate's covariance per unit frame variance). Errors when fewer than 3
+/// distinct angles make `W^T W` singular.
+pub fn stokes_images(frames: &[AptdFrame]) -> Result<(Vec<Vector3<f64>>, Matrix3<f64>), PlanError> {
     let a = frames.iter().fold(Matrix3::zeros(), |acc, f| {
         let w = row(f.angle_rad);
         acc + w * w.transpose()
@@ -151,7 +154,8 @@ fn stokes_images(frames: &[AptdFrame]) -> Result<(Vec<Vector3<f64>>, Matrix3<f64
     Ok((s, a_inv))
 }
 
-fn mean_cov(s: &[Vector3<f64>], keep: &[bool]) -> Option<(Vector3<f64>, Matrix3<f64>)> {
+/// Mean and sample covariance of the Stokes vectors where `keep`; `None` below 4 of them.
+pub fn mean_cov(s: &[Vector3<f64>], keep: &[bool]) -> Option<(Vector3<f64>, Matrix3<f64>)> {
     let n = keep.iter().filter(|&&k| k).count();
     if n < 4 {
         return None;
@@ -263,6 +267,7 @@ impl Aptd {
                 last_scr: None,
                 round: 0,
                 decisions: Vec::new(),
+                last_target: Vec::new(),
             },
             Step::Acquire(first),
         ))
@@ -271,6 +276,16 @@ impl Aptd {
     /// The decisions so far.
     pub fn decisions(&self) -> &[Decision] {
         &self.decisions
+    }
+
+    /// Every frame received so far, in order.
+    pub fn frames(&self) -> &[AptdFrame] {
+        &self.frames
+    }
+
+    /// The target mask of the last round (empty before the first).
+    pub fn target_mask(&self) -> &[bool] {
+        &self.last_target
     }
 
     /// The frames of the set just acquired (one per angle asked); returns the next step and
@@ -408,11 +423,60 @@ impl Aptd {
             reason,
         });
         self.last_scr = Some(next.scr);
+        self.last_target = target_mask;
         if let Step::Acquire(a) = &step {
             self.last_set = a.clone();
         }
         Ok(step)
     }
+}
+
+/// Detection scores of Stokes images against the background statistics (MODEL.md section 8):
+/// RX `(s - mu_b)^T Sigma^-1 (s - mu_b)` and the linear matched filter `(Sigma^-1 d)^T (s - mu_b)`,
+/// with `Sigma` the background pixels' sample covariance (regularised by 1e-12 of its trace).
+pub fn detection_scores(
+    s: &[Vector3<f64>],
+    target_mask: &[bool],
+) -> Result<(Vec<f64>, Vec<f64>), PlanError> {
+    let background: Vec<bool> = target_mask.iter().map(|t| !t).collect();
+    let (mu_b, cov_b) = mean_cov(s, &background)
+        .ok_or_else(|| PlanError::invalid("target", "fewer than 4 background pixels"))?;
+    let (mu_t, _) = mean_cov(s, target_mask)
+        .ok_or_else(|| PlanError::invalid("target", "fewer than 4 target pixels"))?;
+    let inv = (cov_b + Matrix3::identity() * 1e-12 * cov_b.trace().max(1e-300))
+        .try_inverse()
+        .ok_or_else(|| PlanError::invalid("frames", "background covariance not invertible"))?;
+    let w = inv * (mu_t - mu_b);
+    let rx = s
+        .iter()
+        .map(|v| (v - mu_b).dot(&(inv * (v - mu_b))))
+        .collect();
+    let mf = s.iter().map(|v| w.dot(&(v - mu_b))).collect();
+    Ok((rx, mf))
+}
+
+/// The share of target pixels above the threshold that `pfa` of the background pixels exceed
+/// (the empirical Pd at that Pfa; the threshold is the background scores' `1 - pfa` quantile).
+pub fn empirical_pd(scores: &[f64], target_mask: &[bool], pfa: f64) -> f64 {
+    let mut bg: Vec<f64> = scores
+        .iter()
+        .zip(target_mask)
+        .filter(|(_, &t)| !t)
+        .map(|(v, _)| *v)
+        .collect();
+    let targets: Vec<f64> = scores
+        .iter()
+        .zip(target_mask)
+        .filter(|(_, &t)| t)
+        .map(|(v, _)| *v)
+        .collect();
+    if bg.is_empty() || targets.is_empty() {
+        return 0.0;
+    }
+    bg.sort_by(f64::total_cmp);
+    let k = ((1.0 - pfa.clamp(0.0, 1.0)) * bg.len() as f64).ceil() as usize;
+    let threshold = bg[k.min(bg.len() - 1)];
+    targets.iter().filter(|&&v| v > threshold).count() as f64 / targets.len() as f64
 }
 
 #[cfg(test)]
