@@ -1,4 +1,5 @@
 //! `plan aptd --frames DIR`: APTD offline over a stack of 16-bit TIFFs at 12 analyzer angles.
+#![allow(clippy::unwrap_used)] // test helpers outside #[test] functions
 
 use nalgebra::{Matrix3, Vector3};
 use polar_planner::scr::row;
