@@ -579,7 +579,9 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
     let class = |field, s: &polar_model::sensor::SensorSignal| {
         ClassStats::new(field, s.mean_dn.clone(), s.cov_dn.clone())
     };
-    let roc = matched_filter(&class("target", &st)?, &class("background", &sb)?, args.pfa)?;
+    let (ct, cb) = (class("target", &st)?, class("background", &sb)?);
+    let roc = matched_filter(&ct, &cb, args.pfa)?;
+    let pd_1e3 = matched_filter(&ct, &cb, 1e-3)?.pd;
     let margin = |s: &polar_model::sensor::SensorSignal| -> f64 {
         (0..s.mean_dn.len())
             .map(|i| (s.saturation_dn - s.mean_dn[i]) / s.cov_dn[(i, i)].max(1e-300).sqrt())
@@ -612,6 +614,7 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
             "scr_planner": opt.scr,
             "scr_clutter_limit": limit,
             "scr_conventional": conv,
+            "pd_at_pfa_1e-3": pd_1e3,
             "pd_at_pfa": roc.pd,
             "pfa": args.pfa,
             "dolp_sigma": { target.clone(): dolp_sigma(t_class), background.clone(): dolp_sigma(b_class) },

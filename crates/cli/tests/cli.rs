@@ -1225,6 +1225,13 @@ fn plan_scene_command() {
     );
     let pd = f["pd_at_pfa"].as_f64().unwrap();
     assert!((0.0..=1.0).contains(&pd));
+    assert_eq!(
+        f["pd_at_pfa_1e-3"].as_f64(),
+        Some(pd),
+        "the default pfa is 1e-3"
+    );
+    assert_eq!(f["frames"].as_u64(), Some(3));
+    assert!(f["duration_s"].as_f64().unwrap() > 0.0);
 
     let mut bad = base.to_vec();
     bad[6] = "nope";
