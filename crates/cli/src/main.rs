@@ -502,6 +502,23 @@ fn run_batch(kind: Kind, path: &PathBuf) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// Prints the files a command wrote, one per line, and returns 0; or prints `error: ...` and
+/// returns 2.
+fn print_files<E: std::fmt::Display>(result: Result<Vec<PathBuf>, E>) -> ExitCode {
+    match result {
+        Ok(files) => {
+            for f in files {
+                println!("{}", f.display());
+            }
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
 /// Prints a command's JSON on stdout (and its `warnings` on stderr) and returns exit status 0,
 /// or prints `error: ...` on stderr and returns 2.
 fn print_json<E: std::fmt::Display>(result: Result<serde_json::Value, E>) -> ExitCode {
@@ -869,31 +886,9 @@ fn main() -> ExitCode {
             }
         }
         Command::Study { args } if args.kind == polar_cli::study::StudySelection::Aptd => {
-            match polar_cli::study_aptd::execute(&args) {
-                Ok(files) => {
-                    for f in files {
-                        println!("{}", f.display());
-                    }
-                    Ok(ExitCode::SUCCESS)
-                }
-                Err(e) => {
-                    eprintln!("error: {e}");
-                    Ok(ExitCode::from(2))
-                }
-            }
+            Ok(print_files(polar_cli::study_aptd::execute(&args)))
         }
-        Command::Study { args } => match polar_cli::study::execute(&args) {
-            Ok(files) => {
-                for f in files {
-                    println!("{}", f.display());
-                }
-                Ok(ExitCode::SUCCESS)
-            }
-            Err(e) => {
-                eprintln!("error: {e}");
-                Ok(ExitCode::from(2))
-            }
-        },
+        Command::Study { args } => Ok(print_files(polar_cli::study::execute(&args))),
         Command::Report {
             command: ReportCommand::Figures { out },
         } => polar_cli::figures::draw_all(&out)
