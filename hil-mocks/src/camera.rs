@@ -21,6 +21,7 @@
 //! * [`CameraFaults`]: dropped frames, truncated frames, stalls (timeouts), a stuck frame
 //!   (the same pixels again under a new id) and a disconnect, all seeded.
 
+use crate::faults::Dice;
 use crate::serve::TruthHandle;
 use crate::sim::Truth;
 use nalgebra::{Matrix3, Vector3};
@@ -32,8 +33,7 @@ use polar_model::atmosphere::Band;
 use polar_model::error::ModelError;
 use polar_model::scene::{self, SceneMaterial, SceneSpec};
 use polar_model::sensor::{Camera, SensorModel};
-use rand_core::{Rng, SeedableRng};
-use rand_xorshift::XorShiftRng;
+use polar_model::stats::psd_factor;
 use serde::Deserialize;
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
@@ -155,28 +155,6 @@ pub struct SimScene {
     pub band: Band,
 }
 
-/// A symmetric positive semidefinite 3x3 matrix's factor `L` with `L L^T = cov` (eigenvalues
-/// below zero, from rounding, taken as zero).
-fn psd_factor(cov: &Matrix3<f64>) -> Matrix3<f64> {
-    let sym = 0.5 * (cov + cov.transpose());
-    if let Some(ch) = sym.cholesky() {
-        return ch.l();
-    }
-    let eig = sym.symmetric_eigen();
-    let mut f = eig.eigenvectors;
-    for (j, mut col) in f.column_iter_mut().enumerate() {
-        col *= eig.eigenvalues[j].max(0.0).sqrt();
-    }
-    f
-}
-
-/// A standard normal deviate (Box-Muller; one of the pair is used).
-fn normal(rng: &mut XorShiftRng) -> f64 {
-    let u1 = (f64::from(rng.next_u32()) + 0.5) / 4_294_967_296.0;
-    let u2 = f64::from(rng.next_u32()) / 4_294_967_296.0;
-    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-}
-
 impl SimScene {
     /// Evaluates the scene's materials at relative tolerance `tol`, then draws the
     /// `width x height` layout with seeded per-pixel variation. Errors name the field: an
@@ -237,7 +215,10 @@ impl SimScene {
         }
         let chosen: Vec<SceneMaterial> = used.iter().map(|&i| materials[i].clone()).collect();
         let results = scene::evaluate(spec, &chosen, tol)?;
-        let factors: Vec<Matrix3<f64>> = results.iter().map(|r| psd_factor(&r.cov)).collect();
+        let factors: Vec<Matrix3<f64>> = results
+            .iter()
+            .map(|r| psd_factor(&(0.5 * (r.cov + r.cov.transpose()))))
+            .collect();
         let means: Vec<Vector3<f64>> = results.iter().map(|r| r.mean.0).collect();
 
         let (w, h) = (width as usize, height as usize);
@@ -262,12 +243,12 @@ impl SimScene {
                 }
             }
         }
-        let mut rng = XorShiftRng::seed_from_u64(seed);
+        let mut dice = Dice::new(seed);
         let stokes = region
             .iter()
             .map(|&k| {
                 let k = usize::from(k);
-                let z = Vector3::new(normal(&mut rng), normal(&mut rng), normal(&mut rng));
+                let z = Vector3::new(dice.normal(), dice.normal(), dice.normal());
                 let mut s = means[k] + factors[k] * z;
                 // A physical Stokes vector: S0 >= 0 and DoLP <= 1.
                 s[0] = s[0].max(0.0);
@@ -395,7 +376,7 @@ pub struct SimCamera {
     frame_id: u64,
     last_pixels: Option<Vec<u16>>,
     disconnected: bool,
-    rng: XorShiftRng,
+    dice: Dice,
     /// The device clock's zero (device timestamps are exposure ends since it).
     epoch: Instant,
 }
@@ -442,7 +423,7 @@ impl SimCamera {
             formats,
         };
         let roi = Roi::full(config.scene.width, config.scene.height);
-        let rng = XorShiftRng::seed_from_u64(config.seed ^ 0x5eed_ca3e);
+        let dice = Dice::new(config.seed ^ 0x5eed_ca3e);
         Ok(SimCamera {
             sensor,
             angle,
@@ -460,7 +441,7 @@ impl SimCamera {
             frame_id: 0,
             last_pixels: None,
             disconnected: false,
-            rng,
+            dice,
             epoch: Instant::now(),
             config,
         })
@@ -530,10 +511,6 @@ impl SimCamera {
         }
     }
 
-    fn chance(&mut self, p: f64) -> bool {
-        p > 0.0 && (f64::from(self.rng.next_u32()) / 4_294_967_296.0) < p
-    }
-
     /// Draws the frame whose exposure just ended.
     fn finish(&mut self, started: Exposing) -> Result<Grabbed, DeviceError> {
         let psi_end = (self.angle)();
@@ -544,15 +521,15 @@ impl SimCamera {
             self.disconnected = true;
             return Err(self.error(ErrorKind::Disconnected, "the camera went away (fault)"));
         }
-        if self.chance(faults.stall) {
+        if self.dice.chance(faults.stall) {
             self.stalled_until = Some(Instant::now() + Duration::from_secs_f64(faults.stall_s));
             return Ok(Grabbed::Nothing);
         }
-        if self.chance(faults.drop_frame) {
+        if self.dice.chance(faults.drop_frame) {
             return Ok(Grabbed::Nothing);
         }
-        let truncated = self.chance(faults.truncate_frame);
-        let stuck = self.chance(faults.stuck_frame) && self.last_pixels.is_some();
+        let truncated = self.dice.chance(faults.truncate_frame);
+        let stuck = self.dice.chance(faults.stuck_frame) && self.last_pixels.is_some();
         let pixels = match (stuck, &self.last_pixels) {
             (true, Some(last)) => last.clone(),
             _ => {

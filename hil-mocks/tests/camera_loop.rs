@@ -23,14 +23,10 @@ use std::time::Duration;
 const WIDTH: u32 = 160;
 const HEIGHT: u32 = 120;
 
-/// The rooftop example with an aluminium panel added: paint, glass and metal on asphalt and
-/// grass.
+/// The rooftop example with an aluminium panel added (`examples/rooftop_panels.toml`): paint,
+/// glass and metal on asphalt and grass.
 fn scene() -> Scene {
-    let text = format!(
-        "{}\n[[material]]\nname = \"metal\"\nlibrary = \"aluminium\"\ntexture_cv = 0.02\n",
-        include_str!("../../examples/rooftop.toml")
-    );
-    Scene::from_toml_str(&text).expect("scene")
+    Scene::from_toml_str(include_str!("../../examples/rooftop_panels.toml")).expect("scene")
 }
 
 fn sim_scene() -> Arc<SimScene> {

@@ -25,6 +25,7 @@
 //! The analysis is [`polar_model::calibration::photon_transfer`] (EMVA 1288 Release 4.0 Linear)
 //! on the pair statistics ([`polar_model::calibration::pair_statistics`]).
 
+use crate::figures::{register_font, FONT};
 use plotters::prelude::*;
 use polar_model::calibration::{pair_statistics, photon_transfer, ExposurePoint, PhotonTransfer};
 use polar_model::montecarlo::{expose_pixels, fixed_pattern, MAX_FRAME_PIXELS};
@@ -702,17 +703,6 @@ fn measured_camera(
 // ---------------------------------------------------------------------------------------------
 // The figure
 // ---------------------------------------------------------------------------------------------
-
-const FONT: &str = "sans-serif";
-
-fn register_font() {
-    // Registering twice is harmless; a bad embedded font would leave plotters to report it.
-    let _ = plotters::style::register_font(
-        FONT,
-        FontStyle::Normal,
-        include_bytes!("../assets/DejaVuSans.ttf"),
-    );
-}
 
 /// photon_transfer.png: `sigma_y^2 - sigma_y.dark^2` against `mu_y - mu_y.dark` for every
 /// exposure point, the fitted line of slope `K`, the linear range shaded and the saturation

@@ -18,14 +18,9 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-/// The default scene of the simulated camera: the rooftop example, plus an aluminium panel.
-pub fn default_scene_text() -> String {
-    format!(
-        "{}\n# Added for the simulated camera: a metal panel beside the paint and the glass.\n\
-         [[material]]\nname = \"metal\"\nlibrary = \"aluminium\"\ntexture_cv = 0.02\n",
-        include_str!("../../../examples/rooftop.toml")
-    )
-}
+/// The default scene of the simulated camera: `examples/rooftop_panels.toml`, the rooftop
+/// example with an aluminium panel added.
+pub const DEFAULT_SCENE: &str = include_str!("../../../examples/rooftop_panels.toml");
 
 /// The default camera of the simulated camera.
 pub const DEFAULT_CAMERA: &str = include_str!("../../../examples/cameras/cmos_modern.toml");
@@ -52,7 +47,7 @@ pub enum CameraCmdError {
 /// How the simulated camera is set up.
 #[derive(Debug, Clone)]
 pub struct SimOptions {
-    /// Scene file (None: [`default_scene_text`]).
+    /// Scene file (None: [`DEFAULT_SCENE`]).
     pub scene: Option<PathBuf>,
     /// Camera file (None: [`DEFAULT_CAMERA`]).
     pub camera_file: Option<PathBuf>,
@@ -76,7 +71,7 @@ fn read(path: &Path, what: &str) -> Result<String, CameraCmdError> {
 pub fn sim_camera(opts: &SimOptions) -> Result<SimCamera, CameraCmdError> {
     let scene_text = match &opts.scene {
         Some(p) => read(p, "scene")?,
-        None => default_scene_text(),
+        None => DEFAULT_SCENE.to_string(),
     };
     let base = opts
         .scene

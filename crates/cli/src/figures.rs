@@ -40,16 +40,20 @@ pub enum FigureError {
     Model(#[from] polar_model::ModelError),
 }
 
-fn draw_err<E: std::fmt::Display>(path: &Path) -> impl Fn(E) -> FigureError + '_ {
+/// Maps a plotters error to a [`FigureError`] naming the file.
+pub(crate) fn draw_err<E: std::fmt::Display>(path: &Path) -> impl Fn(E) -> FigureError + '_ {
     move |e| FigureError::Draw {
         path: path.to_path_buf(),
         message: e.to_string(),
     }
 }
 
-const FONT: &str = "sans-serif";
+/// The font family every figure of the CLI draws with (the embedded DejaVu Sans).
+pub(crate) const FONT: &str = "sans-serif";
 
-fn register_font() {
+/// Registers the embedded font under [`FONT`] (plotters' `ab_glyph` backend has no system
+/// fonts).
+pub(crate) fn register_font() {
     // Registering twice is harmless; an invalid embedded font would be a build bug and leaves
     // plotters to report a font error when drawing text.
     let _ = plotters::style::register_font(

@@ -91,9 +91,9 @@ fn planner_error(e: polar_planner::PlanError) -> CommandError {
     CommandError(e.to_string())
 }
 
-/// Matched-filter Pd at `pfa` of the set: the classes in intensity space, `W mu` and
-/// `W Sigma W^T + V I` (ideal analyzer rows).
-pub(crate) fn pd(
+/// The matched filter's ROC of the set at `pfa`: the classes in intensity space, `W mu` and
+/// `W Sigma W^T + V I` (ideal analyzer rows, as the planner scores).
+pub(crate) fn intensity_roc(
     angles_rad: &[f64],
     t_mean: &Vector3<f64>,
     t_cov: &Matrix3<f64>,
@@ -101,7 +101,7 @@ pub(crate) fn pd(
     b_cov: &Matrix3<f64>,
     noise_var: f64,
     pfa: f64,
-) -> Result<f64, CommandError> {
+) -> Result<polar_model::metrics::Roc, CommandError> {
     let n = angles_rad.len();
     let w = DMatrix::from_fn(n, 3, |i, j| polar_planner::scr::row(angles_rad[i])[j]);
     let class = |field, m: &Vector3<f64>, c: &Matrix3<f64>| {
@@ -112,7 +112,7 @@ pub(crate) fn pd(
     };
     let t = class("target_cov", t_mean, t_cov)?;
     let b = class("background_cov", b_mean, b_cov)?;
-    Ok(matched_filter(&t, &b, pfa)?.pd)
+    Ok(matched_filter(&t, &b, pfa)?)
 }
 
 /// `plan angles`.
@@ -160,7 +160,7 @@ pub fn angles(args: &PlanAnglesArgs) -> Result<Value, CommandError> {
     .map_err(planner_error)?;
     let elapsed_ms = t0.elapsed().as_secs_f64() * 1e3;
     let pd_of = |a: &[f64]| {
-        pd(
+        intensity_roc(
             a,
             &t_mean,
             &t_cov,
@@ -169,6 +169,7 @@ pub fn angles(args: &PlanAnglesArgs) -> Result<Value, CommandError> {
             contrast.noise_var,
             args.pfa,
         )
+        .map(|r| r.pd)
     };
     let mut scr_conv = serde_json::Map::new();
     let mut pd_conv = serde_json::Map::new();
@@ -354,9 +355,17 @@ fn frames(
     t_int_s: f64,
     class: &polar_model::scene::MaterialResult,
 ) -> Result<polar_model::sensor::SensorSignal, CommandError> {
-    let mut exposure = polar_model::sensor::Exposure::new(t_int_s, class.mean);
-    exposure.radiance_cov_w2_m4_sr2 = 0.5 * (class.cov + class.cov.transpose());
-    Ok(sensor.signal(angles_rad, &exposure)?)
+    Ok(sensor.signal(angles_rad, &exposure(t_int_s, class))?)
+}
+
+/// A class's exposure for `t_int_s`: its mean radiance and its (symmetrised) clutter.
+fn exposure(
+    t_int_s: f64,
+    class: &polar_model::scene::MaterialResult,
+) -> polar_model::sensor::Exposure {
+    let mut e = polar_model::sensor::Exposure::new(t_int_s, class.mean);
+    e.radiance_cov_w2_m4_sr2 = 0.5 * (class.cov + class.cov.transpose());
+    e
 }
 
 /// The longest integration time at which neither class saturates at any analyzer angle (1-degree
@@ -588,12 +597,10 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
             .fold(f64::INFINITY, f64::min)
     };
     let dolp_sigma = |m: &polar_model::scene::MaterialResult| -> Value {
-        let mut exposure = polar_model::sensor::Exposure::new(t_int_s, m.mean);
-        exposure.radiance_cov_w2_m4_sr2 = 0.5 * (m.cov + m.cov.transpose());
         match polar_model::validation::analytic_products(
             &sensor,
             &opt.angles_rad,
-            &exposure,
+            &exposure(t_int_s, m),
             polar_model::stats::MethodChoice::default(),
             polar_model::stats::RegimeChoice::Auto,
         ) {

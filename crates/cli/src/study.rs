@@ -67,7 +67,7 @@
 //! detector's ROC family for each target).
 
 use crate::commands::{load_scene, CommandError};
-use crate::figures::FigureError;
+use crate::figures::{draw_err, register_font, FigureError, FONT};
 use clap::Args;
 use nalgebra::{DMatrix, Matrix3, Vector3};
 use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
@@ -1113,24 +1113,6 @@ pub fn roc_csv(result: &StudyResult) -> String {
 // ---------------------------------------------------------------------------------------------
 // Figures
 // ---------------------------------------------------------------------------------------------
-
-pub(crate) const FONT: &str = "sans-serif";
-
-pub(crate) fn register_font() {
-    // The same embedded font as `figures`; registering twice is harmless.
-    let _ = plotters::style::register_font(
-        FONT,
-        FontStyle::Normal,
-        include_bytes!("../assets/DejaVuSans.ttf"),
-    );
-}
-
-fn draw_err<E: std::fmt::Display>(path: &Path) -> impl Fn(E) -> FigureError + '_ {
-    move |e| FigureError::Draw {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    }
-}
 
 const PAINT: RGBColor = RGBColor(214, 95, 14);
 const GLASS: RGBColor = RGBColor(31, 119, 180);

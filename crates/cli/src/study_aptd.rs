@@ -27,14 +27,13 @@
 //! `(W d)^T (W Sigma_b W^T + V I)^-1 (W d)` and the matched filter's Pd at Pfa = 1e-3 on the
 //! same Gaussian classes (MODEL.md section 8).
 
-use crate::camera::default_scene_text;
 use crate::commands::CommandError;
 use crate::study::StudyArgs;
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::Vector3;
 use plotters::prelude::*;
 use polar_hil_mocks::camera::{Layout, SimScene};
 use polar_model::sensor::{Camera, SensorModel};
-use polar_planner::aptd::{Aptd, AptdConfig, AptdFrame, Step, TargetSpec};
+use polar_planner::aptd::{mean_cov, Aptd, AptdConfig, AptdFrame, Step, TargetSpec};
 use polar_planner::{optimise, Constraints, Contrast};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -87,12 +86,6 @@ pub fn run(args: &StudyArgs) -> Result<Vec<Case>, CommandError> {
             args.scene.display()
         ))
     })?;
-    // The rooftop example has no metal panel: the simulated camera's default scene adds one.
-    let text = if args.scene.ends_with("rooftop.toml") {
-        default_scene_text()
-    } else {
-        text
-    };
     let scene = polar_model::scene_file::Scene::from_toml_str(&text)
         .map_err(|e| CommandError(format!("--scene {}: {e}", args.scene.display())))?;
     let camera = Camera::from_toml_str(&std::fs::read_to_string(&args.camera).map_err(|e| {
@@ -175,24 +168,11 @@ fn one_case(
 
     // True statistics in DN (ideal rows, as the planner scores).
     let to_dn = |s: &[f64; 3]| Vector3::new(s[0], s[1], s[2]) * (k * g);
-    let stats = |want: bool| -> (Vector3<f64>, Matrix3<f64>) {
-        let px: Vec<Vector3<f64>> = truth
-            .stokes
-            .iter()
-            .zip(&region)
-            .filter(|(_, &r)| r == want)
-            .map(|(s, _)| to_dn(s))
-            .collect();
-        let n = px.len() as f64;
-        let mean = px.iter().fold(Vector3::zeros(), |a, v| a + v) / n;
-        let cov = px.iter().fold(Matrix3::zeros(), |a, v| {
-            let d = v - mean;
-            a + d * d.transpose()
-        }) / (n - 1.0);
-        (mean, cov)
-    };
-    let (mu_t, cov_t) = stats(true);
-    let (mu_b, cov_b) = stats(false);
+    let dn: Vec<Vector3<f64>> = truth.stokes.iter().map(to_dn).collect();
+    let background: Vec<bool> = region.iter().map(|r| !r).collect();
+    let few = || CommandError(format!("target {target}: fewer than 4 pixels in a class"));
+    let (mu_t, cov_t) = mean_cov(&dn, &region).ok_or_else(few)?;
+    let (mu_b, cov_b) = mean_cov(&dn, &background).ok_or_else(few)?;
     let e_bg = mu_b[0] / (k * 2.0);
     let noise_var =
         k * k * (e_bg + dark_e + camera.read_noise_e * camera.read_noise_e) + 1.0 / 12.0;
@@ -244,19 +224,8 @@ fn one_case(
     let aptd_frames = aptd.decisions().last().map(|d| d.frames_used).unwrap_or(0);
 
     let score = |method: &str, angles: Vec<f64>| -> Result<Score, CommandError> {
-        let n = angles.len();
-        let w = nalgebra::DMatrix::from_fn(n, 3, |i, j| polar_planner::scr::row(angles[i])[j]);
-        let class = |field, m: &Vector3<f64>, c: &Matrix3<f64>| {
-            let mean = &w * nalgebra::DVector::from_column_slice(m.as_slice());
-            let cov = &w * nalgebra::DMatrix::from_fn(3, 3, |i, j| c[(i, j)]) * w.transpose()
-                + nalgebra::DMatrix::identity(n, n) * noise_var;
-            polar_model::metrics::ClassStats::new(field, mean, 0.5 * (&cov + cov.transpose()))
-        };
-        let roc = polar_model::metrics::matched_filter(
-            &class("target_cov", &mu_t, &cov_t)?,
-            &class("background_cov", &mu_b, &cov_b)?,
-            1e-3,
-        )?;
+        let roc =
+            crate::plan::intensity_roc(&angles, &mu_t, &cov_t, &mu_b, &cov_b, noise_var, 1e-3)?;
         Ok(Score {
             method: method.into(),
             angles_deg: angles.iter().map(|a| a.to_degrees()).collect(),
@@ -317,8 +286,8 @@ pub fn csv(cases: &[Case]) -> String {
 
 /// ROC families, one panel per case.
 pub fn draw(cases: &[Case], path: &Path) -> Result<(), CommandError> {
-    crate::study::register_font();
-    let font = crate::study::FONT;
+    crate::figures::register_font();
+    let font = crate::figures::FONT;
     let cols = 3usize;
     let rows = cases.len().div_ceil(cols).max(1);
     let root = BitMapBackend::new(path, (1500, 420 * rows as u32)).into_drawing_area();

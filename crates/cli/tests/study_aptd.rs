@@ -13,7 +13,7 @@ fn aptd_matches_or_beats_conventional_sets() {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
     let args = StudyArgs {
         kind: StudySelection::Aptd,
-        scene: root.join("examples/rooftop.toml"),
+        scene: root.join("examples/rooftop_panels.toml"),
         camera: root.join("examples/cameras/cmos_modern.toml"),
         out: std::env::temp_dir(),
         angles_deg: vec![0.0, 45.0, 90.0, 135.0],

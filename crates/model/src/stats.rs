@@ -955,6 +955,18 @@ impl SplitMix64 {
     }
 }
 
+/// A factor `F` with `F F^T = cov` of a symmetric positive semidefinite 3x3 covariance, for
+/// drawing correlated normals `F z`: the Cholesky factor, or, for a singular covariance,
+/// `Q sqrt(max(lambda, 0))` from its eigendecomposition (eigenvalues below zero from rounding
+/// taken as zero).
+pub fn psd_factor(cov: &Matrix3<f64>) -> Matrix3<f64> {
+    if let Some(ch) = cov.cholesky() {
+        return ch.l();
+    }
+    let eig = cov.symmetric_eigen();
+    eig.eigenvectors * Matrix3::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt()))
+}
+
 /// Sample statistics of DoLP and AoP from Monte Carlo draws of the Stokes estimate.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MonteCarloPolarization {
@@ -1000,17 +1012,7 @@ pub fn monte_carlo_dolp_aop(
             allowed: "2 to 50 000 000",
         });
     }
-    let factor = match cov.cholesky() {
-        Some(ch) => ch.l(),
-        None => {
-            let eig = cov.symmetric_eigen();
-            let mut f = eig.eigenvectors;
-            for (j, mut col) in f.column_iter_mut().enumerate() {
-                col *= eig.eigenvalues[j].max(0.0).sqrt();
-            }
-            f
-        }
-    };
+    let factor = psd_factor(&cov);
     let mut rng = SplitMix64(seed);
     let mut spare: Option<f64> = None;
     let mut normal = || match spare.take() {

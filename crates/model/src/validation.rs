@@ -401,14 +401,7 @@ impl Pipeline {
             .collect();
         let s = analytic.stokes_mean_w_m2_sr;
         let cov = analytic.estimator.cov;
-        let stokes_factor = match cov.cholesky() {
-            Some(ch) => ch.l(),
-            None => {
-                let eig = cov.symmetric_eigen();
-                eig.eigenvectors
-                    * Matrix3::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt()))
-            }
-        };
+        let stokes_factor = crate::stats::psd_factor(&cov);
         Pipeline {
             chain,
             stokes_factor,
