@@ -22,6 +22,12 @@ if ((${#APT_PACKAGES[@]})); then
 fi
 if [ "${1:-}" = "--deps-only" ]; then exit 0; fi
 
+# Python's zarr (v3) reads a run back in the interop tests (crates/engine/tests/store.rs,
+# crates/cli/tests/interop.rs): every array and the metadata must equal what was written.
+if ! python3 -c 'import zarr, sys; sys.exit(0 if int(zarr.__version__.split(".")[0]) >= 3 else 1)' 2>/dev/null; then
+  python3 -m pip install --quiet --disable-pip-version-check 'zarr>=3,<4'
+fi
+
 # The firmware protocol must build for a Cortex-M4F without std (thumbv7em-none-eabihf).
 rustup target add thumbv7em-none-eabihf >/dev/null
 cargo build -p polar-firmware-protocol --target thumbv7em-none-eabihf --locked

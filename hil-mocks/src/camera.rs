@@ -379,6 +379,43 @@ pub struct SimCamera {
     dice: Dice,
     /// The device clock's zero (device timestamps are exposure ends since it).
     epoch: Instant,
+    /// The scene's illumination, shared with whoever darkens it.
+    illumination: Illumination,
+}
+
+/// A handle on the simulated scene's illumination: a factor on every pixel's radiance, 1 by
+/// default. A lens cap is 0 (dark frames); a passing cloud is below 1. Clones share the value;
+/// a change applies to the exposures that end after it.
+#[derive(Debug, Clone)]
+pub struct Illumination(Arc<std::sync::atomic::AtomicU64>);
+
+impl Illumination {
+    /// Full illumination.
+    pub fn new() -> Illumination {
+        Illumination(Arc::new(std::sync::atomic::AtomicU64::new(1f64.to_bits())))
+    }
+
+    /// The factor.
+    pub fn get(&self) -> f64 {
+        f64::from_bits(self.0.load(std::sync::atomic::Ordering::Relaxed))
+    }
+
+    /// Sets the factor (clamped to `[0, 10]`; not a number counts as 0).
+    pub fn set(&self, factor: f64) {
+        let f = if factor.is_nan() {
+            0.0
+        } else {
+            factor.clamp(0.0, 10.0)
+        };
+        self.0
+            .store(f.to_bits(), std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+impl Default for Illumination {
+    fn default() -> Self {
+        Illumination::new()
+    }
 }
 
 /// The analog gain range, dB.
@@ -443,6 +480,7 @@ impl SimCamera {
             disconnected: false,
             dice,
             epoch: Instant::now(),
+            illumination: Illumination::new(),
             config,
         })
     }
@@ -450,6 +488,11 @@ impl SimCamera {
     /// The ground truth.
     pub fn scene(&self) -> &Arc<SimScene> {
         &self.config.scene
+    }
+
+    /// The handle on the scene's illumination (lens cap, clouds).
+    pub fn illumination(&self) -> Illumination {
+        self.illumination.clone()
     }
 
     /// The sensor model the frames are drawn from.
@@ -533,9 +576,13 @@ impl SimCamera {
         let pixels = match (stuck, &self.last_pixels) {
             (true, Some(last)) => last.clone(),
             _ => {
-                let electrons = self
+                let light = self.illumination.get();
+                let mut electrons = self
                     .mean_electrons(self.roi, started.psi_start_rad, psi_end, self.exposure_us)
                     .map_err(|e| self.error(ErrorKind::Other, e.to_string()))?;
+                if light != 1.0 {
+                    electrons.iter_mut().for_each(|e| *e *= light);
+                }
                 let camera = self.camera_at_gain(self.gain_db);
                 let seed = self.config.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ id;
                 let raw = polar_model::montecarlo::expose_pixels(

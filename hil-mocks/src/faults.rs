@@ -151,6 +151,16 @@ impl FaultProfile {
     }
 }
 
+/// Chances that came up, in this process, across every simulator (for fault campaigns: the
+/// fault decisions are the chances; see [`faults_fired`]).
+static FIRED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// How many [`Dice::chance`] calls with a nonzero probability came up in this process: the
+/// faults every simulator injected (plus the Elliptec simulator's unsolicited status reports).
+pub fn faults_fired() -> u64 {
+    FIRED.load(std::sync::atomic::Ordering::Relaxed)
+}
+
 /// A seeded source of fault decisions and noise.
 #[derive(Debug, Clone)]
 pub struct Dice {
@@ -172,7 +182,11 @@ impl Dice {
 
     /// True with probability `p`.
     pub fn chance(&mut self, p: f64) -> bool {
-        p > 0.0 && self.uniform() < p
+        let hit = p > 0.0 && self.uniform() < p;
+        if hit {
+            FIRED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
+        hit
     }
 
     /// A standard normal deviate (Box-Muller).

@@ -46,7 +46,8 @@ impl Dialect {
         }
     }
 
-    fn name(self) -> &'static str {
+    /// The dialect's name as the CLI spells it.
+    pub fn name(self) -> &'static str {
         match self {
             Dialect::Native => "native",
             Dialect::Elliptec => "elliptec",
@@ -54,7 +55,8 @@ impl Dialect {
         }
     }
 
-    fn policy(self) -> Policy {
+    /// The driver policy (deadlines, retries) for the dialect.
+    pub fn policy(self) -> Policy {
         match self {
             Dialect::Native => native::default_policy(),
             Dialect::Elliptec => elliptec::default_policy(),
@@ -167,7 +169,8 @@ fn running_simulators() -> Vec<(String, PathBuf)> {
         .collect()
 }
 
-fn connector(port: &str, dialect: Dialect) -> Box<dyn Connector> {
+/// The serial connector of a port in a dialect (its baud rate).
+pub fn connector(port: &str, dialect: Dialect) -> Box<dyn Connector> {
     Box::new(SerialPath {
         path: port.to_string(),
         baud: dialect.baud(),

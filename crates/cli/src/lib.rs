@@ -2,6 +2,7 @@
 //! and the report figures, kept out of `main.rs` so benchmarks and tests can call them.
 #![warn(missing_docs)]
 
+pub mod acquire;
 pub mod batch;
 pub mod bench;
 pub mod bench_serial;
@@ -11,6 +12,7 @@ pub mod camera;
 pub mod commands;
 pub mod devices;
 pub mod figures;
+pub mod logging;
 pub mod plan;
 pub mod study;
 pub mod study_aptd;

@@ -18,12 +18,99 @@ use std::process::ExitCode;
 #[derive(Debug, Parser)]
 #[command(name = "polarimeter", version, about, propagate_version = true)]
 struct Cli {
+    /// More log on stderr (-v info, -vv debug); every run also logs to RUN_DIR/run.log.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    verbose: u8,
     #[command(subcommand)]
     command: Command,
 }
 
+/// Real devices for `run` and `resume` (without them, `run --simulate`).
+#[derive(Debug, clap::Args)]
+struct HardwareArgs {
+    /// The stage's serial port (prefer a stable /dev/serial/by-id/... path).
+    #[arg(long)]
+    port: Option<String>,
+    /// The stage's protocol.
+    #[arg(long, value_enum)]
+    dialect: Option<Dialect>,
+    /// Elliptec bus address, 0..=15.
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=15))]
+    address: u8,
+    /// The camera: genicam:ID or v4l:NAME.
+    #[arg(long)]
+    camera: Option<String>,
+    /// The camera's noise model (a calibrated camera file, e.g. from `calibrate noise`).
+    #[arg(long)]
+    camera_file: Option<PathBuf>,
+    /// Stage angle at which the analyzer's axis is along the camera's x axis, degrees (from a
+    /// calibrate-analyzer run).
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    zero_offset_deg: f64,
+}
+
+impl HardwareArgs {
+    fn hardware(&self) -> Result<Option<polar_cli::acquire::Hardware>, String> {
+        match (&self.port, self.dialect, &self.camera, &self.camera_file) {
+            (None, None, None, None) => Ok(None),
+            (Some(port), Some(dialect), Some(camera), Some(camera_file)) => {
+                if !self.zero_offset_deg.is_finite() {
+                    return Err(format!(
+                        "--zero-offset-deg = {} is invalid: allowed a finite angle",
+                        self.zero_offset_deg
+                    ));
+                }
+                Ok(Some(polar_cli::acquire::Hardware {
+                    port: port.clone(),
+                    dialect,
+                    address: self.address,
+                    camera: camera.clone(),
+                    camera_file: camera_file.clone(),
+                    zero_offset_deg: self.zero_offset_deg,
+                }))
+            }
+            _ => Err("hardware needs all of --port, --dialect, --camera and --camera-file".into()),
+        }
+    }
+}
+
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// A short adaptive acquisition on simulated devices (no hardware): the planner re-aims
+    /// the analyzer at a painted panel on a rooftop; writes ./demo-run/ and says what happened.
+    Demo {
+        /// The run directory (replaced if it holds an earlier demo).
+        #[arg(long, default_value = "demo-run")]
+        out: PathBuf,
+    },
+    /// Run a plan (TOML or YAML) on simulated devices (--simulate) or on hardware (--port,
+    /// --dialect, --camera, --camera-file). Ctrl-C once pauses at the next safe point, twice
+    /// at once. Prints a JSON summary; exit status 3 when left paused (resume it later).
+    Run {
+        /// The plan file.
+        plan: PathBuf,
+        /// Simulated devices (our stage on a pseudo-terminal, the model-rendered camera).
+        #[arg(long)]
+        simulate: bool,
+        /// The run directory (default: ./run-NAME-UNIXTIME).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        #[command(flatten)]
+        hardware: HardwareArgs,
+    },
+    /// Continue a paused or crashed run from its journal, with no duplicate and no missing
+    /// frame (hardware runs need the device flags again).
+    Resume {
+        /// The run directory.
+        run_dir: PathBuf,
+        #[command(flatten)]
+        hardware: HardwareArgs,
+    },
+    /// Export a run for viewers.
+    Export {
+        #[command(subcommand)]
+        command: ExportCommand,
+    },
     /// One command to a camera: `sim` (rendered from the model), `genicam:ID` or `v4l:NAME`
     /// (cargo features `genicam`, `v4l`).
     Camera {
@@ -257,7 +344,25 @@ enum CameraCommand {
 }
 
 #[derive(Debug, Subcommand)]
+enum ExportCommand {
+    /// Every frame as a 16-bit TIFF, every product as a 32-bit float TIFF, and frames.csv.
+    Tiff {
+        /// The run directory.
+        run_dir: PathBuf,
+        /// Output directory (default: RUN_DIR/tiff).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+}
+
+#[derive(Debug, Subcommand)]
 enum PlanCommand {
+    /// Validate a plan file (TOML or YAML) and print its forecast (frames, duration,
+    /// predicted sigma per class) without running it.
+    Check {
+        /// The plan file.
+        file: PathBuf,
+    },
     /// APTD offline over an image stack (`frames.csv`: file,angle_deg; 16-bit TIFFs): the sets
     /// it chooses among the stack's angles, its decisions, and RX and matched-filter detection
     /// on the final Stokes image.
@@ -275,6 +380,26 @@ enum PlanCommand {
 
 #[derive(Debug, Subcommand)]
 enum BenchCommand {
+    /// A simulated capture's wall time against the device-bound ideal (the simulated moves
+    /// and exposures alone). Prints Markdown.
+    Run {
+        /// Angle sets, 1..=1000.
+        #[arg(long, default_value_t = 10)]
+        sets: u32,
+        /// Exposure, microseconds, [10, 1000000] (the rooftop scene saturates above ~600 us).
+        #[arg(long, default_value_t = 250.0)]
+        exposure_us: f64,
+    },
+    /// A seeded fault campaign on simulated devices: runs until at least N faults were
+    /// injected; counts lost frames, silent corruption, pauses and resumes. Prints Markdown.
+    Faults {
+        /// Faults to inject at least, 1..=1000000.
+        #[arg(long, default_value_t = 200)]
+        faults: u64,
+        /// Seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
     /// The planner's optimum (to 0.01 deg) beside an exhaustive 1-degree grid search, in the
     /// same run: times and SCRs. Prints a Markdown table.
     Planner {
@@ -544,6 +669,23 @@ fn print_json<E: std::fmt::Display>(result: Result<serde_json::Value, E>) -> Exi
     }
 }
 
+/// Prints a run's JSON and returns its exit status (0 done, 3 paused, 4 aborted), or prints
+/// `error: ...` and returns 2.
+fn print_run(
+    result: Result<(serde_json::Value, i32), polar_cli::commands::CommandError>,
+) -> ExitCode {
+    match result {
+        Ok((v, code)) => {
+            println!("{v}");
+            ExitCode::from(u8::try_from(code).unwrap_or(1))
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
 fn print_device(result: Result<serde_json::Value, devices::DevicesError>, json: bool) -> ExitCode {
     match result {
         Ok(v) => {
@@ -608,7 +750,91 @@ fn main() -> ExitCode {
             return ExitCode::from(2);
         }
     };
+    polar_cli::logging::init(cli.verbose);
     let result = match cli.command {
+        Command::Demo { out } => {
+            match polar_cli::acquire::demo(&out, polar_cli::acquire::Ui::terminal()) {
+                Ok(text) => {
+                    print!("{text}");
+                    Ok(ExitCode::SUCCESS)
+                }
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    Ok(ExitCode::from(2))
+                }
+            }
+        }
+        Command::Run {
+            plan,
+            simulate,
+            out,
+            hardware,
+        } => {
+            let hw = match hardware.hardware() {
+                Ok(hw) => hw,
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    return ExitCode::from(2);
+                }
+            };
+            if simulate == hw.is_some() {
+                eprintln!(
+                    "error: give either --simulate or the hardware (--port, --dialect, --camera, --camera-file)"
+                );
+                return ExitCode::from(2);
+            }
+            Ok(print_run(polar_cli::acquire::run_cmd(
+                &plan,
+                hw,
+                out,
+                polar_cli::acquire::Ui::terminal(),
+            )))
+        }
+        Command::Resume { run_dir, hardware } => {
+            let hw = match hardware.hardware() {
+                Ok(hw) => hw,
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    return ExitCode::from(2);
+                }
+            };
+            Ok(print_run(polar_cli::acquire::resume_cmd(
+                &run_dir,
+                hw,
+                polar_cli::acquire::Ui::terminal(),
+            )))
+        }
+        Command::Export {
+            command: ExportCommand::Tiff { run_dir, out },
+        } => Ok(print_json(polar_cli::acquire::export_tiff(&run_dir, out))),
+        Command::Plan {
+            command: Some(PlanCommand::Check { file }),
+            ..
+        } => Ok(print_json(polar_cli::acquire::plan_check(&file))),
+        Command::Bench {
+            command: BenchCommand::Run { sets, exposure_us },
+        } => match polar_cli::acquire::bench_run(sets, exposure_us) {
+            Ok(text) => {
+                print!("{text}");
+                Ok(ExitCode::SUCCESS)
+            }
+            Err(e) => {
+                eprintln!("error: {e}");
+                Ok(ExitCode::from(2))
+            }
+        },
+        Command::Bench {
+            command: BenchCommand::Faults { faults, seed },
+        } => match polar_cli::acquire::bench_faults(faults, seed) {
+            Ok(text) => {
+                print!("{text}");
+                Ok(ExitCode::SUCCESS)
+            }
+            Err(e) => {
+                eprintln!("error: {e}");
+                Ok(ExitCode::from(2))
+            }
+        },
         Command::Camera {
             camera,
             scene,

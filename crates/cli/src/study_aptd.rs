@@ -139,14 +139,44 @@ pub fn run(args: &StudyArgs) -> Result<Vec<Case>, CommandError> {
     Ok(cases)
 }
 
-fn one_case(
+/// A target against the rest of the image, in DN, from the rendered truth (ideal rows, as the
+/// planner scores): the class means and covariances, the frame noise of the background's
+/// unpolarised mean, and the planner's contrast. The exposure puts the brightest pixel at half
+/// the full well.
+pub(crate) struct TrueStats {
+    /// Target pixels.
+    pub region: Vec<bool>,
+    /// The target's index in the truth's materials.
+    pub t_idx: usize,
+    /// Integration time, seconds.
+    pub t_int_s: f64,
+    /// Electrons per radiance unit at that time.
+    pub g: f64,
+    /// DN per electron.
+    pub k: f64,
+    /// Dark level, DN.
+    pub dark_dn: f64,
+    /// Target mean, DN.
+    pub mu_t: Vector3<f64>,
+    /// Target covariance, DN^2.
+    pub cov_t: nalgebra::Matrix3<f64>,
+    /// Background mean, DN.
+    pub mu_b: Vector3<f64>,
+    /// Background covariance, DN^2.
+    pub cov_b: nalgebra::Matrix3<f64>,
+    /// Per-frame noise variance, DN^2.
+    pub noise_var: f64,
+    /// The planner's contrast.
+    pub contrast: Contrast,
+}
+
+/// [`TrueStats`] of `target` in `truth`.
+pub(crate) fn true_stats(
     truth: &SimScene,
     sensor: &SensorModel,
     camera: &Camera,
-    sun_deg: (f64, f64),
     target: &str,
-    seed: u64,
-) -> Result<Case, CommandError> {
+) -> Result<TrueStats, CommandError> {
     let t_idx = truth
         .materials
         .iter()
@@ -177,6 +207,45 @@ fn one_case(
     let noise_var =
         k * k * (e_bg + dark_e + camera.read_noise_e * camera.read_noise_e) + 1.0 / 12.0;
     let contrast = Contrast::new(mu_t - mu_b, cov_b, noise_var).map_err(err)?;
+
+    Ok(TrueStats {
+        region,
+        t_idx,
+        t_int_s,
+        g,
+        k,
+        dark_dn,
+        mu_t,
+        cov_t,
+        mu_b,
+        cov_b,
+        noise_var,
+        contrast,
+    })
+}
+
+fn one_case(
+    truth: &SimScene,
+    sensor: &SensorModel,
+    camera: &Camera,
+    sun_deg: (f64, f64),
+    target: &str,
+    seed: u64,
+) -> Result<Case, CommandError> {
+    let TrueStats {
+        region,
+        t_idx,
+        t_int_s,
+        g,
+        dark_dn,
+        mu_t,
+        cov_t,
+        mu_b,
+        cov_b,
+        noise_var,
+        contrast,
+        ..
+    } = true_stats(truth, sensor, camera, target)?;
 
     // Frames through the whole chain at the real analyzer.
     let mut frame_seed = seed.wrapping_mul(1_000_003) ^ (t_idx as u64) << 32;

@@ -283,8 +283,20 @@ fn run<C: BlockingCamera>(
 ) {
     let id = camera.info().id;
     let mut streaming = false;
+    // In software-trigger mode with no trigger outstanding, no frame can come: the thread
+    // waits on the commands instead of the SDK, so a trigger starts its exposure at once
+    // rather than after the SDK's poll.
+    let mut software = false;
+    let mut awaiting = false;
     loop {
-        let next = if streaming {
+        let idle = streaming && software && !awaiting;
+        let next = if idle {
+            match commands.recv_timeout(policy.poll) {
+                Ok(c) => Some(c),
+                Err(std_mpsc::RecvTimeoutError::Timeout) => continue,
+                Err(std_mpsc::RecvTimeoutError::Disconnected) => break,
+            }
+        } else if streaming {
             match commands.try_recv() {
                 Ok(c) => Some(c),
                 Err(std_mpsc::TryRecvError::Empty) => None,
@@ -302,8 +314,20 @@ fn run<C: BlockingCamera>(
                 Command::Gain(v, r) => answer(r, camera.set_gain(v)),
                 Command::Format(f, r) => answer(r, camera.set_pixel_format(f)),
                 Command::Region(roi, r) => answer(r, camera.set_roi(roi)),
-                Command::Trigger(m, r) => answer(r, camera.set_trigger(m)),
-                Command::Fire(r) => answer(r, camera.trigger()),
+                Command::Trigger(m, r) => {
+                    let result = camera.set_trigger(m);
+                    if result.is_ok() {
+                        software = m == TriggerMode::Software;
+                    }
+                    answer(r, result)
+                }
+                Command::Fire(r) => {
+                    let result = camera.trigger();
+                    if result.is_ok() {
+                        awaiting = true;
+                    }
+                    answer(r, result)
+                }
                 Command::Start(r) => {
                     let result = camera.start();
                     if result.is_ok() {
@@ -314,6 +338,7 @@ fn run<C: BlockingCamera>(
                 }
                 Command::Stop(r) => {
                     streaming = false;
+                    awaiting = false;
                     answer(r, camera.stop());
                 }
             }
@@ -321,6 +346,7 @@ fn run<C: BlockingCamera>(
         }
         match camera.wait_frame(policy.poll) {
             Ok(Grabbed::Frame(frame)) => {
+                awaiting = false;
                 let mut state = shared.lock();
                 if state.queue.len() >= policy.queue_frames {
                     state.queue.pop_front();
@@ -331,6 +357,7 @@ fn run<C: BlockingCamera>(
                 shared.ready.notify_one();
             }
             Ok(Grabbed::Incomplete { frame_id, reason }) => {
+                awaiting = false;
                 shared.lock().stats.incomplete += 1;
                 tracing::debug!(camera = %id, ?frame_id, %reason, "incomplete buffer");
             }

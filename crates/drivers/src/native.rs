@@ -167,7 +167,13 @@ impl NativeSession {
             match self.decoder.feed(b) {
                 Some(Ok(p)) => {
                     if let Reply::Boot { reason } = p.message {
-                        tracing::warn!(port = %self.link.name(), ?reason, "controller reset");
+                        // A power-on reset is what opening the port does (DTR); anything else
+                        // is news.
+                        if reason == polar_firmware_protocol::BootReason::PowerOn {
+                            tracing::info!(port = %self.link.name(), ?reason, "controller reset");
+                        } else {
+                            tracing::warn!(port = %self.link.name(), ?reason, "controller reset");
+                        }
                         self.resets_seen += 1;
                         self.needs_init = true;
                     }
@@ -267,6 +273,31 @@ impl NativeSession {
                     return Ok(position_counts)
                 }
                 _ => {}
+            }
+        }
+    }
+
+    /// Waits for the MotionDone of request `seq`, asking for the status every second
+    /// meanwhile: a lost event then costs at most a second, not the whole move timeout.
+    async fn wait_done_or_idle(&mut self, seq: u8, timeout: Duration) -> Result<(), DeviceError> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let now = Instant::now();
+            let slice = (deadline.saturating_duration_since(now)).min(Duration::from_secs(1));
+            match self.wait_done(seq, slice).await {
+                Ok(_) => return Ok(()),
+                Err(e) if e.kind() == ErrorKind::Timeout => {
+                    if Instant::now() >= deadline {
+                        return Err(e);
+                    }
+                    match self.status().await {
+                        Ok(s) if !s.flags.has(StatusFlags::MOVING) => return Ok(()),
+                        Ok(_) => {}
+                        Err(e) if e.kind() == ErrorKind::Timeout => {}
+                        Err(e) => return Err(e),
+                    }
+                }
+                Err(e) => return Err(e),
             }
         }
     }
@@ -456,7 +487,7 @@ impl NativeSession {
         match self.exchange(command).await {
             Ok((seq, Reply::Ack)) => {
                 let timeout = self.policy.move_timeout;
-                match self.wait_done(seq, timeout).await {
+                match self.wait_done_or_idle(seq, timeout).await {
                     Ok(_) => {}
                     // Judged by the readback below.
                     Err(e) if e.kind() == ErrorKind::Timeout => {}

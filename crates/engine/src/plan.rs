@@ -1,0 +1,1108 @@
+//! Plans as data: what a run acquires, read from TOML or YAML and validated with errors that
+//! name the field, the value and the allowed range; then compiled to the steps a run takes.
+//!
+//! A plan has a `kind` and the section of that kind:
+//!
+//! ```toml
+//! name = "rooftop capture"
+//! kind = "capture"            # capture | calibrate-noise | calibrate-analyzer | time-lapse | adaptive
+//!
+//! [capture]
+//! angles_deg = [0, 45, 90, 135]
+//! exposure_us = [4000]        # every set at every exposure
+//! repeats = 3                 # sets per exposure
+//! darks_before = 2
+//! darks_after = 2
+//! ```
+//!
+//! `[policy]` (deadlines and retries), `[suspender]` (the Malus check of every set), `[site]`
+//! (sun geometry recorded with every frame) and `[simulation]` (the simulated devices that
+//! `--simulate` and `demo` use) are optional and shared by every kind. A capture's
+//! `from_planner = { target = "panel", background = "asphalt", channels = 3 }` instead of
+//! `angles_deg` asks the planner for the angles (resolved before the run by the caller, see
+//! [`Plan::resolve_angles`]).
+
+use crate::FrameKind;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// A bad plan: the field (dotted path), the value and what is allowed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PlanError {
+    /// The text does not parse, or a field has the wrong type.
+    #[error("plan {path}: {message}")]
+    Parse {
+        /// The field's dotted path (or the line and column).
+        path: String,
+        /// What the parser said.
+        message: String,
+    },
+    /// A field's value is outside its allowed range.
+    #[error("plan field {field} = {value} is out of range: allowed {allowed}")]
+    Invalid {
+        /// The field's dotted path.
+        field: String,
+        /// The value, as written.
+        value: String,
+        /// What is allowed.
+        allowed: String,
+    },
+    /// The file cannot be read.
+    #[error("plan file {path}: {message}")]
+    Io {
+        /// The file.
+        path: String,
+        /// Why.
+        message: String,
+    },
+}
+
+fn invalid(field: &str, value: impl std::fmt::Display, allowed: impl Into<String>) -> PlanError {
+    PlanError::Invalid {
+        field: field.to_string(),
+        value: value.to_string(),
+        allowed: allowed.into(),
+    }
+}
+
+/// The plan kinds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PlanKind {
+    /// Angle sets at fixed (or planner-chosen) angles, with darks.
+    Capture,
+    /// Dark and photon-transfer series, then the EMVA 1288 noise calibration.
+    CalibrateNoise,
+    /// A known polarizer in front: the analyzer's zero offset and extinction ratio.
+    CalibrateAnalyzer,
+    /// Angle sets at an interval, with the sun geometry of each.
+    TimeLapse,
+    /// The APTD loop: the planner re-aims the analyzer from the frames taken.
+    Adaptive,
+}
+
+impl PlanKind {
+    /// The name as written in plans.
+    pub fn name(self) -> &'static str {
+        match self {
+            PlanKind::Capture => "capture",
+            PlanKind::CalibrateNoise => "calibrate-noise",
+            PlanKind::CalibrateAnalyzer => "calibrate-analyzer",
+            PlanKind::TimeLapse => "time-lapse",
+            PlanKind::Adaptive => "adaptive",
+        }
+    }
+}
+
+/// The planner's choice of angles for a capture.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FromPlanner {
+    /// Target material (a name in the scene).
+    pub target: String,
+    /// Background material.
+    pub background: String,
+    /// Channels per set, 3..=6.
+    #[serde(default = "three")]
+    pub channels: usize,
+    /// Smallest separation between two angles, degrees, [0, 90).
+    #[serde(default = "thirty")]
+    pub min_separation_deg: f64,
+}
+
+fn three() -> usize {
+    3
+}
+fn thirty() -> f64 {
+    30.0
+}
+fn one() -> u32 {
+    1
+}
+fn two() -> u32 {
+    2
+}
+
+/// `[capture]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Capture {
+    /// Analyzer angles of a set, degrees, 3..=16 of them, each in [0, 180).
+    #[serde(default)]
+    pub angles_deg: Option<Vec<f64>>,
+    /// Or ask the planner.
+    #[serde(default)]
+    pub from_planner: Option<FromPlanner>,
+    /// Exposures, microseconds: every repeat is taken at each.
+    pub exposure_us: Vec<f64>,
+    /// Sets per exposure, 1..=100000.
+    #[serde(default = "one")]
+    pub repeats: u32,
+    /// Dark frames before the sets, 0..=1000.
+    #[serde(default)]
+    pub darks_before: u32,
+    /// Dark frames after the sets, 0..=1000.
+    #[serde(default)]
+    pub darks_after: u32,
+    /// Analog gain, dB, [0, 48].
+    #[serde(default)]
+    pub gain_db: f64,
+}
+
+/// `[calibrate-noise]`: for each exposure, `pairs` dark pairs and light pairs (EMVA 1288).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrateNoise {
+    /// Exposures of the photon-transfer series, microseconds, 4..=200 of them, increasing.
+    pub exposure_us: Vec<f64>,
+    /// Analyzer angle during the series, degrees, [0, 180).
+    #[serde(default)]
+    pub angle_deg: f64,
+    /// Frame pairs per exposure (dark and light each), 1..=16.
+    #[serde(default = "one")]
+    pub pairs: u32,
+    /// Analog gain, dB, [0, 48].
+    #[serde(default)]
+    pub gain_db: f64,
+}
+
+/// `[calibrate-analyzer]`: a known polarizer in front; the analyzer turns through `steps`
+/// angles over 180 degrees.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrateAnalyzer {
+    /// The reference polarizer's transmission axis in the camera frame, degrees, [0, 180).
+    pub reference_angle_deg: f64,
+    /// Analyzer angles, evenly over [0, 180), 8..=720.
+    pub steps: u32,
+    /// Frames per angle, 1..=100.
+    #[serde(default = "one")]
+    pub repeats: u32,
+    /// Exposure, microseconds.
+    pub exposure_us: f64,
+    /// Dark frames before the sweep (subtracted; the extinction ratio needs them), 1..=1000.
+    #[serde(default = "two")]
+    pub darks: u32,
+    /// Analog gain, dB, [0, 48].
+    #[serde(default)]
+    pub gain_db: f64,
+}
+
+/// `[time-lapse]`: `count` sets, one every `interval_s`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TimeLapse {
+    /// Analyzer angles of a set, degrees, 3..=16 of them.
+    pub angles_deg: Vec<f64>,
+    /// Exposure, microseconds.
+    pub exposure_us: f64,
+    /// Seconds between the starts of two sets, (0, 86400].
+    pub interval_s: f64,
+    /// Sets, 1..=100000.
+    pub count: u32,
+    /// Analog gain, dB, [0, 48].
+    #[serde(default)]
+    pub gain_db: f64,
+}
+
+/// How the adaptive loop knows the target.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AdaptiveTarget {
+    /// A material of the simulated scene whose pixels are the target (simulation only).
+    #[serde(default)]
+    pub material: Option<String>,
+    /// A rectangle `[x0, y0, x1, y1]` in pixels (x1, y1 exclusive).
+    #[serde(default)]
+    pub rect: Option<[u32; 4]>,
+    /// Or the top RX anomalies, this fraction of the pixels, (0, 0.5).
+    #[serde(default)]
+    pub anomalies: Option<f64>,
+}
+
+/// `[adaptive]`: APTD (MODEL.md section 9).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Adaptive {
+    /// The first set, degrees (a conventional set).
+    pub initial_angles_deg: Vec<f64>,
+    /// Channels of the sets the planner picks, 3..=6.
+    #[serde(default = "three")]
+    pub channels: usize,
+    /// Exposure, microseconds.
+    pub exposure_us: f64,
+    /// The most frames the loop may take, first set included.
+    pub frame_budget: usize,
+    /// How the target is known.
+    pub target: AdaptiveTarget,
+    /// Converged when no angle moves by more than this, degrees, (0, 90].
+    #[serde(default = "half_degree")]
+    pub angle_tol_deg: f64,
+    /// ... and the SCR changes by less than this, relative, (0, 1].
+    #[serde(default = "two_percent")]
+    pub scr_rel_tol: f64,
+    /// Smallest separation between two angles of a set, degrees, [5, 60] (each set must
+    /// form Stokes images on its own).
+    #[serde(default = "thirty")]
+    pub min_separation_deg: f64,
+    /// Dark frames before the loop, 0..=1000.
+    #[serde(default)]
+    pub darks: u32,
+    /// Analog gain, dB, [0, 48].
+    #[serde(default)]
+    pub gain_db: f64,
+}
+
+fn half_degree() -> f64 {
+    0.5
+}
+fn two_percent() -> f64 {
+    0.02
+}
+
+/// `[policy]`: deadlines and retries.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Policy {
+    /// Deadline of one move, seconds, (0, 600].
+    pub move_timeout_s: f64,
+    /// Deadline of one grab beyond the exposure, seconds, (0, 600].
+    pub grab_timeout_s: f64,
+    /// Attempts of a failed device operation before the run pauses, 1..=20.
+    pub attempts: u32,
+    /// Wait before a retry, milliseconds, [0, 60000].
+    pub retry_backoff_ms: u64,
+}
+
+impl Default for Policy {
+    fn default() -> Self {
+        Policy {
+            move_timeout_s: 20.0,
+            grab_timeout_s: 5.0,
+            attempts: 3,
+            retry_backoff_ms: 200,
+        }
+    }
+}
+
+/// What the suspender does with a set that fails its check.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SuspendAction {
+    /// Record why and take the set again (up to `max_reacquire` times, then pause).
+    Reacquire,
+    /// Pause the run with the reason.
+    Pause,
+}
+
+/// `[suspender]`: every angle set is checked against the model (Malus's law within the
+/// predicted noise, and the analyzer where it was commanded).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Suspender {
+    /// Check sets at all.
+    pub enabled: bool,
+    /// The largest mean reduced chi-square of a set's per-pixel Malus fit, (1, 1000]. Its
+    /// expected value is 1; see `run::suspender` for the threshold's reasoning.
+    pub max_reduced_chi2: f64,
+    /// The largest relative change of the mean S0 between consecutive sets, (0, 10] (for
+    /// sets of 3 angles, which leave no residual to test).
+    pub max_s0_change: f64,
+    /// The largest difference between commanded and measured analyzer angle, degrees, (0, 90].
+    pub max_angle_error_deg: f64,
+    /// What to do with a failing set.
+    pub action: SuspendAction,
+    /// Re-acquisitions of one set before the run pauses, 0..=100.
+    pub max_reacquire: u32,
+}
+
+impl Default for Suspender {
+    fn default() -> Self {
+        Suspender {
+            enabled: true,
+            max_reduced_chi2: 2.0,
+            max_s0_change: 0.2,
+            max_angle_error_deg: 1.0,
+            action: SuspendAction::Reacquire,
+            max_reacquire: 3,
+        }
+    }
+}
+
+/// `[site]`: where the instrument is (for the sun geometry recorded with every frame).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Site {
+    /// Latitude, degrees, [-90, 90].
+    pub latitude_deg: f64,
+    /// Longitude, degrees east, [-180, 180].
+    pub longitude_deg: f64,
+    /// Elevation, metres, [-500, 9000].
+    #[serde(default)]
+    pub elevation_m: f64,
+}
+
+/// `[simulation]`: the simulated devices of `--simulate` and `demo`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Simulation {
+    /// Scene file (TOML, relative to the plan's folder); none: the rooftop panels example.
+    pub scene: Option<String>,
+    /// Camera file (TOML); none: the modern CMOS example.
+    pub camera: Option<String>,
+    /// Frame size, pixels, 16..=4096.
+    pub width: u32,
+    /// Frame size, pixels, 16..=4096.
+    pub height: u32,
+    /// Seed of the scene's texture, the noise and the faults.
+    pub seed: u64,
+    /// Stage speed, degrees per second, (0, 3600].
+    pub stage_deg_per_s: f64,
+    /// Fault profile of the stage's serial link (hil-mocks `FaultProfile` fields).
+    pub stage_faults: Option<toml::Table>,
+    /// Camera faults (hil-mocks `CameraFaults` fields).
+    pub camera_faults: Option<toml::Table>,
+    /// Cloud: from this set on, the illumination drops by `cloud_depth` for `cloud_sets`
+    /// sets, in the middle of a set (the suspender's test case).
+    pub cloud_at_set: Option<u64>,
+    /// Fractional drop of the illumination under the cloud, (0, 1).
+    pub cloud_depth: f64,
+}
+
+impl Default for Simulation {
+    fn default() -> Self {
+        Simulation {
+            scene: None,
+            camera: None,
+            width: 160,
+            height: 120,
+            seed: 1,
+            stage_deg_per_s: 720.0,
+            stage_faults: None,
+            camera_faults: None,
+            cloud_at_set: None,
+            cloud_depth: 0.3,
+        }
+    }
+}
+
+/// A plan.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Plan {
+    /// A name for people.
+    #[serde(default)]
+    pub name: String,
+    /// What it does.
+    pub kind: PlanKind,
+    /// `kind = "capture"`.
+    #[serde(default)]
+    pub capture: Option<Capture>,
+    /// `kind = "calibrate-noise"`.
+    #[serde(default, rename = "calibrate-noise")]
+    pub calibrate_noise: Option<CalibrateNoise>,
+    /// `kind = "calibrate-analyzer"`.
+    #[serde(default, rename = "calibrate-analyzer")]
+    pub calibrate_analyzer: Option<CalibrateAnalyzer>,
+    /// `kind = "time-lapse"`.
+    #[serde(default, rename = "time-lapse")]
+    pub time_lapse: Option<TimeLapse>,
+    /// `kind = "adaptive"`.
+    #[serde(default)]
+    pub adaptive: Option<Adaptive>,
+    /// Deadlines and retries.
+    #[serde(default)]
+    pub policy: Policy,
+    /// The per-set check.
+    #[serde(default)]
+    pub suspender: Suspender,
+    /// The site, for sun geometry.
+    #[serde(default)]
+    pub site: Option<Site>,
+    /// The simulated devices.
+    #[serde(default)]
+    pub simulation: Simulation,
+}
+
+/// One step of a run: one frame at one analyzer angle.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StepSpec {
+    /// Light or dark.
+    pub kind: FrameKind,
+    /// The angle set it belongs to (`None` for darks and calibration series).
+    pub set: Option<u64>,
+    /// Analyzer angle, degrees in [0, 180).
+    pub angle_deg: f64,
+    /// Exposure, microseconds.
+    pub exposure_us: f64,
+    /// Analog gain, dB.
+    pub gain_db: f64,
+    /// For people and the store.
+    pub label: String,
+    /// Not before this many seconds after the run's start (time-lapse).
+    pub not_before_s: Option<f64>,
+}
+
+fn check(field: &str, v: f64, lo: f64, hi: f64, lo_open: bool) -> Result<(), PlanError> {
+    let ok = v.is_finite() && v <= hi && if lo_open { v > lo } else { v >= lo };
+    if ok {
+        Ok(())
+    } else {
+        let open = if lo_open { "(" } else { "[" };
+        Err(invalid(field, v, format!("{open}{lo}, {hi}]")))
+    }
+}
+
+fn check_count(field: &str, v: u64, lo: u64, hi: u64) -> Result<(), PlanError> {
+    if (lo..=hi).contains(&v) {
+        Ok(())
+    } else {
+        Err(invalid(field, v, format!("{lo}..={hi}")))
+    }
+}
+
+fn check_angles(field: &str, angles: &[f64], lo_n: usize, hi_n: usize) -> Result<(), PlanError> {
+    if !(lo_n..=hi_n).contains(&angles.len()) {
+        return Err(invalid(
+            field,
+            format!("{angles:?}"),
+            format!("{lo_n}..={hi_n} angles"),
+        ));
+    }
+    for (i, a) in angles.iter().enumerate() {
+        check(&format!("{field}[{i}]"), *a, 0.0, 180.0, false)?;
+        if *a >= 180.0 {
+            return Err(invalid(&format!("{field}[{i}]"), a, "[0, 180) degrees"));
+        }
+    }
+    Ok(())
+}
+
+fn check_exposures(field: &str, exposures: &[f64]) -> Result<(), PlanError> {
+    if exposures.is_empty() {
+        return Err(invalid(field, "[]", "at least one exposure"));
+    }
+    for (i, e) in exposures.iter().enumerate() {
+        check(&format!("{field}[{i}]"), *e, 1.0, 1e8, false)?;
+    }
+    Ok(())
+}
+
+/// Distinct angles modulo 180 degrees (within 0.01 degree).
+fn distinct_angles(angles: &[f64]) -> usize {
+    let mut seen: Vec<f64> = Vec::new();
+    for a in angles {
+        let a = a.rem_euclid(180.0);
+        if !seen.iter().any(|s| {
+            let d = (s - a).rem_euclid(180.0);
+            d.min(180.0 - d) < 0.01
+        }) {
+            seen.push(a);
+        }
+    }
+    seen.len()
+}
+
+impl Plan {
+    /// Parses TOML text; errors name the field.
+    pub fn from_toml_str(text: &str) -> Result<Plan, PlanError> {
+        let de = toml::Deserializer::new(text);
+        let plan: Plan = serde_path_to_error::deserialize(de).map_err(|e| PlanError::Parse {
+            path: e.path().to_string(),
+            message: e.inner().message().trim().to_string(),
+        })?;
+        plan.validate()?;
+        Ok(plan)
+    }
+
+    /// Parses YAML text; errors name the field.
+    pub fn from_yaml_str(text: &str) -> Result<Plan, PlanError> {
+        let de = serde_yaml_ng::Deserializer::from_str(text);
+        let plan: Plan = serde_path_to_error::deserialize(de).map_err(|e| PlanError::Parse {
+            path: e.path().to_string(),
+            message: e.inner().to_string(),
+        })?;
+        plan.validate()?;
+        Ok(plan)
+    }
+
+    /// Reads a plan file: `.yaml`/`.yml` as YAML, anything else as TOML.
+    pub fn from_path(path: &Path) -> Result<Plan, PlanError> {
+        let text = std::fs::read_to_string(path).map_err(|e| PlanError::Io {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        })?;
+        let yaml = matches!(
+            path.extension().and_then(|e| e.to_str()),
+            Some("yaml" | "yml")
+        );
+        if yaml {
+            Plan::from_yaml_str(&text)
+        } else {
+            Plan::from_toml_str(&text)
+        }
+    }
+
+    /// Checks every field's range and that the section of `kind` (and no other) is present.
+    pub fn validate(&self) -> Result<(), PlanError> {
+        let sections = [
+            (PlanKind::Capture, self.capture.is_some()),
+            (PlanKind::CalibrateNoise, self.calibrate_noise.is_some()),
+            (
+                PlanKind::CalibrateAnalyzer,
+                self.calibrate_analyzer.is_some(),
+            ),
+            (PlanKind::TimeLapse, self.time_lapse.is_some()),
+            (PlanKind::Adaptive, self.adaptive.is_some()),
+        ];
+        for (kind, present) in sections {
+            if kind == self.kind && !present {
+                return Err(invalid(
+                    kind.name(),
+                    "(missing)",
+                    format!("a [{}] section for kind = \"{}\"", kind.name(), kind.name()),
+                ));
+            }
+            if kind != self.kind && present {
+                return Err(invalid(
+                    kind.name(),
+                    "(present)",
+                    format!(
+                        "only the [{}] section for kind = \"{}\"",
+                        self.kind.name(),
+                        self.kind.name()
+                    ),
+                ));
+            }
+        }
+        let p = &self.policy;
+        check("policy.move_timeout_s", p.move_timeout_s, 0.0, 600.0, true)?;
+        check("policy.grab_timeout_s", p.grab_timeout_s, 0.0, 600.0, true)?;
+        check_count("policy.attempts", u64::from(p.attempts), 1, 20)?;
+        check_count("policy.retry_backoff_ms", p.retry_backoff_ms, 0, 60_000)?;
+        let s = &self.suspender;
+        check(
+            "suspender.max_reduced_chi2",
+            s.max_reduced_chi2,
+            1.0,
+            1000.0,
+            true,
+        )?;
+        check("suspender.max_s0_change", s.max_s0_change, 0.0, 10.0, true)?;
+        check(
+            "suspender.max_angle_error_deg",
+            s.max_angle_error_deg,
+            0.0,
+            90.0,
+            true,
+        )?;
+        check_count(
+            "suspender.max_reacquire",
+            u64::from(s.max_reacquire),
+            0,
+            100,
+        )?;
+        if let Some(site) = &self.site {
+            check("site.latitude_deg", site.latitude_deg, -90.0, 90.0, false)?;
+            check(
+                "site.longitude_deg",
+                site.longitude_deg,
+                -180.0,
+                180.0,
+                false,
+            )?;
+            check("site.elevation_m", site.elevation_m, -500.0, 9000.0, false)?;
+        }
+        let sim = &self.simulation;
+        check_count("simulation.width", u64::from(sim.width), 16, 4096)?;
+        check_count("simulation.height", u64::from(sim.height), 16, 4096)?;
+        check(
+            "simulation.stage_deg_per_s",
+            sim.stage_deg_per_s,
+            0.0,
+            3600.0,
+            true,
+        )?;
+        check("simulation.cloud_depth", sim.cloud_depth, 0.0, 1.0, true)?;
+        if sim.cloud_depth >= 1.0 {
+            return Err(invalid("simulation.cloud_depth", sim.cloud_depth, "(0, 1)"));
+        }
+        let gain = |field: &str, g: f64| check(field, g, 0.0, 48.0, false);
+        if let Some(c) = &self.capture {
+            match (&c.angles_deg, &c.from_planner) {
+                (Some(a), None) => {
+                    check_angles("capture.angles_deg", a, 3, 16)?;
+                    if distinct_angles(a) < 3 {
+                        return Err(invalid(
+                            "capture.angles_deg",
+                            format!("{a:?}"),
+                            "at least 3 distinct angles (modulo 180 degrees) to form Stokes images",
+                        ));
+                    }
+                }
+                (None, Some(fp)) => {
+                    check_count("capture.from_planner.channels", fp.channels as u64, 3, 6)?;
+                    check(
+                        "capture.from_planner.min_separation_deg",
+                        fp.min_separation_deg,
+                        0.0,
+                        60.0,
+                        false,
+                    )?;
+                }
+                _ => {
+                    return Err(invalid(
+                        "capture.angles_deg",
+                        "(both or neither)",
+                        "exactly one of capture.angles_deg and capture.from_planner",
+                    ))
+                }
+            }
+            check_exposures("capture.exposure_us", &c.exposure_us)?;
+            check_count("capture.repeats", u64::from(c.repeats), 1, 100_000)?;
+            check_count("capture.darks_before", u64::from(c.darks_before), 0, 1000)?;
+            check_count("capture.darks_after", u64::from(c.darks_after), 0, 1000)?;
+            gain("capture.gain_db", c.gain_db)?;
+        }
+        if let Some(c) = &self.calibrate_noise {
+            if !(4..=200).contains(&c.exposure_us.len()) {
+                return Err(invalid(
+                    "calibrate-noise.exposure_us",
+                    format!("{} exposures", c.exposure_us.len()),
+                    "4..=200 exposures",
+                ));
+            }
+            check_exposures("calibrate-noise.exposure_us", &c.exposure_us)?;
+            if c.exposure_us.windows(2).any(|w| w[1] <= w[0]) {
+                return Err(invalid(
+                    "calibrate-noise.exposure_us",
+                    format!("{:?}", c.exposure_us),
+                    "strictly increasing exposures",
+                ));
+            }
+            check_angles("calibrate-noise.angle_deg", &[c.angle_deg], 1, 1)?;
+            check_count("calibrate-noise.pairs", u64::from(c.pairs), 1, 16)?;
+            gain("calibrate-noise.gain_db", c.gain_db)?;
+        }
+        if let Some(c) = &self.calibrate_analyzer {
+            check_angles(
+                "calibrate-analyzer.reference_angle_deg",
+                &[c.reference_angle_deg],
+                1,
+                1,
+            )?;
+            check_count("calibrate-analyzer.steps", u64::from(c.steps), 8, 720)?;
+            check_count("calibrate-analyzer.repeats", u64::from(c.repeats), 1, 100)?;
+            check_exposures("calibrate-analyzer.exposure_us", &[c.exposure_us])?;
+            check_count("calibrate-analyzer.darks", u64::from(c.darks), 1, 1000)?;
+            gain("calibrate-analyzer.gain_db", c.gain_db)?;
+        }
+        if let Some(t) = &self.time_lapse {
+            check_angles("time-lapse.angles_deg", &t.angles_deg, 3, 16)?;
+            if distinct_angles(&t.angles_deg) < 3 {
+                return Err(invalid(
+                    "time-lapse.angles_deg",
+                    format!("{:?}", t.angles_deg),
+                    "at least 3 distinct angles (modulo 180 degrees)",
+                ));
+            }
+            check_exposures("time-lapse.exposure_us", &[t.exposure_us])?;
+            check("time-lapse.interval_s", t.interval_s, 0.0, 86_400.0, true)?;
+            check_count("time-lapse.count", u64::from(t.count), 1, 100_000)?;
+            gain("time-lapse.gain_db", t.gain_db)?;
+        }
+        if let Some(a) = &self.adaptive {
+            check_angles("adaptive.initial_angles_deg", &a.initial_angles_deg, 3, 6)?;
+            if distinct_angles(&a.initial_angles_deg) < 3 {
+                return Err(invalid(
+                    "adaptive.initial_angles_deg",
+                    format!("{:?}", a.initial_angles_deg),
+                    "at least 3 distinct angles (modulo 180 degrees)",
+                ));
+            }
+            check_count("adaptive.channels", a.channels as u64, 3, 6)?;
+            check_exposures("adaptive.exposure_us", &[a.exposure_us])?;
+            let first = a.initial_angles_deg.len() as u64;
+            check_count(
+                "adaptive.frame_budget",
+                a.frame_budget as u64,
+                first,
+                100_000,
+            )?;
+            check("adaptive.angle_tol_deg", a.angle_tol_deg, 0.0, 90.0, true)?;
+            check("adaptive.scr_rel_tol", a.scr_rel_tol, 0.0, 1.0, true)?;
+            // Each set must form Stokes images on its own (products and the suspender).
+            check(
+                "adaptive.min_separation_deg",
+                a.min_separation_deg,
+                5.0,
+                60.0,
+                false,
+            )?;
+            check_count("adaptive.darks", u64::from(a.darks), 0, 1000)?;
+            gain("adaptive.gain_db", a.gain_db)?;
+            let t = &a.target;
+            let given = [
+                t.material.is_some(),
+                t.rect.is_some(),
+                t.anomalies.is_some(),
+            ];
+            if given.iter().filter(|g| **g).count() != 1 {
+                return Err(invalid(
+                    "adaptive.target",
+                    "(none or several)",
+                    "exactly one of material, rect, anomalies",
+                ));
+            }
+            if let Some(f) = t.anomalies {
+                check("adaptive.target.anomalies", f, 0.0, 0.5, true)?;
+                if f >= 0.5 {
+                    return Err(invalid("adaptive.target.anomalies", f, "(0, 0.5)"));
+                }
+            }
+            if let Some([x0, y0, x1, y1]) = t.rect {
+                if x1 <= x0 || y1 <= y0 {
+                    return Err(invalid(
+                        "adaptive.target.rect",
+                        format!("[{x0}, {y0}, {x1}, {y1}]"),
+                        "x0 < x1 and y0 < y1",
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Replaces a capture's `from_planner` with the angles the planner chose.
+    pub fn resolve_angles(&mut self, angles_deg: Vec<f64>) -> Result<(), PlanError> {
+        let Some(c) = self.capture.as_mut() else {
+            return Err(invalid("capture", "(missing)", "a capture plan"));
+        };
+        let angles: Vec<f64> = angles_deg.iter().map(|a| a.rem_euclid(180.0)).collect();
+        check_angles("capture.angles_deg", &angles, 3, 16)?;
+        c.angles_deg = Some(angles);
+        c.from_planner = None;
+        Ok(())
+    }
+
+    /// The steps of the run, in order. An adaptive plan gives its darks and its first set;
+    /// the loop adds the rest. A capture must have its angles resolved.
+    pub fn steps(&self) -> Result<Vec<StepSpec>, PlanError> {
+        let mut steps = Vec::new();
+        let dark = |label: String, exposure_us: f64, gain_db: f64, angle_deg: f64| StepSpec {
+            kind: FrameKind::Dark,
+            set: None,
+            angle_deg,
+            exposure_us,
+            gain_db,
+            label,
+            not_before_s: None,
+        };
+        let light =
+            |set: Option<u64>, label: String, angle_deg: f64, exposure_us: f64, gain_db| StepSpec {
+                kind: FrameKind::Light,
+                set,
+                angle_deg,
+                exposure_us,
+                gain_db,
+                label,
+                not_before_s: None,
+            };
+        match self.kind {
+            PlanKind::Capture => {
+                let c = self
+                    .capture
+                    .as_ref()
+                    .ok_or_else(|| invalid("capture", "(missing)", "a [capture] section"))?;
+                let angles = c.angles_deg.as_ref().ok_or_else(|| {
+                    invalid(
+                        "capture.from_planner",
+                        "(unresolved)",
+                        "angles resolved by the planner before the run",
+                    )
+                })?;
+                let first = c.exposure_us[0];
+                let last = c.exposure_us[c.exposure_us.len() - 1];
+                for i in 0..c.darks_before {
+                    steps.push(dark(
+                        format!("dark before {i}"),
+                        first,
+                        c.gain_db,
+                        angles[0],
+                    ));
+                }
+                let mut set = 0u64;
+                for &e in &c.exposure_us {
+                    for _ in 0..c.repeats {
+                        for &a in angles {
+                            steps.push(light(
+                                Some(set),
+                                format!("set {set} {e} us {a} deg"),
+                                a,
+                                e,
+                                c.gain_db,
+                            ));
+                        }
+                        set += 1;
+                    }
+                }
+                for i in 0..c.darks_after {
+                    steps.push(dark(format!("dark after {i}"), last, c.gain_db, angles[0]));
+                }
+            }
+            PlanKind::CalibrateNoise => {
+                let c = self.calibrate_noise.as_ref().ok_or_else(|| {
+                    invalid(
+                        "calibrate-noise",
+                        "(missing)",
+                        "a [calibrate-noise] section",
+                    )
+                })?;
+                for &e in &c.exposure_us {
+                    for p in 0..2 * c.pairs {
+                        steps.push(dark(
+                            format!("ptc dark {e} us {p}"),
+                            e,
+                            c.gain_db,
+                            c.angle_deg,
+                        ));
+                    }
+                    for p in 0..2 * c.pairs {
+                        steps.push(light(
+                            None,
+                            format!("ptc light {e} us {p}"),
+                            c.angle_deg,
+                            e,
+                            c.gain_db,
+                        ));
+                    }
+                }
+            }
+            PlanKind::CalibrateAnalyzer => {
+                let c = self.calibrate_analyzer.as_ref().ok_or_else(|| {
+                    invalid(
+                        "calibrate-analyzer",
+                        "(missing)",
+                        "a [calibrate-analyzer] section",
+                    )
+                })?;
+                for i in 0..c.darks {
+                    steps.push(dark(format!("dark {i}"), c.exposure_us, c.gain_db, 0.0));
+                }
+                for k in 0..c.steps {
+                    let a = 180.0 * f64::from(k) / f64::from(c.steps);
+                    for r in 0..c.repeats {
+                        steps.push(light(
+                            None,
+                            format!("sweep {a:.3} deg {r}"),
+                            a,
+                            c.exposure_us,
+                            c.gain_db,
+                        ));
+                    }
+                }
+            }
+            PlanKind::TimeLapse => {
+                let t = self
+                    .time_lapse
+                    .as_ref()
+                    .ok_or_else(|| invalid("time-lapse", "(missing)", "a [time-lapse] section"))?;
+                for set in 0..u64::from(t.count) {
+                    for (i, &a) in t.angles_deg.iter().enumerate() {
+                        let mut s = light(
+                            Some(set),
+                            format!("set {set} {a} deg"),
+                            a,
+                            t.exposure_us,
+                            t.gain_db,
+                        );
+                        if i == 0 {
+                            s.not_before_s = Some(set as f64 * t.interval_s);
+                        }
+                        steps.push(s);
+                    }
+                }
+            }
+            PlanKind::Adaptive => {
+                let a = self
+                    .adaptive
+                    .as_ref()
+                    .ok_or_else(|| invalid("adaptive", "(missing)", "an [adaptive] section"))?;
+                for i in 0..a.darks {
+                    steps.push(dark(
+                        format!("dark {i}"),
+                        a.exposure_us,
+                        a.gain_db,
+                        a.initial_angles_deg[0],
+                    ));
+                }
+                for &deg in &a.initial_angles_deg {
+                    steps.push(light(
+                        Some(0),
+                        format!("round 1 {deg} deg"),
+                        deg,
+                        a.exposure_us,
+                        a.gain_db,
+                    ));
+                }
+            }
+        }
+        Ok(steps)
+    }
+
+    /// The most frames the run can take (an adaptive plan's budget plus its darks; others:
+    /// their steps).
+    pub fn max_frames(&self) -> Result<u64, PlanError> {
+        match (&self.kind, &self.adaptive) {
+            (PlanKind::Adaptive, Some(a)) => Ok(a.frame_budget as u64 + u64::from(a.darks)),
+            _ => Ok(self.steps()?.len() as u64),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const CAPTURE: &str = r#"
+name = "t"
+kind = "capture"
+[capture]
+angles_deg = [0, 45, 90, 135]
+exposure_us = [1000, 2000]
+repeats = 2
+darks_before = 1
+darks_after = 3
+"#;
+
+    /// Steps: darks, then repeats x exposures sets of 4 angles, then darks; set numbers run
+    /// 0..4.
+    #[test]
+    fn capture_compiles_to_steps() {
+        let plan = Plan::from_toml_str(CAPTURE).expect("plan");
+        let steps = plan.steps().expect("steps");
+        assert_eq!(steps.len(), 1 + 2 * 2 * 4 + 3);
+        assert_eq!(steps[0].kind, FrameKind::Dark);
+        assert_eq!(steps[1].set, Some(0));
+        assert_eq!(steps[16].set, Some(3));
+        assert_eq!(steps[16].exposure_us, 2000.0);
+        assert!(steps[17..].iter().all(|s| s.kind == FrameKind::Dark));
+    }
+
+    /// The same plan in YAML is the same plan.
+    #[test]
+    fn yaml_equals_toml() {
+        let yaml = "name: t\nkind: capture\ncapture:\n  angles_deg: [0, 45, 90, 135]\n  \
+                    exposure_us: [1000, 2000]\n  repeats: 2\n  darks_before: 1\n  darks_after: 3\n";
+        assert_eq!(
+            Plan::from_yaml_str(yaml).expect("yaml"),
+            Plan::from_toml_str(CAPTURE).expect("toml")
+        );
+    }
+
+    /// Errors name the field and the allowed range.
+    #[test]
+    fn errors_name_the_field() {
+        let cases = [
+            (
+                CAPTURE.replace("repeats = 2", "repeats = 0"),
+                "capture.repeats",
+            ),
+            (
+                CAPTURE.replace("[0, 45, 90, 135]", "[0, 45, 200]"),
+                "capture.angles_deg[2]",
+            ),
+            (
+                CAPTURE.replace("[0, 45, 90, 135]", "[0, 0, 90]"),
+                "capture.angles_deg",
+            ),
+            (
+                CAPTURE.replace("[1000, 2000]", "[-5]"),
+                "capture.exposure_us[0]",
+            ),
+            (
+                CAPTURE.replace("repeats = 2", "repeats = \"x\""),
+                "capture.repeats",
+            ),
+            (CAPTURE.replace("repeats = 2", "repats = 2"), "capture"),
+            (
+                CAPTURE.replace("kind = \"capture\"", "kind = \"adaptive\""),
+                "adaptive",
+            ),
+            (
+                format!("{CAPTURE}\n[policy]\nattempts = 0\n"),
+                "policy.attempts",
+            ),
+        ];
+        for (text, field) in cases {
+            let e = Plan::from_toml_str(&text).expect_err(field).to_string();
+            assert!(e.contains(field), "{field}: {e}");
+            assert!(
+                e.contains("allowed") || e.contains("expected") || e.contains("unknown"),
+                "{e}"
+            );
+        }
+    }
+
+    /// An adaptive plan gives its darks and first set; its budget bounds the frames.
+    #[test]
+    fn adaptive_first_set() {
+        let text = r#"
+kind = "adaptive"
+[adaptive]
+initial_angles_deg = [0, 60, 120]
+exposure_us = 3000
+frame_budget = 12
+darks = 2
+target = { material = "panel" }
+"#;
+        let plan = Plan::from_toml_str(text).expect("plan");
+        let steps = plan.steps().expect("steps");
+        assert_eq!(steps.len(), 5);
+        assert_eq!(plan.max_frames().expect("max"), 14);
+        let bad = text.replace("frame_budget = 12", "frame_budget = 2");
+        let e = Plan::from_toml_str(&bad).expect_err("budget").to_string();
+        assert!(e.contains("adaptive.frame_budget"), "{e}");
+    }
+
+    /// Every example plan in examples/plans parses and validates, in TOML and YAML.
+    #[test]
+    fn example_plans_are_valid() {
+        let examples = [
+            include_str!("../../../examples/plans/capture.toml"),
+            include_str!("../../../examples/plans/planner.toml"),
+            include_str!("../../../examples/plans/calibrate_analyzer.toml"),
+            include_str!("../../../examples/plans/timelapse.toml"),
+            include_str!("../../../examples/plans/adaptive.toml"),
+        ];
+        for text in examples {
+            Plan::from_toml_str(text).expect("example plan");
+        }
+        let yaml = include_str!("../../../examples/plans/calibrate_noise.yaml");
+        let plan = Plan::from_yaml_str(yaml).expect("yaml example");
+        assert_eq!(plan.kind, PlanKind::CalibrateNoise);
+        let e = Plan::from_yaml_str(&yaml.replace("pairs: 1", "pairs: 0"))
+            .expect_err("pairs")
+            .to_string();
+        assert!(e.contains("calibrate-noise.pairs"), "{e}");
+    }
+
+    /// Time-lapse sets start at their interval.
+    #[test]
+    fn time_lapse_schedule() {
+        let text = r#"
+kind = "time-lapse"
+[time-lapse]
+angles_deg = [0, 60, 120]
+exposure_us = 3000
+interval_s = 10
+count = 3
+"#;
+        let steps = Plan::from_toml_str(text)
+            .expect("plan")
+            .steps()
+            .expect("steps");
+        let starts: Vec<f64> = steps.iter().filter_map(|s| s.not_before_s).collect();
+        assert_eq!(starts, [0.0, 10.0, 20.0]);
+    }
+}

@@ -1,0 +1,387 @@
+//! The simulated rig of `--simulate`, `demo` and the tests: our firmware's rotation stage
+//! simulated behind a real pseudo-terminal (driven by the real `NativeRotator` driver) and the
+//! simulated camera, which renders every frame from the model through the stage's true angle.
+//!
+//! The scene depends on the plan: the plan's scene file (by default the rooftop panels) for
+//! captures, time-lapses and adaptive runs; a uniform unpolarised source (an integrating
+//! sphere) for the noise calibration; a uniform source behind a reference polarizer for the
+//! analyzer calibration. Dark frames cap the lens ([`Illumination`] 0); the plan's
+//! `simulation.cloud_at_set` dims the scene in the middle of that set.
+
+use crate::plan::{Plan, PlanKind};
+use polar_drivers::camera_thread::{ThreadPolicy, ThreadedCamera};
+use polar_drivers::link::SerialPath;
+use polar_drivers::native::{self, NativeRotator};
+use polar_hal::{Approach, OnRotator};
+use polar_hal::{DeviceError, Roi};
+use polar_hil_mocks::camera::{
+    CameraFaults, Illumination, Layout, SimCamera, SimCameraConfig, SimScene,
+};
+use polar_hil_mocks::faults::FaultProfile;
+use polar_hil_mocks::native::{NativeConfig, NativeDevice};
+use polar_hil_mocks::serve::SimServer;
+use polar_model::scene_file::Scene;
+use polar_model::sensor::{Camera as CameraModel, SensorModel};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// The default simulated scene: the rooftop panels example.
+pub const DEFAULT_SCENE: &str = include_str!("../../../examples/rooftop_panels.toml");
+/// The default simulated camera: the modern CMOS example.
+pub const DEFAULT_CAMERA: &str = include_str!("../../../examples/cameras/cmos_modern.toml");
+
+/// Stage counts per turn of the simulated rotator.
+const COUNTS_PER_TURN: f64 = 144_000.0;
+
+/// Why the simulated rig did not start.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    /// A file or field of the plan's `[simulation]`.
+    #[error("simulation: {0}")]
+    Input(String),
+    /// The pseudo-terminal or the driver.
+    #[error("simulated stage: {0}")]
+    Stage(String),
+    /// The camera.
+    #[error("simulated camera: {0}")]
+    Camera(String),
+}
+
+/// What the simulated camera sees.
+pub struct SimWorld {
+    /// The scene (ground truth).
+    pub scene: Arc<SimScene>,
+    /// The camera model the frames are drawn from.
+    pub camera_model: CameraModel,
+    /// The sensor model (camera and band).
+    pub sensor: SensorModel,
+    /// The scene file.
+    pub scene_file: Scene,
+}
+
+/// The simulated rig: the stage's server and link, and what the camera renders.
+pub struct SimRig {
+    /// The stage's simulator, served on a pseudo-terminal.
+    pub server: SimServer,
+    /// The pseudo-terminal the driver opens.
+    pub link: PathBuf,
+    /// The scene (ground truth).
+    pub scene: Arc<SimScene>,
+    /// The camera model the frames are drawn from.
+    pub camera_model: CameraModel,
+    /// The sensor model (camera and band).
+    pub sensor: SensorModel,
+    /// The lens cap and the clouds.
+    pub illumination: Illumination,
+    /// Materials of the scene file (for target masks by name).
+    pub scene_file: Option<Scene>,
+}
+
+fn read_relative(base: &Path, name: &str, field: &str) -> Result<String, SimError> {
+    let path = base.join(name);
+    std::fs::read_to_string(&path)
+        .map_err(|e| SimError::Input(format!("{field} = {}: cannot read: {e}", path.display())))
+}
+
+/// A uniform scene of `stokes` radiance over `width x height` (one region, `name`).
+fn uniform(
+    name: &str,
+    stokes: [f64; 3],
+    width: u32,
+    height: u32,
+    band: polar_model::atmosphere::Band,
+) -> SimScene {
+    let n = width as usize * height as usize;
+    SimScene {
+        width,
+        height,
+        stokes: vec![stokes; n],
+        region: vec![0; n],
+        materials: vec![name.to_string()],
+        material_means: vec![stokes],
+        band,
+    }
+}
+
+impl SimRig {
+    /// What the simulated camera sees for `plan` (files relative to `plan_dir`): the scene,
+    /// the camera model and the sensor model, without starting anything.
+    pub fn world(plan: &Plan, plan_dir: &Path) -> Result<SimWorld, SimError> {
+        let sim = &plan.simulation;
+        let camera_text = match &sim.camera {
+            Some(name) => read_relative(plan_dir, name, "simulation.camera")?,
+            None => DEFAULT_CAMERA.to_string(),
+        };
+        let camera_model = CameraModel::from_toml_str(&camera_text)
+            .map_err(|e| SimError::Input(format!("simulation.camera: {e}")))?;
+        let scene_text = match &sim.scene {
+            Some(name) => read_relative(plan_dir, name, "simulation.scene")?,
+            None => DEFAULT_SCENE.to_string(),
+        };
+        let scene_base = match &sim.scene {
+            Some(name) => plan_dir
+                .join(name)
+                .parent()
+                .map(Path::to_path_buf)
+                .unwrap_or_default(),
+            None => plan_dir.to_path_buf(),
+        };
+        let scene_file = Scene::from_toml_str_with_files(&scene_text, &|name| {
+            std::fs::read_to_string(scene_base.join(name)).map_err(|e| e.to_string())
+        })
+        .map_err(|e| SimError::Input(format!("simulation.scene: {e}")))?;
+        let band = scene_file.spec.band.clone();
+        let (w, h) = (sim.width, sim.height);
+        let unit_sensor = SensorModel::new(&camera_model, &band)
+            .map_err(|e| SimError::Input(format!("simulation.camera: {e}")))?;
+        // Electrons per unit S0 radiance for an exposure, unpolarised, through the analyzer.
+        let electrons_per_radiance = |exposure_us: f64| -> Result<f64, SimError> {
+            let w = unit_sensor
+                .intensities_from_stokes(&[0.0])
+                .map_err(|e| SimError::Input(e.to_string()))?;
+            Ok(w[(0, 0)] * unit_sensor.responsivity_e_per_s() * exposure_us * 1e-6)
+        };
+        let scene = match plan.kind {
+            PlanKind::CalibrateNoise => {
+                let c = plan.calibrate_noise.as_ref().ok_or_else(|| {
+                    SimError::Input("calibrate-noise: the section is missing".into())
+                })?;
+                let longest = c.exposure_us.iter().copied().fold(0.0, f64::max);
+                // The longest exposure reaches 1.1 full wells: the series crosses saturation
+                // as EMVA 1288 asks.
+                let l = 1.1 * camera_model.full_well_e / electrons_per_radiance(longest)?;
+                uniform("integrating sphere", [l, 0.0, 0.0], w, h, band)
+            }
+            PlanKind::CalibrateAnalyzer => {
+                let c = plan.calibrate_analyzer.as_ref().ok_or_else(|| {
+                    SimError::Input("calibrate-analyzer: the section is missing".into())
+                })?;
+                // A reference polarizer of diattenuation 0.999 (extinction ratio ~2000) at its
+                // angle; the brightest frame reaches 60 % of the full well.
+                let d = 0.999;
+                let two = 2.0 * c.reference_angle_deg.to_radians();
+                let l =
+                    0.6 * camera_model.full_well_e / (2.0 * electrons_per_radiance(c.exposure_us)?);
+                uniform(
+                    "reference polarizer",
+                    [l, l * d * two.cos(), l * d * two.sin()],
+                    w,
+                    h,
+                    band,
+                )
+            }
+            _ => {
+                let names: Vec<String> = scene_file
+                    .materials
+                    .iter()
+                    .map(|m| m.name.clone())
+                    .collect();
+                SimScene::render(
+                    &scene_file.spec,
+                    &scene_file.materials,
+                    &Layout::panels_on_ground(&names),
+                    w,
+                    h,
+                    1e-3,
+                    sim.seed,
+                )
+                .map_err(|e| SimError::Input(format!("simulation.scene: {e}")))?
+            }
+        };
+        let sensor = SensorModel::new(&camera_model, &scene.band)
+            .map_err(|e| SimError::Input(format!("simulation.camera: {e}")))?;
+        Ok(SimWorld {
+            scene: Arc::new(scene),
+            camera_model,
+            sensor,
+            scene_file,
+        })
+    }
+
+    /// Starts the stage simulator on a pseudo-terminal at `link_dir/stage` and builds the
+    /// camera for `plan` (files relative to `plan_dir`). Returns the rig and the camera,
+    /// running on its own thread.
+    pub fn start(
+        plan: &Plan,
+        plan_dir: &Path,
+        link_dir: &Path,
+    ) -> Result<(SimRig, ThreadedCamera), SimError> {
+        let sim = &plan.simulation;
+        let SimWorld {
+            scene,
+            camera_model,
+            sensor: _,
+            scene_file,
+        } = SimRig::world(plan, plan_dir)?;
+        let stage_faults = match &sim.stage_faults {
+            Some(t) => {
+                let text = toml::to_string(t)
+                    .map_err(|e| SimError::Input(format!("simulation.stage_faults: {e}")))?;
+                FaultProfile::from_toml_str(&text)
+                    .map_err(|e| SimError::Input(format!("simulation.stage_faults: {e}")))?
+            }
+            None => FaultProfile::default(),
+        };
+        let camera_faults: CameraFaults = match &sim.camera_faults {
+            Some(t) => {
+                let f: CameraFaults = t
+                    .clone()
+                    .try_into()
+                    .map_err(|e| SimError::Input(format!("simulation.camera_faults: {e}")))?;
+                f.validate()
+                    .map_err(|e| SimError::Input(format!("simulation.camera_faults: {e}")))?;
+                f
+            }
+            None => CameraFaults::default(),
+        };
+        let mut config = NativeConfig::rotator();
+        let v = (sim.stage_deg_per_s * COUNTS_PER_TURN / 360.0).round();
+        config.velocity_counts_per_s = v.clamp(1.0, f64::from(u32::MAX)) as u32;
+        config.acceleration_counts_per_s2 = config.velocity_counts_per_s.saturating_mul(8);
+        config.homing_s = 0.1;
+        let device = NativeDevice::new(config, stage_faults, sim.seed);
+        std::fs::create_dir_all(link_dir)
+            .map_err(|e| SimError::Stage(format!("{}: {e}", link_dir.display())))?;
+        let link = link_dir.join("stage");
+        let server = SimServer::pty(device, stage_faults, sim.seed, &link)
+            .map_err(|e| SimError::Stage(format!("pseudo-terminal {}: {e}", link.display())))?;
+        let cam = SimCamera::new(
+            SimCameraConfig {
+                id: "sim-camera".into(),
+                camera: camera_model.clone(),
+                scene: Arc::clone(&scene),
+                max_frame_rate_hz: 200.0,
+                faults: camera_faults,
+                seed: sim.seed,
+            },
+            server.truth_handle().angle_source(),
+        )
+        .map_err(|e| SimError::Camera(e.to_string()))?;
+        let sensor = cam.sensor().clone();
+        let illumination = cam.illumination();
+        let camera = ThreadedCamera::spawn(cam, ThreadPolicy::default())
+            .map_err(|e| SimError::Camera(e.to_string()))?;
+        Ok((
+            SimRig {
+                server,
+                link,
+                scene,
+                camera_model,
+                sensor,
+                illumination,
+                scene_file: Some(scene_file),
+            },
+            camera,
+        ))
+    }
+
+    /// Connects the real driver to the simulated stage (homes it).
+    pub async fn connect_stage(&self) -> Result<NativeRotator, DeviceError> {
+        NativeRotator::connect(
+            Box::new(SerialPath {
+                path: self.link.to_string_lossy().into_owned(),
+                baud: 115_200,
+            }),
+            native::default_policy(),
+        )
+        .await
+    }
+
+    /// Starts the rig for `plan` and connects the real driver to the stage: the engine's
+    /// [`Rig`](crate::run::Rig) (the analyzer approached from the positive side with 0.5 deg
+    /// of overshoot, which takes up the simulated stage's 0.05 deg backlash) and the rig.
+    pub async fn start_rig(
+        plan: &Plan,
+        plan_dir: &Path,
+        link_dir: &Path,
+    ) -> Result<
+        (
+            SimRig,
+            crate::run::Rig<OnRotator<NativeRotator>, ThreadedCamera>,
+        ),
+        SimError,
+    > {
+        let (rig, camera) = SimRig::start(plan, plan_dir, link_dir)?;
+        // The link may be faulty (an unplug during the handshake): a few tries, as a person
+        // would replug and retry.
+        let mut tries = 0;
+        let stage = loop {
+            match rig.connect_stage().await {
+                Ok(s) => break s,
+                Err(e) if tries < 5 => {
+                    tries += 1;
+                    tracing::warn!("connecting the simulated stage (try {tries}): {e}");
+                    tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+                }
+                Err(e) => return Err(SimError::Stage(e.to_string())),
+            }
+        };
+        let target_mask = match plan
+            .adaptive
+            .as_ref()
+            .and_then(|a| a.target.material.as_deref())
+        {
+            Some(m) => Some(rig.material_mask(m).ok_or_else(|| {
+                SimError::Input(format!(
+                    "adaptive.target.material = {m:?} is not in the simulated scene: allowed \
+                     one of {:?}",
+                    rig.scene.materials
+                ))
+            })?),
+            None => None,
+        };
+        let devices = serde_json::json!({
+            "kind": "simulated",
+            "plan_dir": plan_dir.display().to_string(),
+            "stage": {
+                "dialect": "native",
+                "model": "simulated native rotator (144000 counts/turn, 0.05 deg backlash)",
+                "link": rig.link.display().to_string(),
+            },
+            "camera": {
+                "model": rig.camera_model.name,
+                "width": rig.scene.width,
+                "height": rig.scene.height,
+            },
+            "scene_materials": rig.scene.materials,
+        });
+        let engine_rig = crate::run::Rig {
+            analyzer: OnRotator {
+                rotator: stage,
+                zero_offset_rad: 0.0,
+                approach: Approach::Positive,
+                overshoot_rad: 0.5f64.to_radians(),
+            },
+            camera,
+            camera_model: rig.camera_model.clone(),
+            sensor: rig.sensor.clone(),
+            illumination: Some(rig.illumination.clone()),
+            target_mask,
+            devices,
+        };
+        Ok((rig, engine_rig))
+    }
+
+    /// The target mask of a material of the scene (row-major), or `None` if the scene has
+    /// no such material.
+    pub fn material_mask(&self, material: &str) -> Option<Vec<bool>> {
+        let k = self.scene.materials.iter().position(|m| m == material)?;
+        Some(
+            self.scene
+                .region
+                .iter()
+                .map(|&r| usize::from(r) == k)
+                .collect(),
+        )
+    }
+
+    /// The full frame.
+    pub fn roi(&self) -> Roi {
+        Roi::full(self.scene.width, self.scene.height)
+    }
+
+    /// Stops the stage simulator.
+    pub async fn shutdown(self) {
+        self.server.shutdown().await;
+    }
+}
