@@ -945,8 +945,20 @@ pub fn campaign(faults: u64, seed: u64, base: &Path) -> Result<Campaign, Command
         auto_resume: 3,
     };
     let mut run = 0u64;
-    while c.faults < faults || (c.runs as usize) < kinds.len() {
-        let k = (run as usize) % kinds.len();
+    // Every kind at least once, and until every kind has injected a fault (at most ten runs
+    // of each), then round robin until `faults` were injected.
+    let max_runs = 10 * kinds.len() as u64;
+    loop {
+        let silent = c.per_kind.iter().position(|k| k.2 == 0);
+        let k = if (run as usize) < kinds.len() {
+            run as usize
+        } else if let (Some(k), true) = (silent, run < max_runs) {
+            k
+        } else if c.faults < faults {
+            (run as usize) % kinds.len()
+        } else {
+            break;
+        };
         let text = format!(
             "name = \"faults\"\nkind = \"capture\"\n[capture]\nangles_deg = [0, 45, 90, 135]\n\
              exposure_us = [250]\nrepeats = 2\ndarks_before = 1\n[policy]\nattempts = 4\n\
