@@ -39,18 +39,6 @@ fn spawn(args: &[&str]) -> Child {
         .unwrap()
 }
 
-/// A small seeded generator (splitmix64) for the kill times.
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-}
-
 fn journal_frames(dir: &Path) -> usize {
     std::fs::read_to_string(dir.join("journal.jsonl"))
         .map(|t| {
@@ -70,7 +58,7 @@ fn kill_nine_at_random_steps_then_resume_exactly() {
     std::fs::write(&plan, PLAN).unwrap();
     let dir = base.join("run");
     let (plan_s, dir_s) = (plan.to_str().unwrap(), dir.to_str().unwrap());
-    let mut rng = Rng(20_261_121);
+    let mut rng = polar_hil_mocks::faults::Dice::new(20_261_121);
     let mut kills = 0;
     let mut started = false;
     let deadline = Instant::now() + Duration::from_secs(600);
@@ -87,8 +75,8 @@ fn kill_nine_at_random_steps_then_resume_exactly() {
         // Kill after a random number of further frames (0..3) plus a random 0-60 ms, so that
         // kills land before, during and after a frame's write and journal line.
         let before = journal_frames(&dir);
-        let more = (rng.next() % 3) as usize;
-        let extra_ms = rng.next() % 60;
+        let more = rng.index(3);
+        let extra_ms = rng.index(60) as u64;
         let t0 = Instant::now();
         loop {
             if let Some(_status) = child.try_wait().unwrap() {

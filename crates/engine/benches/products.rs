@@ -20,31 +20,10 @@ use polar_engine::products::{
     ATAN2_MAX_ERROR_RAD,
 };
 
+use polar_hil_mocks::faults::Dice;
+
 const WIDTH: u32 = 2448;
 const HEIGHT: u32 = 2048;
-
-/// splitmix64.
-struct Rng(u64);
-
-impl Rng {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Approximately standard normal: the sum of four 16-bit uniforms (Irwin-Hall),
-    /// centred and scaled to unit variance. Good enough for a benchmark scene.
-    fn normal(&mut self) -> f64 {
-        let r = self.next_u64();
-        let s: f64 = (0..4)
-            .map(|k| ((r >> (16 * k)) & 0xFFFF) as f64 / 65536.0)
-            .sum();
-        (s - 2.0) / (4.0f64 / 12.0).sqrt()
-    }
-}
 
 struct Scene {
     frames: Vec<Vec<u16>>,
@@ -70,7 +49,7 @@ fn scene() -> Scene {
     let (w, h) = (WIDTH as usize, HEIGHT as usize);
     let n = w * h;
     let dark_level = 70.0;
-    let mut rng = Rng(0x00C0_FFEE);
+    let mut rng = Dice::new(0x00C0_FFEE);
     let map: Vec<f32> = (0..n)
         .map(|_| (dark_level + 0.5 * rng.normal()) as f32)
         .collect();

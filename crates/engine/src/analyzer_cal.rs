@@ -353,25 +353,6 @@ pub fn fit_malus(
 mod tests {
     use super::*;
 
-    /// SplitMix64 with Box-Muller: a seeded normal generator for the tests (no new deps).
-    struct Rng(u64);
-
-    impl Rng {
-        fn next_u64(&mut self) -> u64 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            z ^ (z >> 31)
-        }
-        fn uniform(&mut self) -> f64 {
-            ((self.next_u64() >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-        }
-        fn normal(&mut self) -> f64 {
-            (-2.0 * self.uniform().ln()).sqrt() * (2.0 * PI * self.uniform()).cos()
-        }
-    }
-
     /// Malus signals `a + b cos 2(psi - (reference - delta))` at `n` angles evenly over 180
     /// deg.
     fn synthetic(n: usize, a: f64, b: f64, reference: f64, delta: f64) -> Vec<MalusPoint> {
@@ -456,17 +437,18 @@ mod tests {
     fn noisy_data_sigma_matches_monte_carlo() {
         let (a, b, reference, delta, sigma) = (1000.0, 900.0, 30.0, 1.5, 5.0);
         let clean = synthetic(36, a, b, reference, delta);
-        let mut rng = Rng(0x5eed);
-        let draw = |rng: &mut Rng, variance: Option<f64>| -> Vec<MalusPoint> {
-            clean
-                .iter()
-                .map(|p| MalusPoint {
-                    signal: p.signal + sigma * rng.normal(),
-                    variance,
-                    ..*p
-                })
-                .collect()
-        };
+        let mut rng = polar_hil_mocks::faults::Dice::new(0x5eed);
+        let draw =
+            |rng: &mut polar_hil_mocks::faults::Dice, variance: Option<f64>| -> Vec<MalusPoint> {
+                clean
+                    .iter()
+                    .map(|p| MalusPoint {
+                        signal: p.signal + sigma * rng.normal(),
+                        variance,
+                        ..*p
+                    })
+                    .collect()
+            };
         let one = fit_malus(&draw(&mut rng, None), reference).expect("fit");
         assert!(
             (one.zero_offset_deg - delta).abs() < 3.0 * one.zero_offset_sigma_deg,

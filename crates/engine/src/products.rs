@@ -1576,29 +1576,8 @@ mod tests {
     #![allow(clippy::unwrap_used)]
 
     use super::*;
+    use polar_hil_mocks::faults::Dice;
     use std::f64::consts::PI;
-
-    /// splitmix64: a small seeded PRNG (Steele, Lea and Flood 2014).
-    struct Rng(u64);
-
-    impl Rng {
-        fn next_u64(&mut self) -> u64 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            z ^ (z >> 31)
-        }
-        /// Uniform in (0, 1).
-        fn uniform(&mut self) -> f64 {
-            ((self.next_u64() >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-        }
-        /// Standard normal (Box-Muller).
-        fn normal(&mut self) -> f64 {
-            let (u1, u2) = (self.uniform(), self.uniform());
-            (-2.0 * u1.ln()).sqrt() * (2.0 * PI * u2).cos()
-        }
-    }
 
     fn deg(a: &[f64]) -> Vec<f64> {
         a.iter().map(|d| d.to_radians()).collect()
@@ -1817,7 +1796,7 @@ mod tests {
         };
         let dark = 130.0;
         for (name, g) in geometries() {
-            let mut rng = Rng(0x5EED_0000 + g.frame_count() as u64);
+            let mut rng = Dice::new(0x5EED_0000 + g.frame_count() as u64);
             let frames: Vec<Vec<u16>> = g
                 .rows()
                 .iter()
@@ -2160,7 +2139,7 @@ mod tests {
         // available parallelism).
         let (w, h) = (401u32, 307u32);
         let n = (w * h) as usize;
-        let mut rng = Rng(42);
+        let mut rng = Dice::new(42);
         for g in [
             SetGeometry::ideal(&deg(&[0.0, 45.0, 90.0, 135.0])).unwrap(),
             SetGeometry::ideal(&deg(&[0.0, 25.0, 50.0, 75.0, 100.0, 125.0, 150.0])).unwrap(),
@@ -2171,7 +2150,7 @@ mod tests {
                         .map(|i| match i {
                             _ if i % 7919 == 11 => 4095,
                             _ if i % 5003 == 17 => 50,
-                            _ => (1000 + rng.next_u64() % 1000) as u16,
+                            _ => (1000 + rng.index(1000)) as u16,
                         })
                         .collect()
                 })
@@ -2206,7 +2185,7 @@ mod tests {
         // relative, a few ulps of the accumulated sums).
         let g = SetGeometry::ideal(&deg(&[0.0, 45.0, 90.0, 135.0])).unwrap();
         let nm = noise();
-        let mut rng = Rng(7);
+        let mut rng = Dice::new(7);
         let frames: Vec<Vec<u16>> = (0..4)
             .map(|_| {
                 (0..512)
@@ -2214,7 +2193,7 @@ mod tests {
                         if i == 0 {
                             200
                         } else {
-                            (150 + rng.next_u64() % 3000) as u16
+                            (150 + rng.index(3000)) as u16
                         }
                     })
                     .collect()
