@@ -431,7 +431,7 @@ pub fn resume_cmd(
 pub fn export_tiff(run_dir: &Path, out: Option<PathBuf>) -> Result<Value, CommandError> {
     let out = out.unwrap_or_else(|| run_dir.join("tiff"));
     let s = polar_engine::export::export_tiff(run_dir, &out).map_err(err)?;
-    Ok(json!({ "out": out.display().to_string(), "export": format!("{s:?}") }))
+    Ok(json!({ "out": out.display().to_string(), "export": s }))
 }
 
 /// The demo's target: the glass panel, whose contrast is mostly polarimetric.
