@@ -669,6 +669,20 @@ fn print_json<E: std::fmt::Display>(result: Result<serde_json::Value, E>) -> Exi
     }
 }
 
+/// Prints a command's text report and returns 0, or prints `error: ...` and returns 2.
+fn print_text(result: Result<String, polar_cli::commands::CommandError>) -> ExitCode {
+    match result {
+        Ok(text) => {
+            print!("{text}");
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
 /// Prints a run's JSON and returns its exit status (0 done, 3 paused, 4 aborted), or prints
 /// `error: ...` and returns 2.
 fn print_run(
@@ -813,28 +827,10 @@ fn main() -> ExitCode {
         } => Ok(print_json(polar_cli::acquire::plan_check(&file))),
         Command::Bench {
             command: BenchCommand::Run { sets, exposure_us },
-        } => match polar_cli::acquire::bench_run(sets, exposure_us) {
-            Ok(text) => {
-                print!("{text}");
-                Ok(ExitCode::SUCCESS)
-            }
-            Err(e) => {
-                eprintln!("error: {e}");
-                Ok(ExitCode::from(2))
-            }
-        },
+        } => Ok(print_text(polar_cli::acquire::bench_run(sets, exposure_us))),
         Command::Bench {
             command: BenchCommand::Faults { faults, seed },
-        } => match polar_cli::acquire::bench_faults(faults, seed) {
-            Ok(text) => {
-                print!("{text}");
-                Ok(ExitCode::SUCCESS)
-            }
-            Err(e) => {
-                eprintln!("error: {e}");
-                Ok(ExitCode::from(2))
-            }
-        },
+        } => Ok(print_text(polar_cli::acquire::bench_faults(faults, seed))),
         Command::Camera {
             camera,
             scene,
