@@ -69,6 +69,10 @@ pub struct NativeSession {
     needs_init: bool,
     resets_seen: u32,
     tolerance_counts: i32,
+    /// The position last read or verified, counts, while nothing can have moved the axis since:
+    /// cleared by a reset, a reopen and the start of every move. It saves a status round trip
+    /// per move (issue 8: the run's wall time against the devices' own time).
+    known_position: Option<i32>,
     /// Velocity and acceleration set by the user, counts/s and counts/s^2: applied again after
     /// every reset (the controller boots with its defaults).
     motion: Option<(u32, u32)>,
@@ -140,6 +144,7 @@ impl NativeSession {
             needs_init: true,
             resets_seen: 0,
             tolerance_counts: 5,
+            known_position: None,
             motion: None,
         };
         s.ensure_ready().await?;
@@ -161,6 +166,26 @@ impl NativeSession {
         self.link.opens()
     }
 
+    /// A reset or reopen happened (or is wanted): identify and home before the next motion, and
+    /// forget the position.
+    fn lose_state(&mut self) {
+        self.needs_init = true;
+        self.known_position = None;
+    }
+
+    /// The axis position, counts: the one last read or verified if nothing can have moved the
+    /// axis since, otherwise a status query (kept if the axis is at rest).
+    async fn position_counts(&mut self) -> Result<i32, DeviceError> {
+        if let (Some(p), false) = (self.known_position, self.needs_init) {
+            return Ok(p);
+        }
+        let s = self.status().await?;
+        if !s.flags.has(StatusFlags::MOVING) && !self.needs_init {
+            self.known_position = Some(s.position_counts);
+        }
+        Ok(s.position_counts)
+    }
+
     fn decode_buffer(&mut self) {
         let bytes = std::mem::take(self.link.buffer());
         for b in bytes {
@@ -175,7 +200,7 @@ impl NativeSession {
                             tracing::warn!(port = %self.link.name(), ?reason, "controller reset");
                         }
                         self.resets_seen += 1;
-                        self.needs_init = true;
+                        self.lose_state();
                     }
                     self.packets.push_back(p);
                 }
@@ -279,19 +304,25 @@ impl NativeSession {
 
     /// Waits for the MotionDone of request `seq`, asking for the status every second
     /// meanwhile: a lost event then costs at most a second, not the whole move timeout.
-    async fn wait_done_or_idle(&mut self, seq: u8, timeout: Duration) -> Result<(), DeviceError> {
+    /// Returns the position the MotionDone reports, or `None` if the status found the axis at
+    /// rest first (the event was lost).
+    async fn wait_done_or_idle(
+        &mut self,
+        seq: u8,
+        timeout: Duration,
+    ) -> Result<Option<i32>, DeviceError> {
         let deadline = Instant::now() + timeout;
         loop {
             let now = Instant::now();
             let slice = (deadline.saturating_duration_since(now)).min(Duration::from_secs(1));
             match self.wait_done(seq, slice).await {
-                Ok(_) => return Ok(()),
+                Ok(p) => return Ok(Some(p)),
                 Err(e) if e.kind() == ErrorKind::Timeout => {
                     if Instant::now() >= deadline {
                         return Err(e);
                     }
                     match self.status().await {
-                        Ok(s) if !s.flags.has(StatusFlags::MOVING) => return Ok(()),
+                        Ok(s) if !s.flags.has(StatusFlags::MOVING) => return Ok(None),
                         Ok(_) => {}
                         Err(e) if e.kind() == ErrorKind::Timeout => {}
                         Err(e) => return Err(e),
@@ -336,6 +367,9 @@ impl NativeSession {
         self.wait_done(seq, timeout).await?;
         let s = self.status().await?;
         if s.flags.has(StatusFlags::HOMED) {
+            if !s.flags.has(StatusFlags::MOVING) {
+                self.known_position = Some(s.position_counts);
+            }
             Ok(())
         } else {
             Err(self
@@ -364,7 +398,7 @@ impl NativeSession {
                     Err(e) => return Err(e),
                 }
             }
-            self.needs_init = true;
+            self.lose_state();
         }
         let mut last = None;
         for k in 0..self.policy.attempts.max(1) {
@@ -376,11 +410,11 @@ impl NativeSession {
             match self.init().await {
                 Ok(()) => {}
                 Err(e) if retryable(&e) => {
-                    self.needs_init = true;
+                    self.lose_state();
                     last = Some(e);
                 }
                 Err(e) => {
-                    self.needs_init = true;
+                    self.lose_state();
                     return Err(e);
                 }
             }
@@ -464,13 +498,23 @@ impl NativeSession {
         Ok(())
     }
 
-    /// Moves and checks the result by reading the position (or slot) back; repeats on a lost
-    /// reply, a refusal as busy, a reset or a stall, up to the policy's attempts.
-    async fn move_verified(&mut self, command: Command) -> Result<Status, DeviceError> {
+    /// Moves and checks the result (by the MotionDone's position, or by reading the position or
+    /// slot back); repeats on a lost reply, a refusal as busy, a reset or a stall, up to the
+    /// policy's attempts. `command` is built for each attempt from the position then (a reset
+    /// between attempts moves the datum); rotators get `Some(counts)`, wheels `None`.
+    async fn move_verified(
+        &mut self,
+        command: impl Fn(Option<i32>) -> Command,
+    ) -> Result<Status, DeviceError> {
         let mut last = None;
         for k in 0..self.policy.attempts.max(1) {
             self.policy.pause_before(k).await;
             self.ensure_ready().await?;
+            let current = match self.kind {
+                DeviceKind::Rotator => Some(self.position_counts().await?),
+                _ => None,
+            };
+            let command = command(current);
             match self.move_once(command).await {
                 Ok(s) => return Ok(s),
                 Err(e) if retryable(&e) => {
@@ -484,11 +528,13 @@ impl NativeSession {
     }
 
     async fn move_once(&mut self, command: Command) -> Result<Status, DeviceError> {
+        self.known_position = None;
+        let mut done_at = None;
         match self.exchange(command).await {
             Ok((seq, Reply::Ack)) => {
                 let timeout = self.policy.move_timeout;
                 match self.wait_done_or_idle(seq, timeout).await {
-                    Ok(_) => {}
+                    Ok(p) => done_at = p,
                     // Judged by the readback below.
                     Err(e) if e.kind() == ErrorKind::Timeout => {}
                     Err(e) => return Err(e),
@@ -496,7 +542,7 @@ impl NativeSession {
             }
             Ok((_, Reply::Nack { code })) => {
                 if code == ErrorCode::NotHomed {
-                    self.needs_init = true;
+                    self.lose_state();
                 }
                 if code == ErrorCode::Busy {
                     // Possibly our own earlier attempt still moving: let it end first.
@@ -517,6 +563,19 @@ impl NativeSession {
         if self.needs_init {
             return Err(self.reset_error());
         }
+        // A MotionDone that reports the target settles an absolute move: the controller sends
+        // it once the axis is at rest, so a status readback would only repeat it. Anything
+        // else (a lost event, a short stop, a slot change) is judged by the readback.
+        if let (Some(p), Command::MoveAbsolute { position_counts }) = (done_at, command) {
+            if p.wrapping_sub(position_counts).abs() <= self.tolerance_counts {
+                self.known_position = Some(p);
+                return Ok(Status {
+                    position_counts: p,
+                    flags: StatusFlags(StatusFlags::HOMED),
+                    slot: 0xff,
+                });
+            }
+        }
         let s = self.wait_idle().await?;
         if self.needs_init {
             return Err(self.reset_error());
@@ -529,6 +588,7 @@ impl NativeSession {
             _ => true,
         };
         if reached {
+            self.known_position = Some(s.position_counts);
             Ok(s)
         } else {
             let stalled = if s.flags.has(StatusFlags::STALLED) {
@@ -573,6 +633,7 @@ pub async fn probe(connector: Box<dyn Connector>, policy: Policy) -> Result<Prob
         needs_init: false,
         resets_seen: 0,
         tolerance_counts: 5,
+        known_position: None,
         motion: None,
     };
     s.link.open(policy.open_timeout).await?;
@@ -638,7 +699,7 @@ impl Rotator for NativeRotator {
     }
 
     async fn home(&mut self) -> Result<(), DeviceError> {
-        self.session.needs_init = true;
+        self.session.lose_state();
         self.session.ensure_ready().await
     }
 
@@ -649,22 +710,23 @@ impl Rotator for NativeRotator {
                 format!("angle_rad = {angle_rad} is not a finite angle"),
             ));
         }
-        self.session.ensure_ready().await?;
-        let current = self.session.status().await?.position_counts;
-        let target = counts_toward(current, angle_rad, self.info.counts_per_turn);
+        let cpt = self.info.counts_per_turn;
         let s = self
             .session
-            .move_verified(Command::MoveAbsolute {
-                position_counts: target,
+            .move_verified(|current| Command::MoveAbsolute {
+                position_counts: counts_toward(current.unwrap_or(0), angle_rad, cpt),
             })
             .await?;
         Ok(self.angle(s.position_counts))
     }
 
+    /// The controller's position count as an angle. The count changes only by our moves (it is
+    /// not an encoder), so after a verified move it is known without asking; after a reset,
+    /// reopen or failed move it is read.
     async fn position_rad(&mut self) -> Result<f64, DeviceError> {
         self.session.ensure_ready().await?;
-        let s = self.session.status().await?;
-        Ok(self.angle(s.position_counts))
+        let p = self.session.position_counts().await?;
+        Ok(self.angle(p))
     }
 
     fn supports_velocity(&self) -> bool {
@@ -740,7 +802,7 @@ impl FilterWheel for NativeWheel {
         }
         let s = self
             .session
-            .move_verified(Command::SelectSlot { slot: slot as u8 })
+            .move_verified(|_| Command::SelectSlot { slot: slot as u8 })
             .await?;
         Ok(s.slot as usize)
     }

@@ -1394,6 +1394,7 @@ where
     let info = rig.camera.info().clone();
     let (width, height) = (info.sensor_width, info.sensor_height);
     let opened = open_run(plan, run_dir, resume, width, height, &rig.devices)?;
+    tracing::debug!(ms = started.elapsed().as_secs_f64() * 1e3, "store opened");
     let run_start_unix_ns = opened.run_start_unix_ns;
     let entries = opened.entries;
 
@@ -1770,9 +1771,14 @@ where
     };
 
     // Let the writer finish what it has.
+    tracing::debug!(
+        ms = started.elapsed().as_secs_f64() * 1e3,
+        "steps done; draining"
+    );
     if let Err(e) = lp.drain().await {
         return Err(RunError::Storage(e));
     }
+    tracing::debug!(ms = started.elapsed().as_secs_f64() * 1e3, "drained");
     let summary = Summary {
         frames_stored: lp.next_index,
         frames_accepted: lp.accepted.len() as u64,
