@@ -11,7 +11,11 @@ cd "$(dirname "$0")/.."
 #   libusb-1.0, which libaravis-dev does not pull in).
 # * Its tests run Aravis's fake GigE Vision camera, arv-fake-gv-camera-0.8, which Debian 12
 #   ships in aravis-tools (aravis-tools-cli has arv-tool-0.8 only).
-APT_PACKAGES=(libaravis-dev libusb-1.0-0-dev aravis-tools-cli aravis-tools)
+# * The GUI's screenshot tour runs polarimeter-gui under Xvfb (xvfb-run needs xauth) with
+#   Mesa's software OpenGL; winit loads the X11 client libraries at run time.
+APT_PACKAGES=(libaravis-dev libusb-1.0-0-dev aravis-tools-cli aravis-tools
+  xvfb xauth libgl1-mesa-dri libegl1 libgl1 libx11-xcb1 libxcursor1 libxrandr2 libxi6
+  libxkbcommon-x11-0)
 if ((${#APT_PACKAGES[@]})); then
   missing=()
   for p in "${APT_PACKAGES[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
@@ -34,3 +38,11 @@ cargo build -p polar-firmware-protocol --target thumbv7em-none-eabihf --locked
 
 # Optimised tests: the property and quadrature tests evaluate the model ~1e7 times.
 cargo test --workspace --release --locked
+
+# The GUI end to end under Xvfb: run the default plan on the simulated devices, then save a
+# PNG of each tab (live view, devices, planner, rooftop). It fails if the run fails, a tab
+# cannot be drawn or a PNG cannot be written. docs/gui/ holds the committed shots.
+rm -rf target/gui-screenshots target/gui-runs && mkdir -p target/gui-runs
+xvfb-run -a -s "-screen 0 1400x900x24" \
+  cargo run --release --locked -q -p polar-gui -- --simulate --out target/gui-runs \
+  --screenshots target/gui-screenshots

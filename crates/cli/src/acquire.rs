@@ -9,6 +9,8 @@
 
 use crate::commands::CommandError;
 use crate::devices::Dialect;
+use polar_drivers::any::AnyRotator;
+use polar_drivers::camera_thread::ThreadedCamera;
 use polar_engine::plan::Plan;
 use polar_engine::run::{self, Control, Controller, Event, Outcome, Rig, RunState};
 use polar_engine::sim::SimRig;
@@ -187,15 +189,24 @@ async fn run_simulated(
     Ok((outcome, rig))
 }
 
-/// A hardware rig: a rotator in `dialect` on `port`, a camera by spec, the camera's noise
-/// model from `camera_file`.
-async fn run_hardware(
-    plan: &Plan,
-    hw: &Hardware,
-    run_dir: &Path,
-    resume: bool,
-    ui: Ui,
-) -> Result<Outcome, CommandError> {
+/// The engine's rig on real devices: a rotator in either dialect, a threaded camera.
+pub type HardwareRig = Rig<OnRotator<AnyRotator>, ThreadedCamera>;
+
+/// Connects the hardware rig `hw` describes: reads the camera's noise model from
+/// `camera_file`, opens the camera by its spec, connects and homes the stage (positive
+/// approach with 1 deg of overshoot, the analyzer's zero offset from `hw`). Used by `run`,
+/// `resume` and the GUI.
+///
+/// Errors name the flag: an unreadable or invalid camera file, a camera that does not open, a
+/// stage that does not answer, or `--dialect fw102c` (a wheel cannot turn an analyzer freely).
+pub async fn connect_hardware(hw: &Hardware) -> Result<HardwareRig, CommandError> {
+    if hw.dialect == Dialect::Fw102c {
+        return Err(CommandError(
+            "--dialect fw102c: a run needs a rotator; a wheel of fixed polarizers is not \
+             supported by `run` yet"
+                .into(),
+        ));
+    }
     let camera_model = polar_model::sensor::Camera::from_toml_str(
         &std::fs::read_to_string(&hw.camera_file).map_err(|e| {
             CommandError(format!("--camera-file {}: {e}", hw.camera_file.display()))
@@ -222,49 +233,49 @@ async fn run_hardware(
     });
     let policy = hw.dialect.policy();
     let connector = crate::devices::connector(&hw.port, hw.dialect);
-    macro_rules! go {
-        ($rotator:expr) => {{
-            let rig = Rig {
-                analyzer: OnRotator {
-                    rotator: $rotator,
-                    zero_offset_rad: hw.zero_offset_deg.to_radians(),
-                    approach: Approach::Positive,
-                    overshoot_rad: 1f64.to_radians(),
-                },
-                camera,
-                camera_model,
-                sensor,
-                illumination: None,
-                target_mask: None,
-                devices,
-            };
-            drive(plan, rig, run_dir, resume, ui).await
-        }};
-    }
-    match hw.dialect {
-        Dialect::Native => {
-            let r = polar_drivers::native::NativeRotator::connect(connector, policy)
+    let rotator: AnyRotator = match hw.dialect {
+        Dialect::Elliptec => polar_drivers::elliptec::ElliptecRotator::connect(
+            connector,
+            hw.address,
+            policy,
+            0.05f64.to_radians(),
+        )
+        .await
+        .map_err(err)?
+        .into(),
+        Dialect::Native | Dialect::Fw102c => {
+            polar_drivers::native::NativeRotator::connect(connector, policy)
                 .await
-                .map_err(err)?;
-            go!(r)
+                .map_err(err)?
+                .into()
         }
-        Dialect::Elliptec => {
-            let r = polar_drivers::elliptec::ElliptecRotator::connect(
-                connector,
-                hw.address,
-                policy,
-                0.05f64.to_radians(),
-            )
-            .await
-            .map_err(err)?;
-            go!(r)
-        }
-        Dialect::Fw102c => Err(CommandError(
-            "--dialect fw102c: a run needs a rotator; a wheel of fixed polarizers is not \
-             supported by `run` yet"
-                .into(),
-        )),
-    }
+    };
+    Ok(Rig {
+        analyzer: OnRotator {
+            rotator,
+            zero_offset_rad: hw.zero_offset_deg.to_radians(),
+            approach: Approach::Positive,
+            overshoot_rad: 1f64.to_radians(),
+        },
+        camera,
+        camera_model,
+        sensor,
+        illumination: None,
+        target_mask: None,
+        devices,
+    })
+}
+
+/// A run on the hardware rig `hw` describes.
+async fn run_hardware(
+    plan: &Plan,
+    hw: &Hardware,
+    run_dir: &Path,
+    resume: bool,
+    ui: Ui,
+) -> Result<Outcome, CommandError> {
+    let rig = connect_hardware(hw).await?;
+    drive(plan, rig, run_dir, resume, ui).await
 }
 
 /// Real devices for `run`.

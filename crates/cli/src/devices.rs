@@ -46,6 +46,13 @@ impl Dialect {
         }
     }
 
+    /// The dialect the CLI spells `name` (`native`, `elliptec`, `fw102c`).
+    pub fn from_name(name: &str) -> Option<Dialect> {
+        [Dialect::Native, Dialect::Elliptec, Dialect::Fw102c]
+            .into_iter()
+            .find(|d| d.name() == name)
+    }
+
     /// The dialect's name as the CLI spells it.
     pub fn name(self) -> &'static str {
         match self {

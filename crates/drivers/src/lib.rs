@@ -14,6 +14,7 @@
 //! system library (no libudev).
 #![warn(missing_docs)]
 
+pub mod any;
 pub mod camera_thread;
 pub mod elliptec;
 pub mod fw102c;

@@ -1,0 +1,1107 @@
+//! `polarimeter-gui`: the plan runner and live view of the polarimeter, on egui.
+//!
+//! The UI thread never waits on a device: the engine runs on its own thread (named `engine`,
+//! a current-thread tokio runtime with a `LocalSet`, see [`engine`]) and the two talk through
+//! bounded channels that the UI polls once per frame.
+//!
+//! [`App`] holds the whole UI state and draws itself into any [`egui::Ui`], so the tests
+//! drive it with `egui_kittest` without a window or a GPU.
+
+#![warn(missing_docs)]
+
+pub mod colour;
+pub mod engine;
+pub mod planner_panel;
+pub mod rooftop;
+
+use eframe::egui;
+use engine::{Command, DeviceStatus, EngineHandle, LiveProducts, Reply, Snapshot};
+use polar_engine::run::{Control, Event, Outcome, RunState};
+use std::collections::VecDeque;
+use std::path::PathBuf;
+use std::time::Duration;
+
+/// The plan the editor starts with: three sets of four angles on a small simulated scene.
+pub const DEFAULT_PLAN: &str = r#"name = "gui capture"
+kind = "capture"
+
+[capture]
+angles_deg = [0, 45, 90, 135]
+exposure_us = [250]
+repeats = 3
+darks_before = 1
+darks_after = 0
+
+[simulation]
+width = 96
+height = 72
+seed = 3
+stage_deg_per_s = 360
+"#;
+
+/// Lines the log keeps.
+const LOG_LINES: usize = 500;
+
+/// Bins of the histogram.
+const HIST_BINS: usize = 48;
+
+/// Where the UI's idea of the run is.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Status {
+    /// No run yet.
+    Idle,
+    /// A run's state (the last one seen).
+    Run(RunState),
+    /// The run could not start or failed.
+    Failed(String),
+    /// A paused run was left to `polarimeter resume`.
+    Detached(String),
+}
+
+impl Status {
+    /// The state label's text: `State: Running`, `State: Paused: reason`, ...
+    pub fn text(&self) -> String {
+        match self {
+            Status::Idle => "State: Idle".into(),
+            Status::Run(s) => match s {
+                RunState::Starting => "State: Starting".into(),
+                RunState::Running => "State: Running".into(),
+                RunState::Pausing => "State: Pausing".into(),
+                RunState::Paused(r) => format!("State: Paused: {r}"),
+                RunState::Aborting => "State: Aborting".into(),
+                RunState::Done => "State: Done".into(),
+                RunState::Aborted(r) => format!("State: Aborted: {r}"),
+            },
+            Status::Failed(e) => format!("State: Failed: {e}"),
+            Status::Detached(r) => format!("State: Detached: {r}"),
+        }
+    }
+}
+
+/// The image the live view shows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum View {
+    /// The last stored raw frame, DN.
+    Raw,
+    /// S0, DN.
+    S0,
+    /// DoLP.
+    Dolp,
+    /// AoP as hue with DoLP as saturation.
+    Aop,
+    /// Predicted sigma of S0, DN.
+    SigmaS0,
+    /// Predicted sigma of DoLP.
+    SigmaDolp,
+    /// Predicted sigma of AoP, degrees.
+    SigmaAop,
+}
+
+impl View {
+    /// Every view, in the selector's order.
+    pub const ALL: [View; 7] = [
+        View::Raw,
+        View::S0,
+        View::Dolp,
+        View::Aop,
+        View::SigmaS0,
+        View::SigmaDolp,
+        View::SigmaAop,
+    ];
+
+    /// The selector's label.
+    pub fn label(self) -> &'static str {
+        match self {
+            View::Raw => "Raw frame",
+            View::S0 => "S0",
+            View::Dolp => "DoLP",
+            View::Aop => "AoP",
+            View::SigmaS0 => "sigma S0",
+            View::SigmaDolp => "sigma DoLP",
+            View::SigmaAop => "sigma AoP",
+        }
+    }
+
+    /// The unit of the view's values.
+    pub fn unit(self) -> &'static str {
+        match self {
+            View::Raw | View::S0 | View::SigmaS0 => "DN",
+            View::Dolp | View::SigmaDolp => "",
+            View::Aop | View::SigmaAop => "deg",
+        }
+    }
+
+    /// The view's values of `live` (AoP in degrees), if it has them.
+    pub fn values(self, live: &LiveProducts) -> Option<Vec<f32>> {
+        let p = &live.products;
+        let v = match self {
+            View::Raw => live.raw.as_ref()?.iter().map(|&x| f32::from(x)).collect(),
+            View::S0 => p.s0.clone(),
+            View::Dolp => p.dolp.clone(),
+            View::Aop => p.aop_rad.iter().map(|a| a.to_degrees()).collect(),
+            View::SigmaS0 => p.sigma_s0.clone(),
+            View::SigmaDolp => p.sigma_dolp.clone(),
+            View::SigmaAop => p.sigma_aop_rad.iter().map(|a| a.to_degrees()).collect(),
+        };
+        let n = p.width as usize * p.height as usize;
+        (v.len() == n && n > 0).then_some(v)
+    }
+}
+
+/// The central panel's tabs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Tab {
+    /// The live products of the run.
+    Live,
+    /// Device control: connect, home, move, exposure and gain, a snapshot.
+    Devices,
+    /// The planner: SCR and ROC of the optimal angles against the conventional sets.
+    Planner,
+    /// The rooftop: the sun and the sky's polarisation for a site and time.
+    Rooftop,
+}
+
+impl Tab {
+    /// Every tab, in the selector's order.
+    pub const ALL: [Tab; 4] = [Tab::Live, Tab::Devices, Tab::Planner, Tab::Rooftop];
+
+    /// The selector's label.
+    pub fn label(self) -> &'static str {
+        match self {
+            Tab::Live => "Live view",
+            Tab::Devices => "Devices",
+            Tab::Planner => "Planner",
+            Tab::Rooftop => "Rooftop",
+        }
+    }
+}
+
+/// A view in false colour: the RGB pixels and the scale they were drawn with.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rendered {
+    /// Width, pixels.
+    pub width: usize,
+    /// Height, pixels.
+    pub height: usize,
+    /// RGB, row-major.
+    pub rgb: Vec<u8>,
+    /// The view's values (for the histogram).
+    pub values: Vec<f32>,
+    /// Display range of the values.
+    pub range: (f32, f32),
+    /// For AoP: the DoLP drawn at full saturation.
+    pub dolp_full: Option<f32>,
+}
+
+/// Draws `view` of `live` in false colour: scalar views on viridis over their 1st..99th
+/// percentile, AoP as hue with DoLP as saturation (full at the 99th percentile of DoLP).
+pub fn render(live: &LiveProducts, view: View) -> Option<Rendered> {
+    let p = &live.products;
+    let values = view.values(live)?;
+    let (width, height) = (p.width as usize, p.height as usize);
+    let mut rgb = Vec::with_capacity(width * height * 3);
+    let (range, dolp_full) = if view == View::Aop {
+        let full = colour::robust_range(&p.dolp)
+            .map_or(1.0, |(_, hi)| hi)
+            .clamp(0.01, 1.0);
+        for (a, d) in p.aop_rad.iter().zip(&p.dolp) {
+            rgb.extend_from_slice(&colour::aop_dolp(*a, *d, full));
+        }
+        ((-90.0, 90.0), Some(full))
+    } else {
+        let range = colour::robust_range(&values).unwrap_or((0.0, 1.0));
+        for &v in &values {
+            rgb.extend_from_slice(&colour::scalar(v, range.0, range.1));
+        }
+        (range, None)
+    };
+    Some(Rendered {
+        width,
+        height,
+        rgb,
+        values,
+        range,
+        dolp_full,
+    })
+}
+
+/// The pixel probe's text for pixel `(x, y)` of `live`: Stokes, DoLP and AoP with their
+/// predicted sigma.
+pub fn probe_text(live: &LiveProducts, x: usize, y: usize) -> Option<String> {
+    let p = &live.products;
+    let (w, h) = (p.width as usize, p.height as usize);
+    if x >= w || y >= h {
+        return None;
+    }
+    let i = y * w + x;
+    let at = |v: &[f32]| v.get(i).copied().unwrap_or(f32::NAN);
+    let mut s = format!(
+        "pixel ({x}, {y})\n\
+         S0 = {:.1} +/- {:.1} DN\n\
+         S1 = {:.1} +/- {:.1} DN\n\
+         S2 = {:.1} +/- {:.1} DN\n\
+         DoLP = {:.4} +/- {:.4}\n\
+         AoP = {:.2} +/- {:.2} deg",
+        at(&p.s0),
+        at(&p.sigma_s0),
+        at(&p.s1),
+        at(&p.sigma_s1),
+        at(&p.s2),
+        at(&p.sigma_s2),
+        at(&p.dolp),
+        at(&p.sigma_dolp),
+        at(&p.aop_rad).to_degrees(),
+        at(&p.sigma_aop_rad).to_degrees(),
+    );
+    if let Some(raw) = live.raw.as_ref().and_then(|r| r.get(i)) {
+        s.push_str(&format!("\nraw = {raw} DN"));
+    }
+    Some(s)
+}
+
+/// The application: the plan editor, the run controls, the log and the live view.
+pub struct App {
+    engine: EngineHandle,
+    /// Real devices (not the simulated rig).
+    hardware: bool,
+    /// The plan being edited (TOML).
+    pub plan_text: String,
+    forecast: Option<Result<String, String>>,
+    forecast_for: Option<String>,
+    forecast_pending: bool,
+    status: Status,
+    active: bool,
+    done: u64,
+    planned: u64,
+    log: VecDeque<String>,
+    run_dir: Option<PathBuf>,
+    live: Option<LiveProducts>,
+    products_received: u64,
+    view: View,
+    texture: Option<(egui::TextureHandle, View, u64)>,
+    rendered: Option<Rendered>,
+    probe: Option<(usize, usize)>,
+    tab: Tab,
+    devices: DeviceStatus,
+    device_pending: bool,
+    move_deg: f64,
+    exposure_us: f64,
+    gain: f64,
+    snapshot: Option<(Snapshot, Option<egui::TextureHandle>, (f32, f32))>,
+    planner: planner_panel::PlannerPanel,
+    rooftop: rooftop::RooftopPanel,
+}
+
+impl App {
+    /// A new app whose runs go into new directories under `base_dir`. `ctx`, when given, is
+    /// woken by the engine after each reply.
+    pub fn new(base_dir: PathBuf, ctx: Option<egui::Context>) -> std::io::Result<App> {
+        Self::new_on(base_dir, engine::Devices::Simulated, ctx)
+    }
+
+    /// A new app driving `devices`.
+    pub fn new_on(
+        base_dir: PathBuf,
+        devices: engine::Devices,
+        ctx: Option<egui::Context>,
+    ) -> std::io::Result<App> {
+        let wake: Option<Box<dyn Fn() + Send>> =
+            ctx.map(|c| Box::new(move || c.request_repaint()) as Box<dyn Fn() + Send>);
+        let hardware = matches!(devices, engine::Devices::Hardware(_));
+        Ok(App {
+            hardware,
+            engine: EngineHandle::spawn_on(base_dir, devices, wake)?,
+            plan_text: DEFAULT_PLAN.to_string(),
+            forecast: None,
+            forecast_for: None,
+            forecast_pending: false,
+            status: Status::Idle,
+            active: false,
+            done: 0,
+            planned: 0,
+            log: VecDeque::new(),
+            run_dir: None,
+            live: None,
+            products_received: 0,
+            view: View::S0,
+            texture: None,
+            rendered: None,
+            probe: None,
+            tab: Tab::Live,
+            devices: DeviceStatus {
+                description: "not connected".into(),
+                ..DeviceStatus::default()
+            },
+            device_pending: false,
+            move_deg: 45.0,
+            exposure_us: 250.0,
+            gain: 0.0,
+            snapshot: None,
+            planner: planner_panel::PlannerPanel::new(),
+            rooftop: rooftop::RooftopPanel::new(),
+        })
+    }
+
+    /// The devices as last reported.
+    pub fn devices(&self) -> &DeviceStatus {
+        &self.devices
+    }
+
+    /// The planner panel.
+    pub fn planner(&self) -> &planner_panel::PlannerPanel {
+        &self.planner
+    }
+
+    /// The rooftop panel.
+    pub fn rooftop(&self) -> &rooftop::RooftopPanel {
+        &self.rooftop
+    }
+
+    /// A device command is on its way (the device buttons are disabled until it answers).
+    pub fn device_pending(&self) -> bool {
+        self.device_pending
+    }
+
+    /// The tab shown.
+    pub fn tab(&self) -> Tab {
+        self.tab
+    }
+
+    /// The last snapshot taken from the device panel.
+    pub fn snapshot(&self) -> Option<&Snapshot> {
+        self.snapshot.as_ref().map(|s| &s.0)
+    }
+
+    /// The run's status.
+    pub fn status(&self) -> &Status {
+        &self.status
+    }
+
+    /// Frames done and planned.
+    pub fn progress(&self) -> (u64, u64) {
+        (self.done, self.planned)
+    }
+
+    /// How many product updates arrived.
+    pub fn products_received(&self) -> u64 {
+        self.products_received
+    }
+
+    /// The latest products.
+    pub fn live(&self) -> Option<&LiveProducts> {
+        self.live.as_ref()
+    }
+
+    /// The log, oldest first.
+    pub fn log_lines(&self) -> impl Iterator<Item = &str> {
+        self.log.iter().map(String::as_str)
+    }
+
+    /// The last forecast (or why there is none).
+    pub fn forecast(&self) -> Option<&Result<String, String>> {
+        self.forecast.as_ref()
+    }
+
+    /// A run is in progress.
+    pub fn is_active(&self) -> bool {
+        self.active
+    }
+
+    /// The current run directory.
+    pub fn run_dir(&self) -> Option<&std::path::Path> {
+        self.run_dir.as_deref()
+    }
+
+    fn say(&mut self, line: impl Into<String>) {
+        self.log.push_back(line.into());
+        while self.log.len() > LOG_LINES {
+            self.log.pop_front();
+        }
+    }
+
+    /// Takes every waiting reply of the engine (never waits).
+    pub fn poll(&mut self) {
+        while let Some(r) = self.engine.try_recv() {
+            self.on_reply(r);
+        }
+    }
+
+    fn on_reply(&mut self, r: Reply) {
+        match r {
+            Reply::Started { run_dir, planned } => {
+                if self.devices.connected {
+                    self.devices.description = "held by the run".into();
+                }
+                self.say(format!("run directory {}", run_dir.display()));
+                self.run_dir = Some(run_dir);
+                self.planned = planned;
+            }
+            Reply::State(s) => {
+                if self.active {
+                    self.status = Status::Run(s);
+                }
+            }
+            Reply::Event(e) => self.on_event(e),
+            Reply::Products(p) => {
+                self.live = Some(*p);
+                self.products_received += 1;
+            }
+            Reply::Finished(r) => {
+                self.active = false;
+                match r {
+                    Ok(Outcome::Done(s)) => {
+                        self.status = Status::Run(RunState::Done);
+                        self.done = self.done.max(s.frames_accepted);
+                        self.say(format!(
+                            "done: {} frames ({} accepted), {} sets accepted, {} rejected, \
+                             {} retries, {:.1} s",
+                            s.frames_stored,
+                            s.frames_accepted,
+                            s.sets_accepted,
+                            s.sets_rejected,
+                            s.retries,
+                            s.elapsed_s
+                        ));
+                    }
+                    Ok(Outcome::Paused(r)) => {
+                        self.say(format!("left paused: {r}"));
+                        self.status = Status::Detached(r);
+                    }
+                    Ok(Outcome::Aborted(r)) => {
+                        self.say(format!("aborted: {r}"));
+                        self.status = Status::Run(RunState::Aborted(r));
+                    }
+                    Err(e) => {
+                        self.say(format!("failed: {e}"));
+                        self.status = Status::Failed(e);
+                    }
+                }
+            }
+            Reply::Error(e) => {
+                self.active = false;
+                self.say(format!("error: {e}"));
+                self.status = Status::Failed(e);
+            }
+            Reply::Log(l) => self.say(l),
+            Reply::Forecast(f) => {
+                self.forecast_pending = false;
+                self.forecast = Some(f);
+            }
+            Reply::Devices(d) => {
+                self.device_pending = false;
+                if !d.last.is_empty() {
+                    self.say(format!("devices: {}", d.last));
+                }
+                if let Some(e) = &d.error {
+                    self.say(format!("device error: {e}"));
+                }
+                if let Some(e) = d.exposure_us {
+                    self.exposure_us = e;
+                }
+                if let Some(g) = d.gain {
+                    self.gain = g;
+                }
+                self.devices = d;
+            }
+            Reply::Snapshot(f) => {
+                let values: Vec<f32> = f.pixels.iter().map(|&p| f32::from(p)).collect();
+                let range = colour::robust_range(&values).unwrap_or((0.0, 1.0));
+                self.snapshot = Some((*f, None, range));
+            }
+        }
+    }
+
+    /// Sends a device command (as the device panel's buttons do); `false` if the engine's
+    /// queue is full.
+    pub fn device_command(&mut self, cmd: Command) -> bool {
+        let ok = self.engine.send(cmd);
+        if ok {
+            self.device_pending = true;
+        }
+        ok
+    }
+
+    fn device(&mut self, cmd: Command) {
+        if self.engine.send(cmd) {
+            self.device_pending = true;
+        } else {
+            self.say("the engine is busy; try again");
+        }
+    }
+
+    fn on_event(&mut self, e: Event) {
+        match e {
+            Event::State(s) => {
+                let text = Status::Run(s.clone()).text();
+                // Only logged: the state watch (`Reply::State`) is the truth, and events can
+                // lag behind it.
+                self.say(format!("now {}", text.trim_start_matches("State: ")));
+            }
+            Event::Progress {
+                done,
+                planned,
+                label,
+            } => {
+                self.done = done;
+                self.planned = planned.max(done);
+                self.say(format!("frame {done}/{planned}: {label}"));
+            }
+            Event::Set {
+                set,
+                verdict,
+                mean_s0,
+                mean_dolp,
+            } => {
+                if verdict.accepted {
+                    self.say(format!(
+                        "set {set} accepted: mean S0 {mean_s0:.1} DN, DoLP {mean_dolp:.3}"
+                    ));
+                } else {
+                    self.say(format!("set {set} rejected: {}", verdict.reason));
+                }
+            }
+            Event::Decision(d) => self.say(format!("decision: {d}")),
+            Event::Retry(m) => self.say(format!("retry: {m}")),
+        }
+    }
+
+    /// Shows `tab`.
+    pub fn set_tab(&mut self, tab: Tab) {
+        self.tab = tab;
+    }
+
+    /// Shows `view` in the live view.
+    pub fn set_view(&mut self, view: View) {
+        self.view = view;
+    }
+
+    /// Starts the plan in the editor (as the Start button does).
+    pub fn start_run(&mut self) {
+        if !self.active {
+            self.start();
+        }
+    }
+
+    fn start(&mut self) {
+        if self.engine.send(Command::Start {
+            plan_text: self.plan_text.clone(),
+        }) {
+            self.active = true;
+            self.status = Status::Run(RunState::Starting);
+            self.done = 0;
+            self.planned = 0;
+            self.live = None;
+            self.texture = None;
+            self.rendered = None;
+            self.say("start");
+        } else {
+            self.say("the engine is busy; try again");
+        }
+    }
+
+    fn control(&mut self, c: Control) {
+        if !self.engine.send(Command::Control(c)) {
+            self.say(format!("{c:?}: the engine is busy; try again"));
+        }
+    }
+
+    /// Draws the whole application into `ui` (and polls the engine first).
+    pub fn show(&mut self, ui: &mut egui::Ui) {
+        self.poll();
+        let stale = self.forecast_for.as_deref() != Some(self.plan_text.as_str());
+        if !self.active
+            && !self.forecast_pending
+            && stale
+            && self.engine.send(Command::Forecast {
+                plan_text: self.plan_text.clone(),
+            })
+        {
+            self.forecast_pending = true;
+            self.forecast_for = Some(self.plan_text.clone());
+        }
+        if self.active || self.forecast_pending || self.device_pending {
+            ui.ctx().request_repaint_after(Duration::from_millis(100));
+        }
+        egui::Panel::top("controls").show(ui, |ui| self.controls(ui));
+        egui::Panel::left("plan")
+            .resizable(true)
+            .default_size(380.0)
+            .show(ui, |ui| self.plan_panel(ui));
+        egui::CentralPanel::default_margins().show(ui, |ui| {
+            ui.horizontal(|ui| {
+                for t in Tab::ALL {
+                    ui.selectable_value(&mut self.tab, t, t.label());
+                }
+            });
+            ui.separator();
+            match self.tab {
+                Tab::Live => self.live_view(ui),
+                Tab::Devices => self.device_panel(ui),
+                Tab::Planner => {
+                    // The plan's planner section (target, background, exposure) seeds the
+                    // panel; the same text again changes nothing.
+                    self.planner.set_plan_text(&self.plan_text);
+                    egui::ScrollArea::vertical()
+                        .id_salt("planner")
+                        .show(ui, |ui| self.planner.show(ui));
+                }
+                Tab::Rooftop => {
+                    egui::ScrollArea::vertical()
+                        .id_salt("rooftop")
+                        .show(ui, |ui| self.rooftop.show(ui));
+                }
+            }
+        });
+    }
+
+    fn device_panel(&mut self, ui: &mut egui::Ui) {
+        let idle = !self.active;
+        let connected = self.devices.connected;
+        let can = idle && connected && !self.device_pending;
+        ui.horizontal(|ui| {
+            if ui
+                .add_enabled(
+                    idle && !connected && !self.device_pending,
+                    egui::Button::new("Connect"),
+                )
+                .on_hover_text(if self.hardware {
+                    "connect the stage and the camera given on the command line"
+                } else {
+                    "start the simulated devices of the plan's [simulation] section"
+                })
+                .clicked()
+            {
+                self.device(Command::Connect {
+                    plan_text: self.plan_text.clone(),
+                    exposure_us: self.exposure_us,
+                    gain: self.gain,
+                });
+            }
+            if ui
+                .add_enabled(can, egui::Button::new("Disconnect"))
+                .clicked()
+            {
+                self.device(Command::Disconnect);
+            }
+            if ui.add_enabled(can, egui::Button::new("Home")).clicked() {
+                self.device(Command::Home);
+            }
+            if self.device_pending {
+                ui.spinner();
+            }
+        });
+        let d = &self.devices;
+        ui.label(format!(
+            "Devices: {}",
+            if self.active && d.connected {
+                "held by the run"
+            } else {
+                d.description.as_str()
+            }
+        ));
+        if let (Some(s), Some(a)) = (d.stage_deg, d.analyzer_deg) {
+            ui.label(format!("Stage at {s:.3} deg; analyzer at {a:.3} deg"));
+        }
+        let settings = match (d.exposure_us, d.gain) {
+            (Some(e), Some(g)) => format!("Camera: exposure {e:.1} us, gain {g:.2}"),
+            (Some(e), None) => format!("Camera: exposure {e:.1} us"),
+            _ => "Camera: settings not read yet (set them or take a snapshot)".into(),
+        };
+        ui.label(settings);
+        if let Some(e) = &d.error {
+            ui.colored_label(ui.visuals().error_fg_color, format!("Device error: {e}"));
+        }
+        let (exp_range, gain_range) = (
+            d.exposure_range_us.unwrap_or([1.0, 1e7]),
+            d.gain_range.unwrap_or([0.0, 48.0]),
+        );
+        egui::Grid::new("device controls")
+            .num_columns(3)
+            .show(ui, |ui| {
+                let l = ui.label("Analyzer angle (deg)");
+                ui.add(
+                    egui::DragValue::new(&mut self.move_deg)
+                        .range(0.0..=180.0)
+                        .speed(0.5),
+                )
+                .labelled_by(l.id);
+                if ui.add_enabled(can, egui::Button::new("Move")).clicked() {
+                    self.device(Command::MoveAnalyzer {
+                        angle_deg: self.move_deg,
+                    });
+                }
+                ui.end_row();
+                let l = ui.label("Exposure (us)");
+                ui.add(
+                    egui::DragValue::new(&mut self.exposure_us)
+                        .range(exp_range[0]..=exp_range[1])
+                        .speed(5.0),
+                )
+                .labelled_by(l.id);
+                if ui
+                    .add_enabled(can, egui::Button::new("Set exposure"))
+                    .clicked()
+                {
+                    self.device(Command::SetExposure {
+                        exposure_us: self.exposure_us,
+                    });
+                }
+                ui.end_row();
+                let l = ui.label("Gain");
+                ui.add(
+                    egui::DragValue::new(&mut self.gain)
+                        .range(gain_range[0]..=gain_range[1])
+                        .speed(0.1),
+                )
+                .labelled_by(l.id);
+                if ui.add_enabled(can, egui::Button::new("Set gain")).clicked() {
+                    self.device(Command::SetGain { gain: self.gain });
+                }
+                ui.end_row();
+            });
+        if ui.add_enabled(can, egui::Button::new("Snapshot")).clicked() {
+            self.device(Command::Snapshot);
+        }
+        if let Some((snap, tex, range)) = &mut self.snapshot {
+            let (w, h) = (snap.width as usize, snap.height as usize);
+            if tex.is_none() && w * h == snap.pixels.len() && w * h > 0 {
+                let mut rgb = Vec::with_capacity(w * h * 3);
+                for &p in &snap.pixels {
+                    rgb.extend_from_slice(&colour::scalar(f32::from(p), range.0, range.1));
+                }
+                let img = egui::ColorImage::from_rgb([w, h], &rgb);
+                *tex = Some(
+                    ui.ctx()
+                        .load_texture("snapshot", img, egui::TextureOptions::NEAREST),
+                );
+            }
+            let mean = snap.pixels.iter().map(|&p| f64::from(p)).sum::<f64>()
+                / snap.pixels.len().max(1) as f64;
+            ui.label(format!(
+                "Snapshot: frame {}, {}x{}, exposure {:.1} us, mean {mean:.1} DN (viridis {:.0} .. {:.0} DN)",
+                snap.frame_id, w, h, snap.exposure_us, range.0, range.1
+            ));
+            if let Some(t) = tex {
+                let scale = ((ui.available_width() - 16.0).max(64.0) / w as f32).min(6.0);
+                let size = egui::vec2(w as f32 * scale, h as f32 * scale);
+                ui.add(
+                    egui::Image::from_texture((t.id(), size))
+                        .fit_to_exact_size(size)
+                        .alt_text("snapshot image"),
+                );
+            }
+        }
+    }
+
+    fn controls(&mut self, ui: &mut egui::Ui) {
+        let paused = matches!(self.status, Status::Run(RunState::Paused(_)));
+        let running = matches!(
+            self.status,
+            Status::Run(RunState::Running | RunState::Pausing)
+        );
+        ui.horizontal(|ui| {
+            ui.label(match (self.devices.connected, self.hardware) {
+                (true, _) => "Devices: connected",
+                (false, true) => "Devices: hardware, connected at start",
+                (false, false) => "Devices: simulated rig per run",
+            });
+            if ui
+                .add_enabled(!self.active, egui::Button::new("Start"))
+                .clicked()
+            {
+                self.start();
+            }
+            if ui
+                .add_enabled(self.active && running, egui::Button::new("Pause"))
+                .clicked()
+            {
+                self.control(Control::Pause);
+            }
+            if ui
+                .add_enabled(self.active && running, egui::Button::new("Pause now"))
+                .clicked()
+            {
+                self.control(Control::PauseNow);
+            }
+            if ui
+                .add_enabled(self.active && paused, egui::Button::new("Resume"))
+                .clicked()
+            {
+                self.control(Control::Resume);
+            }
+            if ui
+                .add_enabled(self.active && paused, egui::Button::new("Abort"))
+                .clicked()
+            {
+                self.control(Control::Abort);
+            }
+            ui.separator();
+            ui.label(self.status.text());
+        });
+        let frac = if self.planned > 0 {
+            self.done as f32 / self.planned as f32
+        } else {
+            0.0
+        };
+        ui.add(
+            egui::ProgressBar::new(frac.clamp(0.0, 1.0))
+                .text(format!("{}/{} frames", self.done, self.planned)),
+        );
+    }
+
+    fn plan_panel(&mut self, ui: &mut egui::Ui) {
+        let label = ui.label("Plan (TOML)");
+        egui::ScrollArea::vertical()
+            .id_salt("plan editor")
+            .max_height(ui.available_height() * 0.45)
+            .show(ui, |ui| {
+                ui.add_enabled(
+                    !self.active,
+                    egui::TextEdit::multiline(&mut self.plan_text)
+                        .code_editor()
+                        .desired_width(f32::INFINITY)
+                        .desired_rows(14),
+                )
+                .labelled_by(label.id);
+            });
+        ui.separator();
+        ui.label("Forecast");
+        match &self.forecast {
+            Some(Ok(f)) => {
+                ui.label(f.as_str());
+            }
+            Some(Err(e)) => {
+                ui.colored_label(ui.visuals().error_fg_color, format!("plan error: {e}"));
+            }
+            None => {
+                ui.label("...");
+            }
+        }
+        ui.separator();
+        ui.label("Log");
+        egui::ScrollArea::vertical()
+            .id_salt("log")
+            .stick_to_bottom(true)
+            .show(ui, |ui| {
+                for l in &self.log {
+                    ui.label(egui::RichText::new(l.as_str()).monospace().small());
+                }
+            });
+    }
+
+    fn live_view(&mut self, ui: &mut egui::Ui) {
+        ui.horizontal(|ui| {
+            ui.label("Show");
+            for v in View::ALL {
+                ui.selectable_value(&mut self.view, v, v.label());
+            }
+        });
+        let Some(live) = &self.live else {
+            ui.label("No products yet: they appear after the first accepted set.");
+            return;
+        };
+        let key = self.products_received;
+        let fresh = matches!(&self.texture, Some((_, v, k)) if *v == self.view && *k == key);
+        if !fresh {
+            self.rendered = render(live, self.view);
+            self.texture = self.rendered.as_ref().map(|r| {
+                let img = egui::ColorImage::from_rgb([r.width, r.height], &r.rgb);
+                (
+                    ui.ctx()
+                        .load_texture("live view", img, egui::TextureOptions::NEAREST),
+                    self.view,
+                    key,
+                )
+            });
+        }
+        let (Some((tex, _, _)), Some(r)) = (&self.texture, &self.rendered) else {
+            ui.label(format!("{} is not available yet", self.view.label()));
+            return;
+        };
+        ui.label(format!(
+            "set {} (slot {})",
+            live.set.map_or("?".into(), |s| s.to_string()),
+            live.slot
+        ));
+        let avail = ui.available_width().max(64.0) - 180.0;
+        let scale = (avail.max(64.0) / r.width as f32).min(6.0);
+        let size = egui::vec2(r.width as f32 * scale, r.height as f32 * scale);
+        let mut probe_line = None;
+        ui.horizontal_top(|ui| {
+            let resp = ui.add(
+                egui::Image::from_texture((tex.id(), size))
+                    .fit_to_exact_size(size)
+                    .alt_text(format!("{} image", self.view.label()))
+                    .sense(egui::Sense::hover()),
+            );
+            if let Some(pos) = resp.hover_pos() {
+                let x = ((pos.x - resp.rect.min.x) / scale).floor();
+                let y = ((pos.y - resp.rect.min.y) / scale).floor();
+                if x >= 0.0 && y >= 0.0 {
+                    self.probe = Some((x as usize, y as usize));
+                }
+            }
+            ui.vertical(|ui| {
+                colour_bar(ui, self.view, r);
+                ui.separator();
+                ui.label("Pixel probe");
+                probe_line = self.probe.and_then(|(x, y)| probe_text(live, x, y));
+                ui.label(
+                    egui::RichText::new(
+                        probe_line
+                            .as_deref()
+                            .unwrap_or("hover over the image")
+                            .to_string(),
+                    )
+                    .monospace(),
+                );
+            });
+        });
+        ui.label(format!("Histogram of {}", self.view.label()));
+        histogram(ui, self.view, r);
+    }
+}
+
+/// The colour of a value at fraction `t` of the view's scale.
+fn scale_colour(view: View, t: f32) -> egui::Color32 {
+    let c = if view == View::Aop {
+        colour::hsv(t, 1.0, colour::AOP_VALUE)
+    } else {
+        colour::viridis(t)
+    };
+    egui::Color32::from_rgb(c[0], c[1], c[2])
+}
+
+fn colour_bar(ui: &mut egui::Ui, view: View, r: &Rendered) {
+    let unit = view.unit();
+    ui.label(format!("{} {}", view.label(), unit));
+    let (rect, _) = ui.allocate_exact_size(egui::vec2(160.0, 14.0), egui::Sense::hover());
+    let n = 64;
+    for i in 0..n {
+        let t0 = i as f32 / n as f32;
+        let t1 = (i + 1) as f32 / n as f32;
+        let rr = egui::Rect::from_min_max(
+            egui::pos2(rect.left() + rect.width() * t0, rect.top()),
+            egui::pos2(rect.left() + rect.width() * t1, rect.bottom()),
+        );
+        ui.painter()
+            .rect_filled(rr, 0.0, scale_colour(view, (t0 + t1) / 2.0));
+    }
+    ui.label(format!("{:.4} .. {:.4} {unit}", r.range.0, r.range.1));
+    if let Some(full) = r.dolp_full {
+        ui.label("saturation: DoLP");
+        let (rect, _) = ui.allocate_exact_size(egui::vec2(160.0, 14.0), egui::Sense::hover());
+        for i in 0..n {
+            let t0 = i as f32 / n as f32;
+            let t1 = (i + 1) as f32 / n as f32;
+            let rr = egui::Rect::from_min_max(
+                egui::pos2(rect.left() + rect.width() * t0, rect.top()),
+                egui::pos2(rect.left() + rect.width() * t1, rect.bottom()),
+            );
+            let c = colour::hsv(0.0, (t0 + t1) / 2.0, colour::AOP_VALUE);
+            ui.painter()
+                .rect_filled(rr, 0.0, egui::Color32::from_rgb(c[0], c[1], c[2]));
+        }
+        ui.label(format!("DoLP 0 .. {full:.3}"));
+    }
+}
+
+fn histogram(ui: &mut egui::Ui, view: View, r: &Rendered) {
+    let (lo, hi) = r.range;
+    let counts = colour::histogram(&r.values, lo, hi, HIST_BINS);
+    let max = counts.iter().copied().max().unwrap_or(0).max(1) as f32;
+    let width = ui.available_width().clamp(120.0, 480.0);
+    let (rect, _) = ui.allocate_exact_size(egui::vec2(width, 80.0), egui::Sense::hover());
+    ui.painter()
+        .rect_filled(rect, 0.0, ui.visuals().extreme_bg_color);
+    let bw = rect.width() / HIST_BINS as f32;
+    for (i, &c) in counts.iter().enumerate() {
+        let h = rect.height() * c as f32 / max;
+        let bar = egui::Rect::from_min_max(
+            egui::pos2(rect.left() + i as f32 * bw, rect.bottom() - h),
+            egui::pos2(rect.left() + (i + 1) as f32 * bw - 1.0, rect.bottom()),
+        );
+        let t = (i as f32 + 0.5) / HIST_BINS as f32;
+        ui.painter().rect_filled(bar, 0.0, scale_colour(view, t));
+    }
+    ui.label(format!(
+        "{lo:.4} .. {hi:.4} {} ({} finite pixels)",
+        view.unit(),
+        r.values.iter().filter(|v| v.is_finite()).count()
+    ));
+}
+
+impl eframe::App for App {
+    fn logic(&mut self, _ctx: &egui::Context, _frame: &mut eframe::Frame) {
+        // Also while the window is hidden, so the engine's replies never back up.
+        self.poll();
+    }
+
+    fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
+        self.show(ui);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use polar_engine::products::Products;
+
+    fn live(w: u32, h: u32) -> LiveProducts {
+        let n = (w * h) as usize;
+        let ramp: Vec<f32> = (0..n).map(|i| i as f32).collect();
+        LiveProducts {
+            slot: 0,
+            set: Some(0),
+            products: Products {
+                width: w,
+                height: h,
+                s0: ramp.clone(),
+                s1: vec![1.0; n],
+                s2: vec![0.0; n],
+                dolp: vec![0.5; n],
+                aop_rad: vec![0.1; n],
+                sigma_s0: vec![2.0; n],
+                sigma_s1: vec![2.0; n],
+                sigma_s2: vec![2.0; n],
+                sigma_dolp: vec![0.01; n],
+                sigma_aop_rad: vec![0.02; n],
+                saturated: 0,
+            },
+            raw: Some(vec![100; n]),
+        }
+    }
+
+    /// Every view renders to `width * height` RGB pixels; the probe names the pixel.
+    #[test]
+    fn views_render_and_probe() {
+        let l = live(8, 4);
+        for v in View::ALL {
+            let r = render(&l, v).unwrap();
+            assert_eq!(r.rgb.len(), 8 * 4 * 3, "{v:?}");
+        }
+        let t = probe_text(&l, 3, 2).unwrap();
+        assert!(t.contains("pixel (3, 2)"), "{t}");
+        assert!(t.contains("S0 = 19.0 +/- 2.0 DN"), "{t}");
+        assert!(probe_text(&l, 8, 0).is_none());
+    }
+
+    /// The status label's texts.
+    #[test]
+    fn status_texts() {
+        assert_eq!(Status::Run(RunState::Running).text(), "State: Running");
+        assert_eq!(
+            Status::Run(RunState::Paused("x".into())).text(),
+            "State: Paused: x"
+        );
+        assert_eq!(Status::Run(RunState::Done).text(), "State: Done");
+    }
+
+    /// The default plan parses and has a forecast.
+    #[test]
+    fn default_plan_forecast() {
+        let f = engine::forecast_text(DEFAULT_PLAN).unwrap();
+        assert!(f.contains("13 frames"), "{f}");
+    }
+}

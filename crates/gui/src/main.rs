@@ -1,0 +1,373 @@
+//! `polarimeter-gui [--simulate] [--out DIR] [--plan FILE] [--screenshots DIR]`: the plan
+//! runner, device panel, live view, planner and rooftop panels.
+
+use eframe::egui;
+use polar_cli::acquire::Hardware;
+use polar_cli::devices::Dialect;
+use polar_gui::engine::Devices;
+use polar_gui::{App, Status, Tab, View};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+const USAGE: &str =
+    "usage: polarimeter-gui [--simulate | HARDWARE] [--out DIR] [--plan FILE] [--screenshots DIR]
+
+  --simulate         drive the simulated devices (the default without HARDWARE)
+  HARDWARE           real devices, as `polarimeter run`: all of
+                       --port PATH --dialect native|elliptec --camera genicam:ID|v4l:NAME
+                       --camera-file FILE, and optionally --address N (Elliptec, 0..=15)
+                       and --zero-offset-deg X (from a calibrate-analyzer run)
+  --out DIR          base folder of the run directories (default: the current folder)
+  --plan FILE        open this plan (TOML) in the editor
+  --screenshots DIR  run the plan, then save PNGs of the live view, the device, planner and
+                     rooftop panels into DIR and quit (CI runs this under Xvfb)";
+
+/// How long the screenshot tour may take before it gives up.
+const TOUR_LIMIT: Duration = Duration::from_secs(180);
+
+fn main() -> std::process::ExitCode {
+    let mut args = std::env::args().skip(1);
+    let mut out = PathBuf::from(".");
+    let mut plan: Option<String> = None;
+    let mut shots: Option<PathBuf> = None;
+    let mut simulate = false;
+    let mut hw = HardwareFlags::default();
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--simulate" => simulate = true,
+            "--port" | "--dialect" | "--camera" | "--camera-file" | "--address"
+            | "--zero-offset-deg" => match args.next() {
+                Some(v) => {
+                    if let Err(e) = hw.set(&a, &v) {
+                        return usage(&e);
+                    }
+                }
+                None => return usage(&format!("{a} needs a value")),
+            },
+            "--out" => match args.next() {
+                Some(d) => out = PathBuf::from(d),
+                None => return usage("--out needs a folder"),
+            },
+            "--plan" => match args.next() {
+                Some(f) => match std::fs::read_to_string(&f) {
+                    Ok(t) => plan = Some(t),
+                    Err(e) => return usage(&format!("--plan {f}: {e}")),
+                },
+                None => return usage("--plan needs a file"),
+            },
+            "--screenshots" => match args.next() {
+                Some(d) => shots = Some(PathBuf::from(d)),
+                None => return usage("--screenshots needs a folder"),
+            },
+            "-h" | "--help" => {
+                println!("{USAGE}");
+                return std::process::ExitCode::SUCCESS;
+            }
+            other => return usage(&format!("unknown argument {other:?}")),
+        }
+    }
+    let devices = match hw.devices() {
+        Ok(None) => Devices::Simulated,
+        Ok(Some(_)) if simulate => {
+            return usage("--simulate and the hardware flags exclude each other")
+        }
+        Ok(Some(h)) => Devices::Hardware(h),
+        Err(e) => return usage(&e),
+    };
+    if let Some(d) = &shots {
+        if let Err(e) = std::fs::create_dir_all(d) {
+            return usage(&format!("--screenshots {}: {e}", d.display()));
+        }
+    }
+    let options = eframe::NativeOptions {
+        viewport: egui::ViewportBuilder::default()
+            .with_title("polarimeter")
+            .with_inner_size([1280.0, 860.0]),
+        ..Default::default()
+    };
+    let report: Arc<Mutex<Vec<Result<PathBuf, String>>>> = Arc::default();
+    let tour_report = report.clone();
+    let result = eframe::run_native(
+        "polarimeter-gui",
+        options,
+        Box::new(move |cc| {
+            let mut app = App::new_on(out, devices, Some(cc.egui_ctx.clone()))?;
+            if let Some(p) = plan {
+                app.plan_text = p;
+            }
+            let tour = shots.map(|dir| Tour::new(dir, tour_report));
+            Ok(Box::new(Gui { app, tour }))
+        }),
+    );
+    if let Err(e) = result {
+        eprintln!("polarimeter-gui: {e}");
+        return std::process::ExitCode::FAILURE;
+    }
+    let report = report.lock().map(|r| r.clone()).unwrap_or_default();
+    let mut failed = false;
+    for r in &report {
+        match r {
+            Ok(p) => println!("saved {}", p.display()),
+            Err(e) => {
+                eprintln!("polarimeter-gui: {e}");
+                failed = true;
+            }
+        }
+    }
+    if failed {
+        std::process::ExitCode::FAILURE
+    } else {
+        std::process::ExitCode::SUCCESS
+    }
+}
+
+/// The hardware flags as given.
+#[derive(Debug, Default)]
+struct HardwareFlags {
+    port: Option<String>,
+    dialect: Option<Dialect>,
+    camera: Option<String>,
+    camera_file: Option<PathBuf>,
+    address: u8,
+    zero_offset_deg: f64,
+}
+
+impl HardwareFlags {
+    /// Takes `flag`'s `value`; the error names the flag, the value and what is allowed.
+    fn set(&mut self, flag: &str, value: &str) -> Result<(), String> {
+        match flag {
+            "--port" => self.port = Some(value.to_string()),
+            "--camera" => self.camera = Some(value.to_string()),
+            "--camera-file" => self.camera_file = Some(PathBuf::from(value)),
+            "--dialect" => {
+                self.dialect = Some(Dialect::from_name(value).ok_or_else(|| {
+                    format!("--dialect = {value:?} is invalid: allowed native, elliptec")
+                })?)
+            }
+            "--address" => {
+                self.address = value
+                    .parse::<u8>()
+                    .ok()
+                    .filter(|a| *a <= 15)
+                    .ok_or_else(|| format!("--address = {value:?} is invalid: allowed 0..=15"))?
+            }
+            _ => {
+                self.zero_offset_deg = value
+                    .parse::<f64>()
+                    .ok()
+                    .filter(|v| v.is_finite())
+                    .ok_or_else(|| {
+                        format!("--zero-offset-deg = {value:?} is invalid: allowed a finite angle")
+                    })?
+            }
+        }
+        Ok(())
+    }
+
+    /// The hardware, if any flag was given (then all of the required ones must be).
+    fn devices(&self) -> Result<Option<Hardware>, String> {
+        match (&self.port, self.dialect, &self.camera, &self.camera_file) {
+            (None, None, None, None) => Ok(None),
+            (Some(port), Some(dialect), Some(camera), Some(camera_file)) => Ok(Some(Hardware {
+                port: port.clone(),
+                dialect,
+                address: self.address,
+                camera: camera.clone(),
+                camera_file: camera_file.clone(),
+                zero_offset_deg: self.zero_offset_deg,
+            })),
+            _ => Err("hardware needs all of --port, --dialect, --camera and --camera-file".into()),
+        }
+    }
+}
+
+fn usage(msg: &str) -> std::process::ExitCode {
+    eprintln!("polarimeter-gui: {msg}\n{USAGE}");
+    std::process::ExitCode::from(2)
+}
+
+/// The window: the app, and the screenshot tour when asked for.
+struct Gui {
+    app: App,
+    tour: Option<Tour>,
+}
+
+impl eframe::App for Gui {
+    fn logic(&mut self, ctx: &egui::Context, frame: &mut eframe::Frame) {
+        eframe::App::logic(&mut self.app, ctx, frame);
+    }
+
+    fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
+        self.app.show(ui);
+        if let Some(t) = &mut self.tour {
+            t.step(ui.ctx(), &mut self.app);
+        }
+    }
+}
+
+/// The screenshot tour: run the plan, then photograph each tab.
+struct Tour {
+    dir: PathBuf,
+    started: Instant,
+    /// The shot being prepared (index into [`SHOTS`]); `SHOTS.len()` once all are asked for.
+    next: usize,
+    /// Frames drawn since the tab changed (a shot waits for a few, so textures are up).
+    settle: u32,
+    /// Shots asked for and not yet saved.
+    pending: Arc<Mutex<u32>>,
+    report: Arc<Mutex<Vec<Result<PathBuf, String>>>>,
+    run_started: bool,
+    /// Where the device panel's preparation is (see [`Tour::devices_ready`]).
+    device_step: u8,
+}
+
+/// The shots: file name, tab, live view.
+const SHOTS: [(&str, Tab, View); 4] = [
+    ("gui-live-aop.png", Tab::Live, View::Aop),
+    ("gui-devices.png", Tab::Devices, View::Aop),
+    ("gui-planner.png", Tab::Planner, View::Aop),
+    ("gui-rooftop.png", Tab::Rooftop, View::Aop),
+];
+
+impl Tour {
+    fn new(dir: PathBuf, report: Arc<Mutex<Vec<Result<PathBuf, String>>>>) -> Tour {
+        Tour {
+            dir,
+            started: Instant::now(),
+            next: 0,
+            settle: 0,
+            pending: Arc::default(),
+            report,
+            run_started: false,
+            device_step: 0,
+        }
+    }
+
+    fn fail(&self, ctx: &egui::Context, why: String) {
+        if let Ok(mut r) = self.report.lock() {
+            r.push(Err(why));
+        }
+        ctx.send_viewport_cmd(egui::ViewportCommand::Close);
+    }
+
+    fn step(&mut self, ctx: &egui::Context, app: &mut App) {
+        ctx.request_repaint_after(Duration::from_millis(50));
+        if self.started.elapsed() > TOUR_LIMIT {
+            self.fail(
+                ctx,
+                format!(
+                    "screenshots: gave up after {TOUR_LIMIT:?}; state {:?}",
+                    app.status()
+                ),
+            );
+            self.tour_over();
+            return;
+        }
+        if !self.run_started {
+            app.start_run();
+            self.run_started = true;
+            return;
+        }
+        match app.status() {
+            Status::Run(polar_engine::run::RunState::Done) if app.live().is_some() => {}
+            Status::Failed(e) => {
+                let e = e.clone();
+                self.fail(ctx, format!("screenshots: the run failed: {e}"));
+                self.tour_over();
+                return;
+            }
+            _ => return,
+        }
+        if self.next < SHOTS.len() {
+            let (name, tab, view) = SHOTS[self.next];
+            app.set_tab(tab);
+            app.set_view(view);
+            if tab == Tab::Devices && !self.devices_ready(app) {
+                return;
+            }
+            self.settle += 1;
+            if self.settle < 8 {
+                return;
+            }
+            self.settle = 0;
+            self.next += 1;
+            let path = self.dir.join(name);
+            let report = self.report.clone();
+            let pending = self.pending.clone();
+            if let Ok(mut p) = pending.lock() {
+                *p += 1;
+            }
+            let wake = ctx.clone();
+            ctx.request_screenshot(move |image| {
+                let r = save_png(&path, &image).map(|()| path.clone());
+                if let Ok(mut rep) = report.lock() {
+                    rep.push(r);
+                }
+                if let Ok(mut p) = pending.lock() {
+                    *p = p.saturating_sub(1);
+                }
+                wake.request_repaint();
+            });
+            return;
+        }
+        if self.pending.lock().map_or(true, |p| *p == 0) {
+            ctx.send_viewport_cmd(egui::ViewportCommand::Close);
+            self.tour_over();
+        }
+    }
+
+    /// For the device panel's shot: connect, turn the analyzer to 60 deg, take a snapshot.
+    fn devices_ready(&mut self, app: &mut App) -> bool {
+        use polar_gui::engine::Command;
+        let d = app.devices().clone();
+        // Each command is sent once its precondition holds (a full queue tries again next
+        // frame).
+        let send = match self.device_step {
+            0 => Some(Command::Connect {
+                plan_text: app.plan_text.clone(),
+                exposure_us: 250.0,
+                gain: 0.0,
+            }),
+            1 if d.connected => Some(Command::MoveAnalyzer { angle_deg: 60.0 }),
+            2 if d.analyzer_deg.is_some_and(|a| (a - 60.0).abs() < 0.1) => Some(Command::Snapshot),
+            3 if app.snapshot().is_some() => {
+                self.device_step = 4;
+                None
+            }
+            _ => None,
+        };
+        if let Some(cmd) = send {
+            if app.device_command(cmd) {
+                self.device_step += 1;
+            }
+        }
+        self.device_step >= 4
+    }
+
+    fn tour_over(&mut self) {
+        self.next = usize::MAX;
+    }
+}
+
+/// Writes `image` (sRGB with alpha) as an 8-bit RGBA PNG.
+fn save_png(path: &Path, image: &egui::ColorImage) -> Result<(), String> {
+    let [w, h] = image.size;
+    let mut rgba = Vec::with_capacity(w * h * 4);
+    for c in &image.pixels {
+        rgba.extend_from_slice(&c.to_srgba_unmultiplied());
+    }
+    let file = std::fs::File::create(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), w as u32, h as u32);
+    enc.set_color(png::ColorType::Rgba);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut writer = enc
+        .write_header()
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    writer
+        .write_image_data(&rgba)
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    writer
+        .finish()
+        .map_err(|e| format!("{}: {e}", path.display()))
+}

@@ -1,0 +1,326 @@
+//! The panels driven by their labels with egui_kittest, headless (no window, no GPU): start
+//! a simulated run, pause, resume, and check the state, the progress and the live products.
+#![allow(clippy::unwrap_used)]
+
+use eframe::egui;
+use egui_kittest::kittest::Queryable;
+use egui_kittest::Harness;
+use polar_engine::run::RunState;
+use polar_gui::{App, Status};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+fn temp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("polar-gui-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+fn harness(app: App) -> Harness<'static, App> {
+    Harness::builder()
+        .with_size(egui::vec2(1200.0, 900.0))
+        .build_ui_state(|ui, app: &mut App| app.show(ui), app)
+}
+
+/// Steps the harness until `done` holds, for at most `limit`.
+fn step_until(
+    h: &mut Harness<'static, App>,
+    limit: Duration,
+    what: &str,
+    done: impl Fn(&Harness<'static, App>) -> bool,
+) {
+    let t0 = Instant::now();
+    while !done(h) {
+        assert!(
+            t0.elapsed() < limit,
+            "waited {limit:?} for {what}; state {:?}; log:\n{}",
+            h.state().status(),
+            h.state().log_lines().collect::<Vec<_>>().join("\n")
+        );
+        h.step();
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+fn label_shows(h: &Harness<'static, App>, text: &str) -> bool {
+    h.query_all_by_label_contains(text).next().is_some()
+}
+
+/// Start, pause, resume: the state label follows the run, the run takes every planned
+/// frame, and a product image arrives.
+#[test]
+fn start_pause_resume_done() {
+    let dir = temp_dir("run");
+    let app = App::new(dir.clone(), None).unwrap();
+    let mut h = harness(app);
+    h.step();
+    assert!(label_shows(&h, "State: Idle"));
+    // The forecast of the default plan.
+    step_until(&mut h, Duration::from_secs(20), "the forecast", |h| {
+        h.state().forecast().is_some()
+    });
+    assert!(matches!(h.state().forecast(), Some(Ok(_))));
+
+    h.get_by_label("Start").click();
+    step_until(&mut h, Duration::from_secs(30), "Running", |h| {
+        label_shows(h, "State: Running")
+    });
+    h.get_by_label("Pause").click();
+    step_until(&mut h, Duration::from_secs(30), "Paused", |h| {
+        label_shows(h, "State: Paused")
+    });
+    assert!(matches!(
+        h.state().status(),
+        Status::Run(RunState::Paused(_))
+    ));
+    let (done_at_pause, planned) = h.state().progress();
+    assert!(done_at_pause < planned, "{done_at_pause} of {planned}");
+    h.get_by_label("Resume").click();
+    step_until(&mut h, Duration::from_secs(30), "Done", |h| {
+        label_shows(h, "State: Done")
+    });
+    // Let the last replies in.
+    h.run_steps(3);
+    let app = h.state();
+    assert_eq!(app.status(), &Status::Run(RunState::Done));
+    let (done, planned) = app.progress();
+    assert_eq!(planned, 13);
+    assert_eq!(done, planned);
+    assert!(app.products_received() >= 1);
+    let live = app.live().unwrap();
+    assert_eq!(live.products.s0.len(), 96 * 72);
+    assert!(live.products.s0.iter().any(|v| v.is_finite() && *v > 0.0));
+    assert!(live.raw.is_some());
+    assert!(label_shows(&h, "13/13 frames"));
+    assert!(h.state().log_lines().any(|l| l.contains("accepted")));
+
+    // The live view: the pixel probe under the pointer, and AoP with its DoLP key.
+    h.get_by_label("S0 image").hover();
+    h.run_steps(2);
+    assert!(label_shows(&h, "pixel ("));
+    assert!(label_shows(&h, "S1 = "));
+    h.get_by_label("AoP").click();
+    h.run_steps(2);
+    assert!(label_shows(&h, "AoP image"));
+    assert!(label_shows(&h, "saturation: DoLP"));
+    h.get_by_label("Raw frame").click();
+    h.run_steps(2);
+    assert!(label_shows(&h, "Raw frame image"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A plan that does not parse: the error is shown and nothing runs.
+#[test]
+fn bad_plan_shows_error() {
+    let dir = temp_dir("bad");
+    let mut app = App::new(dir.clone(), None).unwrap();
+    app.plan_text = "kind = \"nonsense\"".into();
+    let mut h = harness(app);
+    h.step();
+    h.get_by_label("Start").click();
+    step_until(&mut h, Duration::from_secs(10), "Failed", |h| {
+        label_shows(h, "State: Failed")
+    });
+    assert!(!h.state().is_active());
+    assert!(label_shows(&h, "plan error"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The live view's selector switches between the images by their labels.
+#[test]
+fn view_selector_by_label() {
+    let dir = temp_dir("views");
+    let app = App::new(dir.clone(), None).unwrap();
+    let mut h = harness(app);
+    h.step();
+    for v in ["AoP", "DoLP", "sigma S0", "Raw frame", "S0"] {
+        h.get_by_label(v).click();
+        h.step();
+        h.step();
+    }
+    assert!(label_shows(&h, "No products yet"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The device panel by its labels: connect the simulated devices, move the analyzer, set the
+/// exposure, take a snapshot; then a run takes the devices over and releases them.
+#[test]
+fn devices_connect_move_snapshot_then_run() {
+    let dir = temp_dir("devices");
+    let app = App::new(dir.clone(), None).unwrap();
+    let mut h = harness(app);
+    h.step();
+    h.get_by_label("Devices").click();
+    h.run_steps(2);
+    assert!(label_shows(&h, "Devices: not connected"));
+    h.get_by_label("Connect").click();
+    step_until(&mut h, Duration::from_secs(30), "connected", |h| {
+        h.state().devices().connected
+    });
+    // Homed at connect: the stage reads 0 deg (the simulated stage has no zero offset).
+    let d = h.state().devices().clone();
+    assert!(d.error.is_none(), "{d:?}");
+    let stage = d.stage_deg.unwrap();
+    assert!(stage.abs() < 0.01, "stage at {stage} deg after homing");
+
+    // Move to the default 45 deg: the analyzer reads it back within the stage's tolerance
+    // (5 counts of 144000 per turn = 0.0125 deg).
+    h.get_by_label("Move").click();
+    step_until(&mut h, Duration::from_secs(30), "the move", |h| {
+        h.state()
+            .devices()
+            .analyzer_deg
+            .is_some_and(|a| (a - 45.0).abs() < 0.0125)
+    });
+    assert!(label_shows(&h, "analyzer at 45.0"));
+
+    // Exposure: the camera applies what was asked (250 us is inside its range).
+    h.get_by_label("Set exposure").click();
+    h.step();
+    step_until(&mut h, Duration::from_secs(30), "the exposure", |h| {
+        !h.state().device_pending()
+            && h.state()
+                .log_lines()
+                .any(|l| l.contains("exposure 250.0 us"))
+    });
+    let e = h.state().devices().exposure_us.unwrap();
+    assert!((e - 250.0).abs() < 1.0, "exposure {e} us");
+
+    h.get_by_label("Snapshot").click();
+    step_until(&mut h, Duration::from_secs(30), "the snapshot", |h| {
+        h.state().snapshot().is_some()
+    });
+    let s = h.state().snapshot().unwrap();
+    assert_eq!(s.pixels.len(), (s.width * s.height) as usize);
+    // The scene is lit: the frame's mean is well above the dark offset (a few DN).
+    let mean = s.pixels.iter().map(|&p| f64::from(p)).sum::<f64>() / s.pixels.len() as f64;
+    assert!(mean > 20.0, "snapshot mean {mean} DN");
+    h.run_steps(2);
+    assert!(label_shows(&h, "snapshot image"));
+
+    // A run on the connected devices; the devices are released when it ends.
+    h.get_by_label("Start").click();
+    step_until(&mut h, Duration::from_secs(60), "Done", |h| {
+        label_shows(h, "State: Done")
+    });
+    step_until(&mut h, Duration::from_secs(10), "released", |h| {
+        !h.state().devices().connected
+    });
+    assert!(h
+        .state()
+        .log_lines()
+        .any(|l| l.contains("on the connected devices")));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A device command without devices: the engine answers with an error naming the command,
+/// and the UI thread never waits for it.
+#[test]
+fn device_command_without_devices_is_refused() {
+    use polar_gui::engine::{Command, EngineHandle, Reply};
+    let dir = temp_dir("nodev");
+    let mut engine = EngineHandle::spawn(dir.clone(), None).unwrap();
+    assert!(engine.send(Command::MoveAnalyzer { angle_deg: 30.0 }));
+    let t0 = Instant::now();
+    let reply = loop {
+        if let Some(r) = engine.try_recv() {
+            break r;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(10), "no reply");
+        std::thread::sleep(Duration::from_millis(5));
+    };
+    match reply {
+        Reply::Devices(d) => {
+            assert!(!d.connected);
+            let e = d.error.unwrap();
+            assert!(
+                e.contains("MoveAnalyzer") && e.contains("connect the devices first"),
+                "{e}"
+            );
+        }
+        other => panic!("expected a device status, got {other:?}"),
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The hardware path (`--port --dialect --camera --camera-file`), on our stage's simulator
+/// behind a real pseudo-terminal and the CLI's simulated camera: connect by label, move, then a
+/// run whose dark frame pauses for the operator to cap the lens (as on real hardware) and
+/// goes on after Resume.
+#[test]
+fn hardware_flags_path_on_a_simulated_stage() {
+    use polar_cli::acquire::Hardware;
+    use polar_cli::devices::Dialect;
+    use polar_engine::plan::Plan;
+    use polar_engine::sim::SimRig;
+    use polar_gui::engine::Devices;
+
+    let dir = temp_dir("hardware");
+    std::fs::create_dir_all(&dir).unwrap();
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let plan = Plan::from_toml_str(polar_gui::DEFAULT_PLAN).unwrap();
+    let (stage, camera) = {
+        let _g = rt.enter();
+        SimRig::start(&plan, std::path::Path::new("."), &dir.join("stage")).unwrap()
+    };
+    drop(camera); // the stage's server is what this test needs
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let hw = Hardware {
+        port: stage.link.display().to_string(),
+        dialect: Dialect::Native,
+        address: 0,
+        camera: "sim".into(),
+        camera_file: root.join("examples/cameras/cmos_modern.toml"),
+        zero_offset_deg: 0.0,
+    };
+    let app = App::new_on(dir.join("runs"), Devices::Hardware(hw), None).unwrap();
+    let mut h = harness(app);
+    h.step();
+    assert!(label_shows(&h, "Devices: hardware, connected at start"));
+    h.get_by_label("Devices").click();
+    h.run_steps(2);
+    h.get_by_label("Connect").click();
+    step_until(&mut h, Duration::from_secs(30), "connected", |h| {
+        h.state().devices().connected
+    });
+    h.get_by_label("Move").click();
+    step_until(&mut h, Duration::from_secs(30), "the move", |h| {
+        h.state()
+            .devices()
+            .analyzer_deg
+            .is_some_and(|a| (a - 45.0).abs() < 0.0125)
+    });
+    h.get_by_label("Start").click();
+    step_until(&mut h, Duration::from_secs(60), "the lens-cap pause", |h| {
+        label_shows(h, "State: Paused")
+    });
+    let Status::Run(RunState::Paused(reason)) = h.state().status().clone() else {
+        panic!("{:?}", h.state().status());
+    };
+    assert!(reason.contains("cap"), "{reason}");
+    h.get_by_label("Resume").click();
+    // The plan's lights follow the dark: the operator is asked to uncap; resume again.
+    step_until(
+        &mut h,
+        Duration::from_secs(60),
+        "the uncap pause or done",
+        |h| {
+            label_shows(h, "State: Paused") && h.state().progress().0 >= 1
+                || label_shows(h, "State: Done")
+        },
+    );
+    if label_shows(&h, "State: Paused") {
+        h.get_by_label("Resume").click();
+    }
+    step_until(&mut h, Duration::from_secs(60), "Done", |h| {
+        label_shows(h, "State: Done")
+    });
+    assert_eq!(h.state().progress(), (13, 13));
+    drop(h);
+    rt.block_on(stage.shutdown());
+    let _ = std::fs::remove_dir_all(&dir);
+}
