@@ -64,6 +64,9 @@ pub enum Command {
     },
     /// Take one frame with the current settings.
     Snapshot,
+    /// Resolve the plans' relative paths (`simulation.scene`, `simulation.camera`) against
+    /// this folder: the folder of the plan file opened in the editor.
+    PlanDir(PathBuf),
     /// Pass a control to the run in progress.
     Control(Control),
     /// Parse `plan_text` and compute its forecast.
@@ -84,6 +87,8 @@ pub struct LiveProducts {
     pub products: Products,
     /// The last stored frame (row-major, `width * height`), if it could be read.
     pub raw: Option<Vec<u16>>,
+    /// That frame's index in the store (it may be a frame of the next set, or a dark).
+    pub raw_index: Option<u64>,
 }
 
 /// The devices as the engine last saw them.
@@ -265,6 +270,10 @@ struct Connected {
     /// The simulated devices' servers (`None` on hardware).
     sim: Option<SimRig>,
     rig: HardwareRig,
+    /// The `[simulation]` section and plan folder the simulated rig was built from.
+    built_from: Option<(polar_engine::plan::Simulation, PathBuf)>,
+    /// The folder of the simulated stage's pseudo-terminal link (removed on release).
+    link_dir: Option<PathBuf>,
 }
 
 impl Connected {
@@ -273,6 +282,10 @@ impl Connected {
         drop(self.rig);
         if let Some(sim) = self.sim {
             sim.shutdown().await;
+        }
+        if let Some(d) = self.link_dir {
+            // Only if empty: the link is gone with the server.
+            let _ = std::fs::remove_dir(d);
         }
     }
 }
@@ -388,14 +401,24 @@ async fn device_command(
 
 /// Connects `devices`: on hardware the rig `polarimeter run` would use; simulated, the rig
 /// of `plan`'s `[simulation]` section (its pseudo-terminal link under `link_dir`).
-async fn connect(devices: &Devices, plan: &Plan, link_dir: &Path) -> Result<Connected, String> {
+async fn connect(
+    devices: &Devices,
+    plan: &Plan,
+    plan_dir: &Path,
+    link_dir: &Path,
+) -> Result<Connected, String> {
     match devices {
         Devices::Hardware(hw) => {
             let rig = connect_hardware(hw).await.map_err(|e| e.to_string())?;
-            Ok(Connected { sim: None, rig })
+            Ok(Connected {
+                sim: None,
+                rig,
+                built_from: None,
+                link_dir: None,
+            })
         }
         Devices::Simulated => {
-            let (sim, r) = SimRig::start_rig(plan, Path::new("."), link_dir)
+            let (sim, r) = SimRig::start_rig(plan, plan_dir, link_dir)
                 .await
                 .map_err(|e| format!("simulated rig: {e}"))?;
             let rig = Rig {
@@ -415,6 +438,8 @@ async fn connect(devices: &Devices, plan: &Plan, link_dir: &Path) -> Result<Conn
             Ok(Connected {
                 sim: Some(sim),
                 rig,
+                built_from: Some((plan.simulation.clone(), plan_dir.to_path_buf())),
+                link_dir: Some(link_dir.to_path_buf()),
             })
         }
     }
@@ -439,12 +464,44 @@ async fn worker(
     let mut connected: Option<Connected> = None;
     // The exposure and gain last applied (the camera trait has no getters).
     let mut settings = (None, None);
+    let mut plan_dir = PathBuf::from(".");
     while let Some(cmd) = commands.recv().await {
         match cmd {
+            Command::PlanDir(d) => plan_dir = d,
             Command::Start { plan_text } => {
-                let held = connected.take();
-                let had = held.is_some();
-                run_one(&plan_text, held, &devices, &mut commands, &out, &base_dir).await;
+                // A plan that does not parse leaves the devices as they are.
+                let plan = match Plan::from_toml_str(&plan_text) {
+                    Ok(p) => p,
+                    Err(e) => {
+                        out.send(Reply::Error(e.to_string())).await;
+                        continue;
+                    }
+                };
+                let mut held = connected.take();
+                // The simulated rig is the plan's world: one built from another
+                // `[simulation]` section (edited since Connect) is rebuilt for this plan.
+                let stale = held.as_ref().is_some_and(|c| {
+                    c.built_from
+                        .as_ref()
+                        .is_some_and(|(sim, dir)| *sim != plan.simulation || *dir != plan_dir)
+                });
+                if stale {
+                    if let Some(c) = held.take() {
+                        out.send(Reply::Log(
+                            "the plan's [simulation] section changed since Connect: \
+                             rebuilding the simulated devices"
+                                .into(),
+                        ))
+                        .await;
+                        c.release().await;
+                    }
+                }
+                let had = held.is_some() || stale;
+                let places = Places {
+                    base_dir: &base_dir,
+                    plan_dir: &plan_dir,
+                };
+                run_one(plan, held, &devices, &mut commands, &out, places).await;
                 if had {
                     settings = (None, None);
                     out.send(Reply::Devices(disconnected(
@@ -479,7 +536,7 @@ async fn worker(
                     };
                     out.send(Reply::Log(format!("connecting {what}"))).await;
                     let link_dir = base_dir.join(".polarimeter-gui-sim");
-                    match connect(&devices, &plan, &link_dir).await {
+                    match connect(&devices, &plan, &plan_dir, &link_dir).await {
                         Ok(c) => connected = Some(c),
                         Err(e) => {
                             out.send(Reply::Devices(disconnected(
@@ -546,7 +603,7 @@ async fn worker(
                 }
             },
             Command::Forecast { plan_text } => {
-                let f = compute_forecast(plan_text).await;
+                let f = compute_forecast(plan_text, plan_dir.clone()).await;
                 out.send(Reply::Forecast(f)).await;
             }
             Command::Control(c) => {
@@ -562,16 +619,16 @@ async fn worker(
 
 /// The forecast of a plan on the simulated rig, as text (on a blocking thread: a large
 /// simulated scene takes a while to build).
-async fn compute_forecast(plan_text: String) -> Result<String, String> {
-    tokio::task::spawn_blocking(move || forecast_text(&plan_text))
+async fn compute_forecast(plan_text: String, plan_dir: PathBuf) -> Result<String, String> {
+    tokio::task::spawn_blocking(move || forecast_text(&plan_text, &plan_dir))
         .await
         .map_err(|e| format!("forecast: {e}"))?
 }
 
-/// The forecast of `plan_text` as text.
-pub fn forecast_text(plan_text: &str) -> Result<String, String> {
+/// The forecast of `plan_text` as text (its relative paths against `plan_dir`).
+pub fn forecast_text(plan_text: &str, plan_dir: &Path) -> Result<String, String> {
     let plan = Plan::from_toml_str(plan_text).map_err(|e| e.to_string())?;
-    let world = SimRig::world(&plan, Path::new(".")).map_err(|e| e.to_string())?;
+    let world = SimRig::world(&plan, plan_dir).map_err(|e| e.to_string())?;
     let timing = Timing::simulated(&plan);
     let f = forecast::forecast(&plan, &world.scene_file, &world.camera_model, &timing)
         .map_err(|e| e.to_string())?;
@@ -636,35 +693,40 @@ fn read_latest(run_dir: &Path) -> Result<LiveProducts, String> {
         saturated: 0,
     };
     let n = store.frame_count();
-    let raw = n.checked_sub(1).and_then(|i| store.read_frame(i).ok());
+    let raw_index = n.checked_sub(1);
+    let raw = raw_index.and_then(|i| store.read_frame(i).ok());
     Ok(LiveProducts {
         slot: last.slot,
         set: last.set,
         products,
         raw,
+        raw_index,
     })
 }
 
+/// Where runs go and where a plan's relative paths start.
+#[derive(Clone, Copy)]
+struct Places<'a> {
+    base_dir: &'a Path,
+    plan_dir: &'a Path,
+}
+
 async fn run_one(
-    plan_text: &str,
+    plan: Plan,
     held: Option<Connected>,
     devices: &Devices,
     commands: &mut mpsc::Receiver<Command>,
     out: &std::rc::Rc<Out>,
-    base_dir: &Path,
+    places: Places<'_>,
 ) {
-    let plan = match Plan::from_toml_str(plan_text) {
-        Ok(p) => p,
-        Err(e) => {
-            out.send(Reply::Error(e.to_string())).await;
-            return;
-        }
-    };
+    let Places { base_dir, plan_dir } = places;
     let planned = plan.max_frames().unwrap_or(0);
     let run_dir = new_run_dir(base_dir, &plan);
     let Connected {
         sim,
         rig: engine_rig,
+        link_dir,
+        ..
     } = match held {
         Some(c) => {
             out.send(Reply::Log(format!(
@@ -680,7 +742,7 @@ async fn run_one(
                 plan.name
             )))
             .await;
-            match connect(devices, &plan, &run_dir.join(".sim")).await {
+            match connect(devices, &plan, plan_dir, &run_dir.join(".sim")).await {
                 Ok(c) => c,
                 Err(e) => {
                     out.send(Reply::Error(e)).await;
@@ -758,6 +820,9 @@ async fn run_one(
                 Some(Command::Start { .. }) => {
                     out.note(Reply::Log("a run is already in progress".into()));
                 }
+                Some(Command::PlanDir(_)) => {
+                    out.note(Reply::Log("opening a plan: not while a run is in progress".into()));
+                }
                 Some(Command::Connect { .. } | Command::Disconnect | Command::Home
                     | Command::MoveAnalyzer { .. } | Command::SetExposure { .. }
                     | Command::SetGain { .. } | Command::Snapshot) => {
@@ -779,6 +844,9 @@ async fn run_one(
     let _ = states.await;
     if let Some(sim) = sim {
         sim.shutdown().await;
+    }
+    if let Some(d) = link_dir {
+        let _ = std::fs::remove_dir(d);
     }
     out.send(Reply::Finished(result.map_err(|e| e.to_string())))
         .await;

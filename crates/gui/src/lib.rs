@@ -39,11 +39,14 @@ seed = 3
 stage_deg_per_s = 360
 "#;
 
+/// The largest plan file Open reads, bytes.
+const MAX_PLAN_BYTES: u64 = 1 << 20;
+
 /// Lines the log keeps.
 const LOG_LINES: usize = 500;
 
 /// Bins of the histogram.
-const HIST_BINS: usize = 48;
+pub const HIST_BINS: usize = 48;
 
 /// Where the UI's idea of the run is.
 #[derive(Debug, Clone, PartialEq)]
@@ -191,6 +194,33 @@ pub struct Rendered {
     pub range: (f32, f32),
     /// For AoP: the DoLP drawn at full saturation.
     pub dolp_full: Option<f32>,
+    /// The histogram of the values over `range` ([`HIST_BINS`] bins), counted once.
+    pub histogram: Vec<u32>,
+    /// How many values are finite.
+    pub finite: usize,
+}
+
+/// An RGB image decimated so that neither side exceeds `max_side` (the GPU's texture limit):
+/// `(rgb, width, height, step)`, every `step`-th pixel of every `step`-th row.
+pub fn fit_texture(
+    rgb: &[u8],
+    width: usize,
+    height: usize,
+    max_side: usize,
+) -> (Vec<u8>, usize, usize, usize) {
+    let step = width.max(height).div_ceil(max_side.max(1)).max(1);
+    if step == 1 {
+        return (rgb.to_vec(), width, height, 1);
+    }
+    let (w, h) = (width.div_ceil(step), height.div_ceil(step));
+    let mut out = Vec::with_capacity(w * h * 3);
+    for y in (0..height).step_by(step) {
+        for x in (0..width).step_by(step) {
+            let i = 3 * (y * width + x);
+            out.extend_from_slice(rgb.get(i..i + 3).unwrap_or(&[0, 0, 0]));
+        }
+    }
+    (out, w, h, step)
 }
 
 /// Draws `view` of `live` in false colour: scalar views on viridis over their 1st..99th
@@ -200,6 +230,9 @@ pub fn render(live: &LiveProducts, view: View) -> Option<Rendered> {
     let values = view.values(live)?;
     let (width, height) = (p.width as usize, p.height as usize);
     let mut rgb = Vec::with_capacity(width * height * 3);
+    if view == View::Aop && p.dolp.len() != p.aop_rad.len() {
+        return None;
+    }
     let (range, dolp_full) = if view == View::Aop {
         let full = colour::robust_range(&p.dolp)
             .map_or(1.0, |(_, hi)| hi)
@@ -215,6 +248,8 @@ pub fn render(live: &LiveProducts, view: View) -> Option<Rendered> {
         }
         (range, None)
     };
+    let histogram = colour::histogram(&values, range.0, range.1, HIST_BINS);
+    let finite = values.iter().filter(|v| v.is_finite()).count();
     Some(Rendered {
         width,
         height,
@@ -222,6 +257,8 @@ pub fn render(live: &LiveProducts, view: View) -> Option<Rendered> {
         values,
         range,
         dolp_full,
+        histogram,
+        finite,
     })
 }
 
@@ -259,13 +296,29 @@ pub fn probe_text(live: &LiveProducts, x: usize, y: usize) -> Option<String> {
     Some(s)
 }
 
+/// The last snapshot as the device panel shows it.
+struct ShownSnapshot {
+    frame: Snapshot,
+    texture: Option<egui::TextureHandle>,
+    /// Display range, DN.
+    range: (f32, f32),
+    /// Mean, DN.
+    mean: f64,
+}
+
 /// The application: the plan editor, the run controls, the log and the live view.
 pub struct App {
     engine: EngineHandle,
     /// Real devices (not the simulated rig).
     hardware: bool,
+    /// The window is closing: the run is being paused and detached first.
+    closing: bool,
+    detach_sent: bool,
     /// The plan being edited (TOML).
     pub plan_text: String,
+    /// The plan file's path (the Open and Save buttons).
+    pub plan_path: String,
+    plan_file_note: Option<Result<String, String>>,
     forecast: Option<Result<String, String>>,
     forecast_for: Option<String>,
     forecast_pending: bool,
@@ -287,7 +340,7 @@ pub struct App {
     move_deg: f64,
     exposure_us: f64,
     gain: f64,
-    snapshot: Option<(Snapshot, Option<egui::TextureHandle>, (f32, f32))>,
+    snapshot: Option<ShownSnapshot>,
     planner: planner_panel::PlannerPanel,
     rooftop: rooftop::RooftopPanel,
 }
@@ -310,8 +363,12 @@ impl App {
         let hardware = matches!(devices, engine::Devices::Hardware(_));
         Ok(App {
             hardware,
+            closing: false,
+            detach_sent: false,
             engine: EngineHandle::spawn_on(base_dir, devices, wake)?,
             plan_text: DEFAULT_PLAN.to_string(),
+            plan_path: String::new(),
+            plan_file_note: None,
             forecast: None,
             forecast_for: None,
             forecast_pending: false,
@@ -369,7 +426,7 @@ impl App {
 
     /// The last snapshot taken from the device panel.
     pub fn snapshot(&self) -> Option<&Snapshot> {
-        self.snapshot.as_ref().map(|s| &s.0)
+        self.snapshot.as_ref().map(|s| &s.frame)
     }
 
     /// The run's status.
@@ -448,6 +505,7 @@ impl App {
             }
             Reply::Finished(r) => {
                 self.active = false;
+                self.device_pending = false;
                 match r {
                     Ok(Outcome::Done(s)) => {
                         self.status = Status::Run(RunState::Done);
@@ -479,6 +537,7 @@ impl App {
             }
             Reply::Error(e) => {
                 self.active = false;
+                self.device_pending = false;
                 self.say(format!("error: {e}"));
                 self.status = Status::Failed(e);
             }
@@ -506,7 +565,14 @@ impl App {
             Reply::Snapshot(f) => {
                 let values: Vec<f32> = f.pixels.iter().map(|&p| f32::from(p)).collect();
                 let range = colour::robust_range(&values).unwrap_or((0.0, 1.0));
-                self.snapshot = Some((*f, None, range));
+                let mean =
+                    values.iter().map(|&v| f64::from(v)).sum::<f64>() / values.len().max(1) as f64;
+                self.snapshot = Some(ShownSnapshot {
+                    frame: *f,
+                    texture: None,
+                    range,
+                    mean,
+                });
             }
         }
     }
@@ -514,6 +580,10 @@ impl App {
     /// Sends a device command (as the device panel's buttons do); `false` if the engine's
     /// queue is full.
     pub fn device_command(&mut self, cmd: Command) -> bool {
+        if self.active {
+            // The run holds the devices.
+            return false;
+        }
         let ok = self.engine.send(cmd);
         if ok {
             self.device_pending = true;
@@ -562,6 +632,31 @@ impl App {
             }
             Event::Decision(d) => self.say(format!("decision: {d}")),
             Event::Retry(m) => self.say(format!("retry: {m}")),
+        }
+    }
+
+    /// Closing the window during a run: the close is held back, the run pauses at once, and
+    /// once it is paused it is detached (resumable with `polarimeter resume RUN_DIR`, nothing
+    /// acquired is lost); then the window closes.
+    pub fn guard_close(&mut self, ctx: &egui::Context) {
+        if ctx.input(|i| i.viewport().close_requested()) && self.active {
+            ctx.send_viewport_cmd(egui::ViewportCommand::CancelClose);
+            if !self.closing {
+                self.closing = true;
+                self.say("closing: pausing the run, then leaving it to `polarimeter resume`");
+                self.control(Control::PauseNow);
+            }
+        }
+        if self.closing {
+            ctx.request_repaint_after(Duration::from_millis(50));
+            match (&self.status, self.active) {
+                (_, false) => ctx.send_viewport_cmd(egui::ViewportCommand::Close),
+                (Status::Run(RunState::Paused(_)), true) if !self.detach_sent => {
+                    self.detach_sent = true;
+                    self.control(Control::Detach);
+                }
+                _ => {}
+            }
         }
     }
 
@@ -762,21 +857,28 @@ impl App {
         if ui.add_enabled(can, egui::Button::new("Snapshot")).clicked() {
             self.device(Command::Snapshot);
         }
-        if let Some((snap, tex, range)) = &mut self.snapshot {
+        let max_side = ui.ctx().input(|i| i.max_texture_side);
+        if let Some(ShownSnapshot {
+            frame: snap,
+            texture: tex,
+            range,
+            mean,
+        }) = &mut self.snapshot
+        {
+            let mean = *mean;
             let (w, h) = (snap.width as usize, snap.height as usize);
             if tex.is_none() && w * h == snap.pixels.len() && w * h > 0 {
                 let mut rgb = Vec::with_capacity(w * h * 3);
                 for &p in &snap.pixels {
                     rgb.extend_from_slice(&colour::scalar(f32::from(p), range.0, range.1));
                 }
-                let img = egui::ColorImage::from_rgb([w, h], &rgb);
+                let (rgb, tw, th, _) = fit_texture(&rgb, w, h, max_side);
+                let img = egui::ColorImage::from_rgb([tw, th], &rgb);
                 *tex = Some(
                     ui.ctx()
                         .load_texture("snapshot", img, egui::TextureOptions::NEAREST),
                 );
             }
-            let mean = snap.pixels.iter().map(|&p| f64::from(p)).sum::<f64>()
-                / snap.pixels.len().max(1) as f64;
             ui.label(format!(
                 "Snapshot: frame {}, {}x{}, exposure {:.1} us, mean {mean:.1} DN (viridis {:.0} .. {:.0} DN)",
                 snap.frame_id, w, h, snap.exposure_us, range.0, range.1
@@ -831,9 +933,17 @@ impl App {
             }
             if ui
                 .add_enabled(self.active && paused, egui::Button::new("Abort"))
+                .on_hover_text("end the paused run for good (what was acquired stays)")
                 .clicked()
             {
                 self.control(Control::Abort);
+            }
+            if ui
+                .add_enabled(self.active && paused, egui::Button::new("Detach"))
+                .on_hover_text("leave the paused run to `polarimeter resume RUN_DIR`")
+                .clicked()
+            {
+                self.control(Control::Detach);
             }
             ui.separator();
             ui.label(self.status.text());
@@ -849,7 +959,111 @@ impl App {
         );
     }
 
+    /// Opens the plan file at [`App::plan_path`] into the editor: TOML as it is, YAML
+    /// (`.yaml`, `.yml`) parsed and shown as TOML. Its folder becomes the one the plan's
+    /// relative paths (`simulation.scene`, `simulation.camera`) start from.
+    pub fn open_plan(&mut self) {
+        let path = PathBuf::from(self.plan_path.trim());
+        let r = (|| {
+            // A plan is a small text file: anything else (a device, a FIFO, a huge file)
+            // is refused before it is read, so the UI never waits on it.
+            let meta = std::fs::metadata(&path)
+                .map_err(|e| format!("plan file {}: {e}", path.display()))?;
+            if !meta.is_file() || meta.len() > MAX_PLAN_BYTES {
+                return Err(format!(
+                    "plan file {}: not a regular file of at most {MAX_PLAN_BYTES} bytes ({} bytes)",
+                    path.display(),
+                    meta.len()
+                ));
+            }
+            let text = std::fs::read_to_string(&path)
+                .map_err(|e| format!("plan file {}: {e}", path.display()))?;
+            let yaml = matches!(
+                path.extension().and_then(|e| e.to_str()),
+                Some("yaml" | "yml")
+            );
+            if yaml {
+                let plan = polar_engine::plan::Plan::from_yaml_str(&text)
+                    .map_err(|e| format!("{}: {e}", path.display()))?;
+                toml::to_string(&plan).map_err(|e| format!("{}: as TOML: {e}", path.display()))
+            } else {
+                Ok(text)
+            }
+        })();
+        match r {
+            Ok(text) if !self.active => {
+                let dir = path
+                    .parent()
+                    .filter(|p| !p.as_os_str().is_empty())
+                    .map_or_else(|| PathBuf::from("."), PathBuf::from);
+                if self.engine.send(Command::PlanDir(dir)) {
+                    self.plan_text = text;
+                    self.say(format!("opened {}", path.display()));
+                    self.plan_file_note = Some(Ok(format!("opened {}", path.display())));
+                } else {
+                    self.plan_file_note = Some(Err("the engine is busy; try again".into()));
+                }
+            }
+            Ok(_) => {
+                self.plan_file_note = Some(Err(
+                    "a run is in progress: open the plan when it ends".into()
+                ))
+            }
+            Err(e) => self.plan_file_note = Some(Err(e)),
+        }
+    }
+
+    /// Saves the editor's plan (TOML) to [`App::plan_path`].
+    pub fn save_plan(&mut self) {
+        let path = PathBuf::from(self.plan_path.trim());
+        let r = match path.extension().and_then(|e| e.to_str()) {
+            Some("toml") => std::fs::write(&path, &self.plan_text)
+                .map(|()| format!("saved {}", path.display()))
+                .map_err(|e| format!("plan file {}: {e}", path.display())),
+            _ => Err(format!(
+                "plan file {:?}: the editor holds TOML: allowed a path ending in .toml",
+                self.plan_path
+            )),
+        };
+        if let Ok(m) = &r {
+            self.say(m.clone());
+        }
+        self.plan_file_note = Some(r);
+    }
+
+    /// What the last Open or Save did.
+    pub fn plan_file_note(&self) -> Option<&Result<String, String>> {
+        self.plan_file_note.as_ref()
+    }
+
     fn plan_panel(&mut self, ui: &mut egui::Ui) {
+        ui.horizontal(|ui| {
+            let l = ui.label("Plan file");
+            ui.add(
+                egui::TextEdit::singleline(&mut self.plan_path)
+                    .hint_text("path/to/plan.toml or .yaml")
+                    .desired_width(200.0),
+            )
+            .labelled_by(l.id);
+            if ui
+                .add_enabled(!self.active, egui::Button::new("Open"))
+                .clicked()
+            {
+                self.open_plan();
+            }
+            if ui.button("Save").clicked() {
+                self.save_plan();
+            }
+        });
+        match &self.plan_file_note {
+            Some(Ok(m)) => {
+                ui.label(m.as_str());
+            }
+            Some(Err(e)) => {
+                ui.colored_label(ui.visuals().error_fg_color, e.as_str());
+            }
+            None => {}
+        }
         let label = ui.label("Plan (TOML)");
         egui::ScrollArea::vertical()
             .id_salt("plan editor")
@@ -904,8 +1118,11 @@ impl App {
         let fresh = matches!(&self.texture, Some((_, v, k)) if *v == self.view && *k == key);
         if !fresh {
             self.rendered = render(live, self.view);
+            let max_side = ui.ctx().input(|i| i.max_texture_side);
             self.texture = self.rendered.as_ref().map(|r| {
-                let img = egui::ColorImage::from_rgb([r.width, r.height], &r.rgb);
+                // Shown at the full image's size: a decimated texture only loses detail.
+                let (rgb, w, h, _) = fit_texture(&r.rgb, r.width, r.height, max_side);
+                let img = egui::ColorImage::from_rgb([w, h], &rgb);
                 (
                     ui.ctx()
                         .load_texture("live view", img, egui::TextureOptions::NEAREST),
@@ -918,11 +1135,19 @@ impl App {
             ui.label(format!("{} is not available yet", self.view.label()));
             return;
         };
-        ui.label(format!(
-            "set {} (slot {})",
-            live.set.map_or("?".into(), |s| s.to_string()),
-            live.slot
-        ));
+        if self.view == View::Raw {
+            ui.label(format!(
+                "the last stored frame (index {}), not necessarily of set {}",
+                live.raw_index.map_or("?".into(), |i| i.to_string()),
+                live.set.map_or("?".into(), |s| s.to_string()),
+            ));
+        } else {
+            ui.label(format!(
+                "set {} (slot {})",
+                live.set.map_or("?".into(), |s| s.to_string()),
+                live.slot
+            ));
+        }
         let avail = ui.available_width().max(64.0) - 180.0;
         let scale = (avail.max(64.0) / r.width as f32).min(6.0);
         let size = egui::vec2(r.width as f32 * scale, r.height as f32 * scale);
@@ -1008,7 +1233,7 @@ fn colour_bar(ui: &mut egui::Ui, view: View, r: &Rendered) {
 
 fn histogram(ui: &mut egui::Ui, view: View, r: &Rendered) {
     let (lo, hi) = r.range;
-    let counts = colour::histogram(&r.values, lo, hi, HIST_BINS);
+    let counts = &r.histogram;
     let max = counts.iter().copied().max().unwrap_or(0).max(1) as f32;
     let width = ui.available_width().clamp(120.0, 480.0);
     let (rect, _) = ui.allocate_exact_size(egui::vec2(width, 80.0), egui::Sense::hover());
@@ -1027,14 +1252,15 @@ fn histogram(ui: &mut egui::Ui, view: View, r: &Rendered) {
     ui.label(format!(
         "{lo:.4} .. {hi:.4} {} ({} finite pixels)",
         view.unit(),
-        r.values.iter().filter(|v| v.is_finite()).count()
+        r.finite
     ));
 }
 
 impl eframe::App for App {
-    fn logic(&mut self, _ctx: &egui::Context, _frame: &mut eframe::Frame) {
+    fn logic(&mut self, ctx: &egui::Context, _frame: &mut eframe::Frame) {
         // Also while the window is hidden, so the engine's replies never back up.
         self.poll();
+        self.guard_close(ctx);
     }
 
     fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
@@ -1070,6 +1296,7 @@ mod tests {
                 saturated: 0,
             },
             raw: Some(vec![100; n]),
+            raw_index: Some(0),
         }
     }
 
@@ -1087,6 +1314,22 @@ mod tests {
         assert!(probe_text(&l, 8, 0).is_none());
     }
 
+    /// Images wider or taller than the GPU's texture limit are decimated to fit, keeping
+    /// every `step`-th pixel; images that fit are unchanged.
+    #[test]
+    fn textures_fit_the_gpu_limit() {
+        let (w, h) = (10_000, 3);
+        let rgb: Vec<u8> = (0..w * h).flat_map(|i| [(i % 251) as u8, 0, 0]).collect();
+        let (out, tw, th, step) = fit_texture(&rgb, w, h, 4096);
+        assert_eq!((tw, th, step), (3334, 1, 3));
+        assert_eq!(out.len(), tw * th * 3);
+        // Pixel k of the texture is pixel 3k of the first row.
+        assert_eq!(out[3 * 5], rgb[3 * 15]);
+        let (same, sw, sh, s1) = fit_texture(&rgb[..30], 10, 1, 4096);
+        assert_eq!((sw, sh, s1), (10, 1, 1));
+        assert_eq!(same, rgb[..30].to_vec());
+    }
+
     /// The status label's texts.
     #[test]
     fn status_texts() {
@@ -1101,7 +1344,7 @@ mod tests {
     /// The default plan parses and has a forecast.
     #[test]
     fn default_plan_forecast() {
-        let f = engine::forecast_text(DEFAULT_PLAN).unwrap();
+        let f = engine::forecast_text(DEFAULT_PLAN, std::path::Path::new(".")).unwrap();
         assert!(f.contains("13 frames"), "{f}");
     }
 }

@@ -19,7 +19,7 @@ const USAGE: &str =
                        --camera-file FILE, and optionally --address N (Elliptec, 0..=15)
                        and --zero-offset-deg X (from a calibrate-analyzer run)
   --out DIR          base folder of the run directories (default: the current folder)
-  --plan FILE        open this plan (TOML) in the editor
+  --plan FILE        open this plan (TOML or YAML) in the editor
   --screenshots DIR  run the plan, then save PNGs of the live view, the device, planner and
                      rooftop panels into DIR and quit (CI runs this under Xvfb)";
 
@@ -29,7 +29,7 @@ const TOUR_LIMIT: Duration = Duration::from_secs(180);
 fn main() -> std::process::ExitCode {
     let mut args = std::env::args().skip(1);
     let mut out = PathBuf::from(".");
-    let mut plan: Option<String> = None;
+    let mut plan: Option<String> = None; // a path
     let mut shots: Option<PathBuf> = None;
     let mut simulate = false;
     let mut hw = HardwareFlags::default();
@@ -50,8 +50,9 @@ fn main() -> std::process::ExitCode {
                 None => return usage("--out needs a folder"),
             },
             "--plan" => match args.next() {
-                Some(f) => match std::fs::read_to_string(&f) {
-                    Ok(t) => plan = Some(t),
+                Some(f) => match std::fs::metadata(&f) {
+                    Ok(m) if m.is_file() => plan = Some(f),
+                    Ok(_) => return usage(&format!("--plan {f}: not a file")),
                     Err(e) => return usage(&format!("--plan {f}: {e}")),
                 },
                 None => return usage("--plan needs a file"),
@@ -94,7 +95,9 @@ fn main() -> std::process::ExitCode {
         Box::new(move |cc| {
             let mut app = App::new_on(out, devices, Some(cc.egui_ctx.clone()))?;
             if let Some(p) = plan {
-                app.plan_text = p;
+                // As the Open button: TOML or YAML, and its folder for relative paths.
+                app.plan_path = p;
+                app.open_plan();
             }
             let tour = shots.map(|dir| Tour::new(dir, tour_report));
             Ok(Box::new(Gui { app, tour }))

@@ -324,3 +324,85 @@ fn hardware_flags_path_on_a_simulated_stage() {
     rt.block_on(stage.shutdown());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Open and Save by label: a YAML example plan opens as TOML that parses to the same plan; a
+/// save to a path without `.toml` is refused with the reason; a missing file names the path.
+#[test]
+fn open_and_save_plans() {
+    let dir = temp_dir("open");
+    std::fs::create_dir_all(&dir).unwrap();
+    let app = App::new(dir.clone(), None).unwrap();
+    let mut h = harness(app);
+    h.step();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let yaml = root.join("examples/plans/calibrate_noise.yaml");
+    h.state_mut().plan_path = yaml.display().to_string();
+    h.get_by_label("Open").click();
+    h.run_steps(2);
+    let text = h.state().plan_text.clone();
+    let from_yaml =
+        polar_engine::plan::Plan::from_yaml_str(&std::fs::read_to_string(&yaml).unwrap()).unwrap();
+    assert_eq!(
+        polar_engine::plan::Plan::from_toml_str(&text).unwrap(),
+        from_yaml
+    );
+    assert!(label_shows(&h, "opened"));
+
+    let saved = dir.join("saved.toml");
+    h.state_mut().plan_path = saved.display().to_string();
+    h.get_by_label("Save").click();
+    h.run_steps(2);
+    assert_eq!(std::fs::read_to_string(&saved).unwrap(), text);
+
+    h.state_mut().plan_path = dir.join("saved.yaml").display().to_string();
+    h.get_by_label("Save").click();
+    h.run_steps(2);
+    assert!(label_shows(&h, "allowed a path ending in .toml"));
+
+    h.state_mut().plan_path = dir.join("missing.toml").display().to_string();
+    h.get_by_label("Open").click();
+    h.run_steps(2);
+    assert!(label_shows(&h, "missing.toml"));
+    assert_eq!(
+        h.state().plan_text,
+        text,
+        "a failed open keeps the editor's plan"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A plan that does not parse leaves connected devices connected; a plan whose
+/// `[simulation]` section changed since Connect gets its own simulated devices.
+#[test]
+fn bad_plan_keeps_devices_and_changed_simulation_rebuilds() {
+    let dir = temp_dir("keep");
+    let app = App::new(dir.clone(), None).unwrap();
+    let mut h = harness(app);
+    h.step();
+    h.get_by_label("Devices").click();
+    h.run_steps(2);
+    h.get_by_label("Connect").click();
+    step_until(&mut h, Duration::from_secs(30), "connected", |h| {
+        h.state().devices().connected && !h.state().device_pending()
+    });
+    let good = h.state().plan_text.clone();
+    h.state_mut().plan_text = "kind = \"nonsense\"".into();
+    h.get_by_label("Start").click();
+    step_until(&mut h, Duration::from_secs(10), "Failed", |h| {
+        label_shows(h, "State: Failed")
+    });
+    h.run_steps(3);
+    assert!(h.state().devices().connected, "{:?}", h.state().devices());
+
+    // Another seed: the simulated world differs, so the devices are rebuilt for the run.
+    h.state_mut().plan_text = good.replace("seed = 3", "seed = 4");
+    h.get_by_label("Start").click();
+    step_until(&mut h, Duration::from_secs(60), "Done", |h| {
+        label_shows(h, "State: Done")
+    });
+    assert!(h
+        .state()
+        .log_lines()
+        .any(|l| l.contains("rebuilding the simulated devices")));
+    let _ = std::fs::remove_dir_all(&dir);
+}
