@@ -603,7 +603,13 @@ async fn worker(
                 }
             },
             Command::Forecast { plan_text } => {
-                let f = compute_forecast(plan_text, plan_dir.clone()).await;
+                let mut f = compute_forecast(plan_text, plan_dir.clone()).await;
+                if let (Devices::Hardware(_), Ok(text)) = (&devices, &mut f) {
+                    text.push_str(
+                        "\nnote: on hardware the classes above are the simulated scene's and \
+                         the duration the simulated devices'; the frames and sets are the plan's",
+                    );
+                }
                 out.send(Reply::Forecast(f)).await;
             }
             Command::Control(c) => {
