@@ -4,7 +4,7 @@
 
 use crate::commands::CommandError;
 use clap::Args;
-use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+use nalgebra::{Matrix3, Vector3};
 use polar_model::metrics::{matched_filter, ClassStats};
 use polar_planner::optimize::{grid_search, MAX_CHANNELS};
 use polar_planner::{conventional, optimise, Constraints, Contrast, Optimum};
@@ -91,8 +91,7 @@ fn planner_error(e: polar_planner::PlanError) -> CommandError {
     CommandError(e.to_string())
 }
 
-/// The matched filter's ROC of the set at `pfa`: the classes in intensity space, `W mu` and
-/// `W Sigma W^T + V I` (ideal analyzer rows, as the planner scores).
+/// The matched filter's ROC of the set at `pfa` ([`polar_planner::scr::matched_filter_roc`]).
 pub(crate) fn intensity_roc(
     angles_rad: &[f64],
     t_mean: &Vector3<f64>,
@@ -102,17 +101,13 @@ pub(crate) fn intensity_roc(
     noise_var: f64,
     pfa: f64,
 ) -> Result<polar_model::metrics::Roc, CommandError> {
-    let n = angles_rad.len();
-    let w = DMatrix::from_fn(n, 3, |i, j| polar_planner::scr::row(angles_rad[i])[j]);
-    let class = |field, m: &Vector3<f64>, c: &Matrix3<f64>| {
-        let mean = &w * DVector::from_column_slice(m.as_slice());
-        let cov = &w * DMatrix::from_fn(3, 3, |i, j| c[(i, j)]) * w.transpose()
-            + DMatrix::identity(n, n) * noise_var;
-        ClassStats::new(field, mean, 0.5 * (&cov + cov.transpose()))
-    };
-    let t = class("target_cov", t_mean, t_cov)?;
-    let b = class("background_cov", b_mean, b_cov)?;
-    Ok(matched_filter(&t, &b, pfa)?)
+    Ok(polar_planner::scr::matched_filter_roc(
+        angles_rad,
+        (t_mean, t_cov),
+        (b_mean, b_cov),
+        noise_var,
+        pfa,
+    )?)
 }
 
 /// `plan angles`.

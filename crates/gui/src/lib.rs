@@ -1188,45 +1188,22 @@ impl App {
 }
 
 /// The colour of a value at fraction `t` of the view's scale.
-fn scale_colour(view: View, t: f32) -> egui::Color32 {
-    let c = if view == View::Aop {
+fn scale_rgb(view: View, t: f32) -> colour::Rgb {
+    if view == View::Aop {
         colour::hsv(t, 1.0, colour::AOP_VALUE)
     } else {
         colour::viridis(t)
-    };
-    egui::Color32::from_rgb(c[0], c[1], c[2])
+    }
 }
 
 fn colour_bar(ui: &mut egui::Ui, view: View, r: &Rendered) {
     let unit = view.unit();
     ui.label(format!("{} {}", view.label(), unit));
-    let (rect, _) = ui.allocate_exact_size(egui::vec2(160.0, 14.0), egui::Sense::hover());
-    let n = 64;
-    for i in 0..n {
-        let t0 = i as f32 / n as f32;
-        let t1 = (i + 1) as f32 / n as f32;
-        let rr = egui::Rect::from_min_max(
-            egui::pos2(rect.left() + rect.width() * t0, rect.top()),
-            egui::pos2(rect.left() + rect.width() * t1, rect.bottom()),
-        );
-        ui.painter()
-            .rect_filled(rr, 0.0, scale_colour(view, (t0 + t1) / 2.0));
-    }
+    rooftop::paint_bar(ui, 160.0, |t| scale_rgb(view, t));
     ui.label(format!("{:.4} .. {:.4} {unit}", r.range.0, r.range.1));
     if let Some(full) = r.dolp_full {
         ui.label("saturation: DoLP");
-        let (rect, _) = ui.allocate_exact_size(egui::vec2(160.0, 14.0), egui::Sense::hover());
-        for i in 0..n {
-            let t0 = i as f32 / n as f32;
-            let t1 = (i + 1) as f32 / n as f32;
-            let rr = egui::Rect::from_min_max(
-                egui::pos2(rect.left() + rect.width() * t0, rect.top()),
-                egui::pos2(rect.left() + rect.width() * t1, rect.bottom()),
-            );
-            let c = colour::hsv(0.0, (t0 + t1) / 2.0, colour::AOP_VALUE);
-            ui.painter()
-                .rect_filled(rr, 0.0, egui::Color32::from_rgb(c[0], c[1], c[2]));
-        }
+        rooftop::paint_bar(ui, 160.0, |t| colour::hsv(0.0, t, colour::AOP_VALUE));
         ui.label(format!("DoLP 0 .. {full:.3}"));
     }
 }
@@ -1247,7 +1224,8 @@ fn histogram(ui: &mut egui::Ui, view: View, r: &Rendered) {
             egui::pos2(rect.left() + (i + 1) as f32 * bw - 1.0, rect.bottom()),
         );
         let t = (i as f32 + 0.5) / HIST_BINS as f32;
-        ui.painter().rect_filled(bar, 0.0, scale_colour(view, t));
+        ui.painter()
+            .rect_filled(bar, 0.0, rooftop::color32(scale_rgb(view, t)));
     }
     ui.label(format!(
         "{lo:.4} .. {hi:.4} {} ({} finite pixels)",

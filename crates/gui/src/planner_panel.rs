@@ -34,11 +34,10 @@
 
 use eframe::egui;
 use egui_plot::{Legend, Line, Plot, PlotPoints};
-use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+use nalgebra::Matrix3;
 use polar_engine::forecast::SCENE_TOL;
 use polar_engine::plan::{Plan, PlanKind};
 use polar_engine::sim::{DEFAULT_CAMERA, DEFAULT_SCENE};
-use polar_model::metrics::{matched_filter, ClassStats};
 use polar_model::scene::{MaterialResult, Prepared};
 use polar_model::scene_file::Scene;
 use polar_model::sensor::{Camera, Exposure, SensorModel};
@@ -277,28 +276,6 @@ fn symmetric(m: &Matrix3<f64>) -> Matrix3<f64> {
     0.5 * (m + m.transpose())
 }
 
-/// The matched filter's ROC of a set (module docs): the classes in intensity space, `W mu` and
-/// `W Sigma W^T + V I` with ideal analyzer rows, as `polarimeter plan angles` scores it.
-fn intensity_roc(
-    angles_rad: &[f64],
-    target: (&Vector3<f64>, &Matrix3<f64>),
-    background: (&Vector3<f64>, &Matrix3<f64>),
-    noise_var: f64,
-    pfa: f64,
-) -> Result<polar_model::metrics::Roc, String> {
-    let n = angles_rad.len();
-    let w = DMatrix::from_fn(n, 3, |i, j| polar_planner::scr::row(angles_rad[i])[j]);
-    let class = |field, m: &Vector3<f64>, c: &Matrix3<f64>| {
-        let mean = &w * DVector::from_column_slice(m.as_slice());
-        let cov = &w * DMatrix::from_fn(3, 3, |i, j| c[(i, j)]) * w.transpose()
-            + DMatrix::identity(n, n) * noise_var;
-        ClassStats::new(field, mean, 0.5 * (&cov + cov.transpose())).map_err(|e| e.to_string())
-    };
-    let t = class("target_cov", target.0, target.1)?;
-    let b = class("background_cov", background.0, background.1)?;
-    matched_filter(&t, &b, pfa).map_err(|e| e.to_string())
-}
-
 /// Distinct angles of a set (degrees), modulo 180.
 fn distinct_angles(angles_deg: &[f64]) -> usize {
     let mut seen: Vec<f64> = Vec::new();
@@ -398,7 +375,7 @@ fn compute_from(
                 }
             }
         };
-        let roc = intensity_roc(
+        let roc = polar_planner::scr::matched_filter_roc(
             &angles_rad,
             (&target.mean.0, &t_cov),
             (&background.mean.0, &b_cov),

@@ -510,12 +510,12 @@ fn aop_rgb(map: &SkyMap) -> Vec<u8> {
     rgb
 }
 
-fn color32(c: colour::Rgb) -> egui::Color32 {
+pub(crate) fn color32(c: colour::Rgb) -> egui::Color32 {
     egui::Color32::from_rgb(c[0], c[1], c[2])
 }
 
-/// A horizontal bar of `n` steps coloured by `f(t)`, `t` in `[0, 1]`.
-fn paint_bar(ui: &mut egui::Ui, width: f32, f: impl Fn(f32) -> colour::Rgb) {
+/// A horizontal colour bar of 64 steps coloured by `f(t)`, `t` in `[0, 1]`.
+pub(crate) fn paint_bar(ui: &mut egui::Ui, width: f32, f: impl Fn(f32) -> colour::Rgb) {
     let (rect, _) = ui.allocate_exact_size(egui::vec2(width, 14.0), egui::Sense::hover());
     let n = 64;
     for i in 0..n {

@@ -22,6 +22,25 @@ fn harness(app: App) -> Harness<'static, App> {
         .build_ui_state(|ui, app: &mut App| app.show(ui), app)
 }
 
+/// A new app on the simulated devices with runs under a fresh temp folder, drawn once.
+fn start(name: &str) -> (PathBuf, Harness<'static, App>) {
+    let dir = temp_dir(name);
+    let app = App::new(dir.clone(), None).unwrap();
+    let mut h = harness(app);
+    h.step();
+    (dir, h)
+}
+
+/// Opens the device panel and connects, by label; waits until the devices answer.
+fn connect(h: &mut Harness<'static, App>) {
+    h.get_by_label("Devices").click();
+    h.run_steps(2);
+    h.get_by_label("Connect").click();
+    step_until(h, Duration::from_secs(30), "connected", |h| {
+        h.state().devices().connected && !h.state().device_pending()
+    });
+}
+
 /// Steps the harness until `done` holds, for at most `limit`.
 fn step_until(
     h: &mut Harness<'static, App>,
@@ -50,10 +69,7 @@ fn label_shows(h: &Harness<'static, App>, text: &str) -> bool {
 /// frame, and a product image arrives.
 #[test]
 fn start_pause_resume_done() {
-    let dir = temp_dir("run");
-    let app = App::new(dir.clone(), None).unwrap();
-    let mut h = harness(app);
-    h.step();
+    let (dir, mut h) = start("run");
     assert!(label_shows(&h, "State: Idle"));
     // The forecast of the default plan.
     step_until(&mut h, Duration::from_secs(20), "the forecast", |h| {
@@ -112,27 +128,24 @@ fn start_pause_resume_done() {
 /// A plan that does not parse: the error is shown and nothing runs.
 #[test]
 fn bad_plan_shows_error() {
-    let dir = temp_dir("bad");
-    let mut app = App::new(dir.clone(), None).unwrap();
-    app.plan_text = "kind = \"nonsense\"".into();
-    let mut h = harness(app);
-    h.step();
+    let (dir, mut h) = start("bad");
+    h.state_mut().plan_text = "kind = \"nonsense\"".into();
     h.get_by_label("Start").click();
     step_until(&mut h, Duration::from_secs(10), "Failed", |h| {
         label_shows(h, "State: Failed")
     });
     assert!(!h.state().is_active());
-    assert!(label_shows(&h, "plan error"));
+    // The forecast of the edited plan says why (after the default plan's, still in flight).
+    step_until(&mut h, Duration::from_secs(20), "the plan error", |h| {
+        label_shows(h, "plan error")
+    });
     let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// The live view's selector switches between the images by their labels.
 #[test]
 fn view_selector_by_label() {
-    let dir = temp_dir("views");
-    let app = App::new(dir.clone(), None).unwrap();
-    let mut h = harness(app);
-    h.step();
+    let (dir, mut h) = start("views");
     for v in ["AoP", "DoLP", "sigma S0", "Raw frame", "S0"] {
         h.get_by_label(v).click();
         h.step();
@@ -146,17 +159,9 @@ fn view_selector_by_label() {
 /// exposure, take a snapshot; then a run takes the devices over and releases them.
 #[test]
 fn devices_connect_move_snapshot_then_run() {
-    let dir = temp_dir("devices");
-    let app = App::new(dir.clone(), None).unwrap();
-    let mut h = harness(app);
-    h.step();
-    h.get_by_label("Devices").click();
-    h.run_steps(2);
-    assert!(label_shows(&h, "Devices: not connected"));
-    h.get_by_label("Connect").click();
-    step_until(&mut h, Duration::from_secs(30), "connected", |h| {
-        h.state().devices().connected
-    });
+    let (dir, mut h) = start("devices");
+    assert!(label_shows(&h, "Devices: simulated rig per run"));
+    connect(&mut h);
     // Homed at connect: the stage reads 0 deg (the simulated stage has no zero offset).
     let d = h.state().devices().clone();
     assert!(d.error.is_none(), "{d:?}");
@@ -281,12 +286,7 @@ fn hardware_flags_path_on_a_simulated_stage() {
     let mut h = harness(app);
     h.step();
     assert!(label_shows(&h, "Devices: hardware, connected at start"));
-    h.get_by_label("Devices").click();
-    h.run_steps(2);
-    h.get_by_label("Connect").click();
-    step_until(&mut h, Duration::from_secs(30), "connected", |h| {
-        h.state().devices().connected
-    });
+    connect(&mut h);
     h.get_by_label("Move").click();
     step_until(&mut h, Duration::from_secs(30), "the move", |h| {
         h.state()
@@ -329,11 +329,8 @@ fn hardware_flags_path_on_a_simulated_stage() {
 /// save to a path without `.toml` is refused with the reason; a missing file names the path.
 #[test]
 fn open_and_save_plans() {
-    let dir = temp_dir("open");
+    let (dir, mut h) = start("open");
     std::fs::create_dir_all(&dir).unwrap();
-    let app = App::new(dir.clone(), None).unwrap();
-    let mut h = harness(app);
-    h.step();
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let yaml = root.join("examples/plans/calibrate_noise.yaml");
     h.state_mut().plan_path = yaml.display().to_string();
@@ -375,16 +372,8 @@ fn open_and_save_plans() {
 /// `[simulation]` section changed since Connect gets its own simulated devices.
 #[test]
 fn bad_plan_keeps_devices_and_changed_simulation_rebuilds() {
-    let dir = temp_dir("keep");
-    let app = App::new(dir.clone(), None).unwrap();
-    let mut h = harness(app);
-    h.step();
-    h.get_by_label("Devices").click();
-    h.run_steps(2);
-    h.get_by_label("Connect").click();
-    step_until(&mut h, Duration::from_secs(30), "connected", |h| {
-        h.state().devices().connected && !h.state().device_pending()
-    });
+    let (dir, mut h) = start("keep");
+    connect(&mut h);
     let good = h.state().plan_text.clone();
     h.state_mut().plan_text = "kind = \"nonsense\"".into();
     h.get_by_label("Start").click();

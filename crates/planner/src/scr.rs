@@ -200,6 +200,36 @@ impl Contrast {
     }
 }
 
+/// The matched filter's ROC of the analyzer set `angles_rad` at `pfa`, the detector the SCR
+/// describes: each class in intensity space, `W mu` and `W Sigma W^T + V I` with the ideal rows
+/// of [`row`] and `noise_var` the sensor's per-frame variance (the same units as the Stokes
+/// covariances squared). `target` and `background` are (mean, covariance) of the Stokes vector.
+/// The detector and its ROC are [`polar_model::metrics::matched_filter`]'s.
+///
+/// Errors: the model's, naming `target_cov` or `background_cov` when a covariance is not
+/// positive definite in intensity space, or `pfa` outside (0, 1).
+pub fn matched_filter_roc(
+    angles_rad: &[f64],
+    target: (&Vector3<f64>, &Matrix3<f64>),
+    background: (&Vector3<f64>, &Matrix3<f64>),
+    noise_var: f64,
+    pfa: f64,
+) -> Result<polar_model::metrics::Roc, polar_model::ModelError> {
+    use nalgebra::{DMatrix, DVector};
+    use polar_model::metrics::{matched_filter, ClassStats};
+    let n = angles_rad.len();
+    let w = DMatrix::from_fn(n, 3, |i, j| row(angles_rad[i])[j]);
+    let class = |field, m: &Vector3<f64>, c: &Matrix3<f64>| {
+        let mean = &w * DVector::from_column_slice(m.as_slice());
+        let cov = &w * DMatrix::from_fn(3, 3, |i, j| c[(i, j)]) * w.transpose()
+            + DMatrix::identity(n, n) * noise_var;
+        ClassStats::new(field, mean, 0.5 * (&cov + cov.transpose()))
+    };
+    let t = class("target_cov", target.0, target.1)?;
+    let b = class("background_cov", background.0, background.1)?;
+    matched_filter(&t, &b, pfa)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
