@@ -395,3 +395,71 @@ fn bad_plan_keeps_devices_and_changed_simulation_rebuilds() {
         .any(|l| l.contains("rebuilding the simulated devices")));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Closing the window during a run: the close is cancelled, the run pauses at once and is
+/// detached (left for `polarimeter resume`, not finished, its frames kept), then the window
+/// closes.
+#[test]
+fn closing_during_a_run_pauses_and_detaches_first() {
+    use egui::{ViewportCommand, ViewportEvent, ViewportId};
+    let dir = temp_dir("close");
+    let app = App::new(dir.clone(), None).unwrap();
+    let mut h = Harness::builder()
+        .with_size(egui::vec2(1200.0, 900.0))
+        .build_ui_state(
+            |ui, app: &mut App| {
+                app.show(ui);
+                app.guard_close(ui.ctx());
+            },
+            app,
+        );
+    h.step();
+    h.get_by_label("Start").click();
+    step_until(&mut h, Duration::from_secs(30), "a frame", |h| {
+        h.state().progress().0 >= 2
+    });
+    h.input_mut()
+        .viewports
+        .entry(ViewportId::ROOT)
+        .or_default()
+        .events
+        .push(ViewportEvent::Close);
+    h.step();
+    let commands = |h: &Harness<'static, App>| {
+        h.output()
+            .viewport_output
+            .get(&ViewportId::ROOT)
+            .map(|v| v.commands.clone())
+            .unwrap_or_default()
+    };
+    assert!(
+        commands(&h)
+            .iter()
+            .any(|c| matches!(c, ViewportCommand::CancelClose)),
+        "the close must wait for the run"
+    );
+    let t0 = Instant::now();
+    let mut closed = false;
+    while !closed {
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "no close; state {:?}",
+            h.state().status()
+        );
+        h.step();
+        closed = commands(&h)
+            .iter()
+            .any(|c| matches!(c, ViewportCommand::Close));
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert!(
+        matches!(h.state().status(), Status::Detached(_)),
+        "{:?}",
+        h.state().status()
+    );
+    let run_dir = h.state().run_dir().unwrap().to_path_buf();
+    assert!(!polar_engine::run::is_finished(&run_dir));
+    let (done, planned) = h.state().progress();
+    assert!(done >= 2 && done < planned, "{done} of {planned}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
