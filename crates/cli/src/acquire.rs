@@ -296,6 +296,41 @@ pub struct Hardware {
     pub zero_offset_deg: f64,
 }
 
+impl Hardware {
+    /// The hardware the flags describe: `None` when none of `--port`, `--dialect`,
+    /// `--camera`, `--camera-file` is given (simulated devices); an error naming the flags when
+    /// only some are, or when `--zero-offset-deg` is not finite. Shared by `run`, `resume` and
+    /// `polarimeter-gui`.
+    pub fn from_flags(
+        port: Option<String>,
+        dialect: Option<Dialect>,
+        camera: Option<String>,
+        camera_file: Option<PathBuf>,
+        address: u8,
+        zero_offset_deg: f64,
+    ) -> Result<Option<Hardware>, String> {
+        match (port, dialect, camera, camera_file) {
+            (None, None, None, None) => Ok(None),
+            (Some(port), Some(dialect), Some(camera), Some(camera_file)) => {
+                if !zero_offset_deg.is_finite() {
+                    return Err(format!(
+                        "--zero-offset-deg = {zero_offset_deg} is invalid: allowed a finite angle"
+                    ));
+                }
+                Ok(Some(Hardware {
+                    port,
+                    dialect,
+                    address,
+                    camera,
+                    camera_file,
+                    zero_offset_deg,
+                }))
+            }
+            _ => Err("hardware needs all of --port, --dialect, --camera and --camera-file".into()),
+        }
+    }
+}
+
 fn runtime() -> Result<tokio::runtime::Runtime, CommandError> {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()

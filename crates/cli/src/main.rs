@@ -51,26 +51,14 @@ struct HardwareArgs {
 
 impl HardwareArgs {
     fn hardware(&self) -> Result<Option<polar_cli::acquire::Hardware>, String> {
-        match (&self.port, self.dialect, &self.camera, &self.camera_file) {
-            (None, None, None, None) => Ok(None),
-            (Some(port), Some(dialect), Some(camera), Some(camera_file)) => {
-                if !self.zero_offset_deg.is_finite() {
-                    return Err(format!(
-                        "--zero-offset-deg = {} is invalid: allowed a finite angle",
-                        self.zero_offset_deg
-                    ));
-                }
-                Ok(Some(polar_cli::acquire::Hardware {
-                    port: port.clone(),
-                    dialect,
-                    address: self.address,
-                    camera: camera.clone(),
-                    camera_file: camera_file.clone(),
-                    zero_offset_deg: self.zero_offset_deg,
-                }))
-            }
-            _ => Err("hardware needs all of --port, --dialect, --camera and --camera-file".into()),
-        }
+        polar_cli::acquire::Hardware::from_flags(
+            self.port.clone(),
+            self.dialect,
+            self.camera.clone(),
+            self.camera_file.clone(),
+            self.address,
+            self.zero_offset_deg,
+        )
     }
 }
 

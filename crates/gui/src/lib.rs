@@ -592,9 +592,7 @@ impl App {
     }
 
     fn device(&mut self, cmd: Command) {
-        if self.engine.send(cmd) {
-            self.device_pending = true;
-        } else {
+        if !self.device_command(cmd) {
             self.say("the engine is busy; try again");
         }
     }

@@ -170,18 +170,14 @@ impl HardwareFlags {
 
     /// The hardware, if any flag was given (then all of the required ones must be).
     fn devices(&self) -> Result<Option<Hardware>, String> {
-        match (&self.port, self.dialect, &self.camera, &self.camera_file) {
-            (None, None, None, None) => Ok(None),
-            (Some(port), Some(dialect), Some(camera), Some(camera_file)) => Ok(Some(Hardware {
-                port: port.clone(),
-                dialect,
-                address: self.address,
-                camera: camera.clone(),
-                camera_file: camera_file.clone(),
-                zero_offset_deg: self.zero_offset_deg,
-            })),
-            _ => Err("hardware needs all of --port, --dialect, --camera and --camera-file".into()),
-        }
+        Hardware::from_flags(
+            self.port.clone(),
+            self.dialect,
+            self.camera.clone(),
+            self.camera_file.clone(),
+            self.address,
+            self.zero_offset_deg,
+        )
     }
 }
 
