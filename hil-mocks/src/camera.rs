@@ -26,8 +26,8 @@ use crate::serve::TruthHandle;
 use crate::sim::Truth;
 use nalgebra::{Matrix3, Vector3};
 use polar_hal::{
-    BlockingCamera, CameraInfo, DeviceError, ErrorKind, Frame, GainUnit, Grabbed, PixelFormat, Roi,
-    TriggerMode,
+    BlockingCamera, CameraInfo, DeviceError, ErrorKind, ExposureEndHook, Frame, GainUnit, Grabbed,
+    PixelFormat, Roi, TriggerMode,
 };
 use polar_model::atmosphere::Band;
 use polar_model::error::ModelError;
@@ -381,6 +381,8 @@ pub struct SimCamera {
     epoch: Instant,
     /// The scene's illumination, shared with whoever darkens it.
     illumination: Illumination,
+    /// Told each exposure's end, before the frame is drawn.
+    exposure_end: Option<ExposureEndHook>,
 }
 
 /// A handle on the simulated scene's illumination: a factor on every pixel's radiance, 1 by
@@ -481,6 +483,7 @@ impl SimCamera {
             dice,
             epoch: Instant::now(),
             illumination: Illumination::new(),
+            exposure_end: None,
             config,
         })
     }
@@ -556,9 +559,15 @@ impl SimCamera {
 
     /// Draws the frame whose exposure just ended.
     fn finish(&mut self, started: Exposing) -> Result<Grabbed, DeviceError> {
+        // What the sensor saw is fixed when the exposure ends; only then is the end reported,
+        // so a move started on the report cannot reach this frame.
         let psi_end = (self.angle)();
+        let light = self.illumination.get();
         let id = self.frame_id;
         self.frame_id += 1;
+        if let Some(hook) = &self.exposure_end {
+            hook(id);
+        }
         let faults = self.config.faults;
         if faults.disconnect_after_frames > 0 && id >= faults.disconnect_after_frames {
             self.disconnected = true;
@@ -576,7 +585,6 @@ impl SimCamera {
         let pixels = match (stuck, &self.last_pixels) {
             (true, Some(last)) => last.clone(),
             _ => {
-                let light = self.illumination.get();
                 let mut electrons = self
                     .mean_electrons(self.roi, started.psi_start_rad, psi_end, self.exposure_us)
                     .map_err(|e| self.error(ErrorKind::Other, e.to_string()))?;
@@ -709,6 +717,11 @@ impl BlockingCamera for SimCamera {
         // One trigger waits while the sensor is busy; more are ignored, as on real cameras.
         self.triggers = (self.triggers + 1).min(1 + u32::from(self.exposing.is_some()));
         Ok(())
+    }
+
+    fn on_exposure_end(&mut self, hook: ExposureEndHook) -> bool {
+        self.exposure_end = Some(hook);
+        true
     }
 
     fn wait_frame(&mut self, wait: Duration) -> Result<Grabbed, DeviceError> {

@@ -482,6 +482,30 @@ async fn run(
     }
 }
 
+/// Sleeps until `wake`. tokio's timer fires on its next millisecond tick, up to 1 ms late;
+/// a device on a real line is not, so with `precise` (a pseudo-terminal, on the real clock)
+/// the last 2 ms are slept by a blocking thread, to within the OS scheduler's latency. In
+/// memory (tokio's clock, maybe paused) the timer is the clock, and is used as it is.
+async fn sleep_until(wake: Instant, precise: bool) {
+    const COARSE: Duration = Duration::from_millis(2);
+    if !precise {
+        return tokio::time::sleep_until(wake).await;
+    }
+    if let Some(early) = wake.checked_sub(COARSE) {
+        if early > Instant::now() {
+            tokio::time::sleep_until(early).await;
+        }
+    }
+    let left = wake.saturating_duration_since(Instant::now());
+    if !left.is_zero() {
+        // An abandoned sleep (a read came first) ends by itself within 2 ms.
+        let slept = tokio::task::spawn_blocking(move || std::thread::sleep(left)).await;
+        if slept.is_err() {
+            tokio::time::sleep_until(wake).await;
+        }
+    }
+}
+
 async fn serve(
     shared: &Shared,
     mut stream: Box<dyn Stream>,
@@ -525,6 +549,7 @@ async fn serve(
         } else {
             Instant::now() + Duration::from_secs(3600)
         };
+        let precise = matches!(source, Source::Pty(_));
         let reopen = async {
             match source {
                 Source::Memory(requests) => requests.recv().await,
@@ -545,7 +570,7 @@ async fn serve(
                     return Ended::Unplugged(faults.replug_s);
                 }
             }
-            _ = tokio::time::sleep_until(wake) => {}
+            _ = sleep_until(wake, precise) => {}
             request = reopen => match request {
                 Some(r) => return Ended::Reopened(r),
                 None => return Ended::Stop,

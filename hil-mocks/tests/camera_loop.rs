@@ -289,3 +289,48 @@ async fn faults_are_reported() {
     let again = cam.grab(Duration::from_secs(1)).await.expect_err("gone");
     assert_eq!(again.kind(), ErrorKind::Disconnected);
 }
+
+/// The exposure-end report comes before the frame, names the frame that follows, and is safe
+/// to move on: a camera whose analyzer jumps (0.3 -> 1.2 rad) as soon as the end is reported
+/// gives a frame bit-identical to one taken with the analyzer still (same seed and frame id,
+/// so the same Poisson draws for the same means). The control, a jump right after the
+/// trigger of a 20 ms exposure, changes the frame: the comparison can fail.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn moving_at_exposure_end_does_not_reach_the_frame() {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    let scene = sim_scene();
+    let take = |jump_at_end: Option<bool>| {
+        let scene = Arc::clone(&scene);
+        async move {
+            let psi = Arc::new(AtomicU64::new(0.3f64.to_bits()));
+            let source = Arc::clone(&psi);
+            let angle: polar_hil_mocks::camera::AngleSource =
+                Arc::new(move || f64::from_bits(source.load(Ordering::SeqCst)));
+            let sim_cam =
+                SimCamera::new(config(scene, CameraFaults::default()), angle).expect("camera");
+            let mut cam = ThreadedCamera::spawn(sim_cam, ThreadPolicy::default()).expect("spawn");
+            cam.set_exposure_us(20_000.0).await.expect("exposure");
+            cam.set_trigger(TriggerMode::Software)
+                .await
+                .expect("trigger");
+            cam.start().await.expect("start");
+            cam.trigger().await.expect("fire");
+            if jump_at_end == Some(false) {
+                psi.store(1.2f64.to_bits(), Ordering::SeqCst);
+            }
+            let ended = cam
+                .exposure_end(Duration::from_secs(5))
+                .await
+                .expect("exposure end");
+            if jump_at_end == Some(true) {
+                psi.store(1.2f64.to_bits(), Ordering::SeqCst);
+            }
+            let frame = cam.grab(Duration::from_secs(5)).await.expect("frame");
+            assert_eq!(ended, Some(frame.frame_id), "the end names the frame");
+            frame.pixels
+        }
+    };
+    let still = take(None).await;
+    assert_eq!(take(Some(true)).await, still, "moved at the exposure end");
+    assert_ne!(take(Some(false)).await, still, "moved during the exposure");
+}

@@ -17,7 +17,7 @@ use std::collections::VecDeque;
 use std::sync::mpsc as std_mpsc;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
-use tokio::sync::{oneshot, Notify};
+use tokio::sync::{oneshot, watch, Notify};
 
 /// How the thread and the queue behave.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -82,16 +82,28 @@ pub struct ThreadedCamera {
     policy: ThreadPolicy,
     commands: std_mpsc::Sender<Command>,
     shared: Arc<Shared>,
+    /// Exposure ends reported by the camera: (how many so far, the last one's frame id); `None`
+    /// when the camera does not report them.
+    exposures: Option<watch::Receiver<(u64, u64)>>,
+    /// The exposure-end count when the last trigger was fired.
+    armed: u64,
 }
 
 impl ThreadedCamera {
     /// Moves `camera` onto a new thread named `camera-<id>`. Fails only if the thread cannot be
     /// spawned.
     pub fn spawn<C: BlockingCamera>(
-        camera: C,
+        mut camera: C,
         policy: ThreadPolicy,
     ) -> Result<ThreadedCamera, DeviceError> {
         let info = camera.info();
+        let (ended, exposures) = watch::channel((0u64, 0u64));
+        let reports_exposure_end = camera.on_exposure_end(Box::new(move |frame_id| {
+            ended.send_modify(|(count, id)| {
+                *count += 1;
+                *id = frame_id;
+            });
+        }));
         let hardware_trigger = camera.supports_hardware_trigger();
         let software_trigger = camera.supports_software_trigger();
         let policy = ThreadPolicy {
@@ -121,6 +133,8 @@ impl ThreadedCamera {
             policy,
             commands: tx,
             shared,
+            exposures: reports_exposure_end.then_some(exposures),
+            armed: 0,
         })
     }
 
@@ -232,7 +246,30 @@ impl Camera for ThreadedCamera {
     }
 
     async fn trigger(&mut self) -> Result<(), DeviceError> {
+        if let Some(rx) = &self.exposures {
+            self.armed = rx.borrow().0;
+        }
         self.call(Command::Fire).await
+    }
+
+    async fn exposure_end(&mut self, deadline: Duration) -> Result<Option<u64>, DeviceError> {
+        let armed = self.armed;
+        let Some(rx) = &mut self.exposures else {
+            return Ok(None);
+        };
+        let waited = tokio::time::timeout(deadline, rx.wait_for(|&(count, _)| count > armed))
+            .await
+            .map(|r| r.map(|ended| ended.1));
+        match waited {
+            Ok(Ok(frame_id)) => Ok(Some(frame_id)),
+            // The hook went with the camera thread.
+            Ok(Err(_)) => Err(self.gone()),
+            Err(_) => Err(DeviceError::new(
+                ErrorKind::Timeout,
+                &self.info.id,
+                format!("no exposure end within {deadline:?} of the trigger"),
+            )),
+        }
     }
 
     async fn grab(&mut self, deadline: Duration) -> Result<Frame, DeviceError> {
@@ -246,6 +283,15 @@ impl Camera for ThreadedCamera {
                 }
                 if let Some(e) = &state.ended {
                     return Err(e.clone());
+                }
+                if deadline.is_zero() {
+                    // A poll of the queue: tokio's timer would only fire at its next
+                    // millisecond tick.
+                    return Err(DeviceError::new(
+                        ErrorKind::Timeout,
+                        &self.info.id,
+                        "no complete frame waiting",
+                    ));
                 }
             }
             // `notify_one` leaves a permit when nobody waits, so a frame queued between the
@@ -501,6 +547,25 @@ mod tests {
             },
             produced,
         )
+    }
+
+    /// A camera that does not report exposure ends says so (`None`, at once, so a caller falls
+    /// back to waiting for the frame), and a zero-deadline grab is a poll of the queue: a
+    /// timeout without a frame, not counted as a stream timeout.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn no_exposure_end_report_and_zero_deadline_poll() {
+        let (cam, _) = scripted(0, u64::MAX);
+        let mut cam = ThreadedCamera::spawn(cam, ThreadPolicy::default()).expect("spawn");
+        assert_eq!(
+            cam.exposure_end(Duration::from_secs(5)).await.expect("end"),
+            None
+        );
+        let e = cam.grab(Duration::ZERO).await.expect_err("nothing queued");
+        assert_eq!(e.kind(), ErrorKind::Timeout, "{e}");
+        assert_eq!(cam.stats().timeouts, 0);
+        cam.start().await.expect("start");
+        let f = cam.grab(Duration::from_secs(5)).await.expect("frame");
+        assert_eq!(f.frame_id, 0);
     }
 
     /// A consumer that stops grabbing does not stop the camera thread: it keeps producing,

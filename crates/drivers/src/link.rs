@@ -268,12 +268,21 @@ impl Link {
         };
         let mut buf = [0u8; 256];
         loop {
-            // A zero timeout polls the read once: what is waiting is taken, nothing is awaited.
-            match tokio::time::timeout(Duration::ZERO, io.read(&mut buf)).await {
-                Ok(Ok(0)) => return Err(self.lost("discarding input", None)),
-                Ok(Ok(n)) => dropped += n,
-                Ok(Err(e)) => return Err(self.lost("discarding input", Some(e))),
-                Err(_) => return Ok(dropped),
+            // The read is polled once: what is waiting is taken, nothing is awaited. (A zero
+            // timeout would wait for tokio's next millisecond timer tick.)
+            let polled = std::future::poll_fn(|cx| {
+                let mut read = tokio::io::ReadBuf::new(&mut buf);
+                std::task::Poll::Ready(match Pin::new(&mut *io).poll_read(cx, &mut read) {
+                    std::task::Poll::Ready(r) => Some(r.map(|()| read.filled().len())),
+                    std::task::Poll::Pending => None,
+                })
+            })
+            .await;
+            match polled {
+                Some(Ok(0)) => return Err(self.lost("discarding input", None)),
+                Some(Ok(n)) => dropped += n,
+                Some(Err(e)) => return Err(self.lost("discarding input", Some(e))),
+                None => return Ok(dropped),
             }
         }
     }

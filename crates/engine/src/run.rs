@@ -274,6 +274,9 @@ enum CamCmd {
     },
     Acquire {
         deadline: Duration,
+        /// Told the frame id when the exposure ends, if the camera reports it (the sender is
+        /// dropped otherwise).
+        exposed: Option<oneshot::Sender<u64>>,
         reply: oneshot::Sender<Result<Frame, DeviceError>>,
     },
 }
@@ -323,7 +326,11 @@ fn spawn_camera<C: Camera + 'static>(mut camera: C) -> mpsc::Sender<CamCmd> {
                         .await;
                         let _ = reply.send(r);
                     }
-                    CamCmd::Acquire { deadline, reply } => {
+                    CamCmd::Acquire {
+                        deadline,
+                        exposed,
+                        reply,
+                    } => {
                         let r = async {
                             if !started {
                                 camera.set_trigger(TriggerMode::Software).await?;
@@ -335,8 +342,16 @@ fn spawn_camera<C: Camera + 'static>(mut camera: C) -> mpsc::Sender<CamCmd> {
                             while let Ok(stale) = camera.grab(Duration::ZERO).await {
                                 warn!(frame_id = stale.frame_id, "discarded a late frame");
                             }
+                            let until = tokio::time::Instant::now() + deadline;
                             camera.trigger().await?;
-                            camera.grab(deadline).await
+                            if let Some(exposed) = exposed {
+                                if let Some(frame_id) = camera.exposure_end(deadline).await? {
+                                    let _ = exposed.send(frame_id);
+                                }
+                            }
+                            camera
+                                .grab(until.saturating_duration_since(tokio::time::Instant::now()))
+                                .await
                         }
                         .instrument(info_span!("grab"))
                         .await;
@@ -857,6 +872,16 @@ struct Loop<'a> {
     device_s: f64,
     /// Suspender verdicts arrived and not yet acted on: set, verdict, mean DoLP.
     verdicts: VecDeque<(u64, Verdict, f64)>,
+    /// The move to the next step's angle, started when the last exposure ended.
+    pending_move: Option<PendingMove>,
+}
+
+/// A move started ahead of its step (at the end of the previous step's exposure), so that it
+/// overlaps that frame's readout, transfer and recording.
+struct PendingMove {
+    /// The commanded angle, degrees as the plan gives it.
+    angle_deg: f64,
+    reply: oneshot::Receiver<Result<f64, DeviceError>>,
 }
 
 /// Outcome of waiting at a pause.
@@ -980,6 +1005,9 @@ impl Loop<'_> {
 
     /// Pauses with `reason` and waits for the controller.
     async fn pause(&mut self, reason: String, next_step: u64) -> Result<AfterPause, RunError> {
+        // After a pause the stage is commanded afresh: whatever happened to it meanwhile, the
+        // next step's angle is measured by its own move.
+        self.pending_move = None;
         if let Err(e) = self.drain().await {
             warn!("while pausing: {e}");
         }
@@ -1009,8 +1037,15 @@ impl Loop<'_> {
         }
     }
 
-    /// Takes one step's frame (with the plan's retries); the frame goes to storage.
-    async fn acquire(&mut self, step: u64, spec: &StepSpec) -> Result<u64, OpError> {
+    /// Takes one step's frame (with the plan's retries); the frame goes to storage. `next_deg`
+    /// is the angle of the step that will follow, if known: the stage starts moving there as
+    /// soon as the camera reports this step's exposure ended.
+    async fn acquire(
+        &mut self,
+        step: u64,
+        spec: &StepSpec,
+        next_deg: Option<f64>,
+    ) -> Result<u64, OpError> {
         let policy = &self.plan.policy;
         let attempts = policy.attempts.max(1);
         let backoff = Duration::from_millis(policy.retry_backoff_ms);
@@ -1030,7 +1065,10 @@ impl Loop<'_> {
             if attempt > 1 {
                 tokio::time::sleep(backoff).await;
             }
-            match self.try_acquire(spec, move_deadline, grab_deadline).await {
+            match self
+                .try_acquire(spec, next_deg, move_deadline, grab_deadline)
+                .await
+            {
                 Ok((measured_deg, frame)) => {
                     let index = self.next_index;
                     self.next_index += 1;
@@ -1081,24 +1119,39 @@ impl Loop<'_> {
     async fn try_acquire(
         &mut self,
         spec: &StepSpec,
+        next_deg: Option<f64>,
         move_deadline: Duration,
         grab_deadline: Duration,
     ) -> Result<(f64, Frame), OpError> {
         let stage = self.stage.clone();
         let psi = spec.angle_deg.to_radians();
         let t0 = Instant::now();
+        // A move started ahead to this angle is this step's move; one to another angle (a retry
+        // of the previous step, a set taken again) is left to finish, and the stage actor
+        // runs this step's move after it.
+        let ahead = self
+            .pending_move
+            .take()
+            .filter(|p| p.angle_deg == spec.angle_deg)
+            .map(|p| p.reply);
         let measured = self
             .watch(async move {
-                let (tx, rx) = oneshot::channel();
-                stage
-                    .send(StageCmd::SetAngle {
-                        psi_rad: psi,
-                        reply: tx,
-                    })
-                    .await
-                    .map_err(|_| {
-                        DeviceError::new(ErrorKind::Disconnected, "stage", "actor gone")
-                    })?;
+                let rx = match ahead {
+                    Some(rx) => rx,
+                    None => {
+                        let (tx, rx) = oneshot::channel();
+                        stage
+                            .send(StageCmd::SetAngle {
+                                psi_rad: psi,
+                                reply: tx,
+                            })
+                            .await
+                            .map_err(|_| {
+                                DeviceError::new(ErrorKind::Disconnected, "stage", "actor gone")
+                            })?;
+                        rx
+                    }
+                };
                 match tokio::time::timeout(move_deadline, rx).await {
                     Ok(Ok(r)) => r,
                     Ok(Err(_)) => Err(DeviceError::new(
@@ -1145,16 +1198,53 @@ impl Loop<'_> {
         let t1 = Instant::now();
         let cam = self.camera.clone();
         let (w, h) = (self.width, self.height);
+        let (frame_tx, frame_rx) = oneshot::channel();
+        let (exposed_tx, exposed_rx) = match next_deg {
+            Some(_) => {
+                let (tx, rx) = oneshot::channel();
+                (Some(tx), Some(rx))
+            }
+            None => (None, None),
+        };
+        self.watch(async move {
+            cam.send(CamCmd::Acquire {
+                deadline: grab_deadline,
+                exposed: exposed_tx,
+                reply: frame_tx,
+            })
+            .await
+            .map_err(|_| DeviceError::new(ErrorKind::Disconnected, "camera", "actor gone"))
+        })
+        .await?;
+        // The exposure's end (if the camera reports it) starts the next step's move, which then
+        // overlaps this frame's readout, transfer and recording. Without the report (or when the
+        // grab fails first), the sender is dropped and the next move waits for its step.
+        let mut exposure_frame_id = None;
+        if let (Some(rx), Some(next)) = (exposed_rx, next_deg) {
+            if let Some(frame_id) = self.watch(async move { Ok(rx.await.ok()) }).await? {
+                let (tx, reply) = oneshot::channel();
+                let sent = self.stage.try_send(StageCmd::SetAngle {
+                    psi_rad: next.to_radians(),
+                    reply: tx,
+                });
+                if sent.is_ok() {
+                    tracing::debug!(
+                        frame_id,
+                        next_deg = next,
+                        after_ms = t1.elapsed().as_secs_f64() * 1e3,
+                        "exposure ended; moving ahead"
+                    );
+                    self.pending_move = Some(PendingMove {
+                        angle_deg: next,
+                        reply,
+                    });
+                    exposure_frame_id = Some(frame_id);
+                }
+            }
+        }
         let frame = self
             .watch(async move {
-                let (tx, rx) = oneshot::channel();
-                cam.send(CamCmd::Acquire {
-                    deadline: grab_deadline,
-                    reply: tx,
-                })
-                .await
-                .map_err(|_| DeviceError::new(ErrorKind::Disconnected, "camera", "actor gone"))?;
-                let f = rx.await.map_err(|_| {
+                let f = frame_rx.await.map_err(|_| {
                     DeviceError::new(ErrorKind::Disconnected, "camera", "actor gone")
                 })??;
                 if (f.width, f.height) != (w, h) || f.pixels.len() != w as usize * h as usize {
@@ -1168,6 +1258,20 @@ impl Loop<'_> {
                             f.pixels.len()
                         ),
                     ));
+                }
+                if let Some(id) = exposure_frame_id {
+                    // The stage left when exposure `id` ended: any other frame may have been
+                    // exposed while it moved.
+                    if f.frame_id != id {
+                        return Err(DeviceError::new(
+                            ErrorKind::Protocol,
+                            "camera",
+                            format!(
+                                "frame {} arrived for the exposure that ended as frame {id}",
+                                f.frame_id
+                            ),
+                        ));
+                    }
                 }
                 Ok(f)
             })
@@ -1493,6 +1597,7 @@ where
         light_level: 1.0,
         device_s: 0.0,
         verdicts: VecDeque::new(),
+        pending_move: None,
     };
     lp.set_state(RunState::Running);
 
@@ -1687,7 +1792,7 @@ where
                     continue;
                 }
                 let span = info_span!("step", step, label = %spec.label);
-                match lp.acquire(step, &spec).instrument(span).await {
+                match lp.acquire(step, &spec, None).instrument(span).await {
                     Ok(_) => {}
                     Err(e) => {
                         let reason = match e {
@@ -1705,10 +1810,24 @@ where
             }
             Unit::Set(set, members) => {
                 let mut failed = None;
-                for (step, spec) in &members {
+                // After the set's last frame the stage may go ahead to the next set's first
+                // angle, unless a pause or a wait for the set's time comes first.
+                let next_set_deg = match units.front() {
+                    Some(u @ Unit::Set(_, next)) if unit_not_before(u).is_none() => next
+                        .iter()
+                        .find(|(s, _)| !lp.accepted.contains_key(s))
+                        .map(|(_, s)| s.angle_deg),
+                    _ => None,
+                };
+                for (i, (step, spec)) in members.iter().enumerate() {
                     if lp.accepted.contains_key(step) {
                         continue;
                     }
+                    let next_deg = members[i + 1..]
+                        .iter()
+                        .find(|(s, _)| !lp.accepted.contains_key(s))
+                        .map(|(_, s)| s.angle_deg)
+                        .or(if lp.pausing { None } else { next_set_deg });
                     let span = info_span!("step", step, label = %spec.label);
                     // A passing cloud in the middle of a set (simulation).
                     if let (Some(_), Some(cloud_set)) =
@@ -1721,7 +1840,7 @@ where
                             lp.light_level = 1.0 - plan.simulation.cloud_depth;
                         }
                     }
-                    let r = lp.acquire(*step, spec).instrument(span).await;
+                    let r = lp.acquire(*step, spec, next_deg).instrument(span).await;
                     if let Err(e) = r {
                         failed = Some((*step, e));
                         break;

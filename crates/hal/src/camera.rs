@@ -335,9 +335,23 @@ pub trait Camera {
     /// The next complete frame, or [`ErrorKind::Timeout`] after `deadline`, or
     /// [`ErrorKind::Disconnected`] if the camera went away.
     async fn grab(&mut self, deadline: Duration) -> Result<Frame, DeviceError>;
+    /// Waits until the exposure started by the last [`Camera::trigger`] has ended: the sensor
+    /// no longer integrates, so the analyzer may move while the frame is read out and
+    /// transferred (GenICam's `ExposureEnd` event). Returns the id of the frame that exposure
+    /// will be delivered as, or `Ok(None)` at once when this camera does not report exposure
+    /// ends (then only the frame's arrival says the sensor is done). A caller that moves on the
+    /// event must check that the frame it then grabs carries the returned id.
+    async fn exposure_end(&mut self, deadline: Duration) -> Result<Option<u64>, DeviceError> {
+        let _ = deadline;
+        Ok(None)
+    }
     /// Stream counters.
     fn stats(&self) -> StreamStats;
 }
+
+/// Told, on the camera's own thread, the frame id of each exposure as it ends (see
+/// [`BlockingCamera::on_exposure_end`]).
+pub type ExposureEndHook = Box<dyn Fn(u64) + Send>;
 
 /// What one wait on a blocking SDK's stream gave.
 #[derive(Debug, Clone, PartialEq)]
@@ -389,6 +403,14 @@ pub trait BlockingCamera: Send + 'static {
     /// Waits at most `wait` for the next buffer. An error of kind
     /// [`ErrorKind::Disconnected`] ends the stream.
     fn wait_frame(&mut self, wait: Duration) -> Result<Grabbed, DeviceError>;
+    /// Asks to be told when each exposure ends, before its readout and transfer: `hook` is
+    /// called (from within [`BlockingCamera::wait_frame`]) with the frame id the exposure will
+    /// be delivered as, once the sensor has stopped integrating. Returns `false`, dropping the
+    /// hook, when the camera cannot tell (the default).
+    fn on_exposure_end(&mut self, hook: ExposureEndHook) -> bool {
+        drop(hook);
+        false
+    }
 }
 
 #[cfg(test)]

@@ -19,8 +19,8 @@ pub mod camera;
 
 pub use analyzer::{Analyzer, Approach, OnRotator, OnWheel, SlotAngle};
 pub use camera::{
-    BlockingCamera, Camera, CameraInfo, Frame, GainUnit, Grabbed, PixelFormat, Roi, StreamStats,
-    TriggerMode,
+    BlockingCamera, Camera, CameraInfo, ExposureEndHook, Frame, GainUnit, Grabbed, PixelFormat,
+    Roi, StreamStats, TriggerMode,
 };
 
 use std::f64::consts::PI;
