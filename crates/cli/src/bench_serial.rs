@@ -73,7 +73,8 @@ async fn queries(
             bytes_before = s.bytes_out;
             for _ in 0..n {
                 let t = Instant::now();
-                r.position_rad().await?;
+                // The driver knows its position between moves: ask the controller.
+                r.read_position_rad().await?;
                 times.push(t.elapsed().as_secs_f64());
             }
         }

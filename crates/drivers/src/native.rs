@@ -683,6 +683,14 @@ impl NativeRotator {
         })
     }
 
+    /// The position as the controller reports it now, radians: always a status round trip,
+    /// unlike [`Rotator::position_rad`], which knows the position between moves.
+    pub async fn read_position_rad(&mut self) -> Result<f64, DeviceError> {
+        self.session.ensure_ready().await?;
+        let p = self.session.status().await?.position_counts;
+        Ok(self.angle(p))
+    }
+
     /// The session (identity, resets seen, opens).
     pub fn session(&self) -> &NativeSession {
         &self.session
