@@ -776,7 +776,7 @@ impl BlockingCamera for SimCamera {
             std::thread::sleep(deadline.saturating_duration_since(now));
             return Ok(Grabbed::Nothing);
         }
-        std::thread::sleep(exposing.end.saturating_duration_since(now));
+        crate::sleep_until_precisely(exposing.end);
         self.exposing = None;
         self.finish(exposing)
     }

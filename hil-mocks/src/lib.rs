@@ -26,3 +26,18 @@ pub mod motion;
 pub mod native;
 pub mod serve;
 pub mod sim;
+
+/// Blocks the thread until `until`, to within a few microseconds: an OS sleep overshoots by
+/// its wake-up latency (up to a millisecond on an idle virtual machine), which would make a
+/// simulated device slower than the real one. The OS sleeps until 0.5 ms before, and the rest
+/// is spun.
+pub(crate) fn sleep_until_precisely(until: std::time::Instant) {
+    const SPIN: std::time::Duration = std::time::Duration::from_micros(500);
+    let now = std::time::Instant::now();
+    if until > now + SPIN {
+        std::thread::sleep(until - now - SPIN);
+    }
+    while std::time::Instant::now() < until {
+        std::hint::spin_loop();
+    }
+}

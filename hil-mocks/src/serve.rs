@@ -484,7 +484,7 @@ async fn run(
 
 /// Sleeps until `wake`. tokio's timer fires on its next millisecond tick, up to 1 ms late;
 /// a device on a real line is not, so with `precise` (a pseudo-terminal, on the real clock)
-/// the last 2 ms are slept by a blocking thread, to within the OS scheduler's latency. In
+/// the last 2 ms are slept by a blocking thread, to within microseconds. In
 /// memory (tokio's clock, maybe paused) the timer is the clock, and is used as it is.
 async fn sleep_until(wake: Instant, precise: bool) {
     const COARSE: Duration = Duration::from_millis(2);
@@ -499,7 +499,8 @@ async fn sleep_until(wake: Instant, precise: bool) {
     let left = wake.saturating_duration_since(Instant::now());
     if !left.is_zero() {
         // An abandoned sleep (a read came first) ends by itself within 2 ms.
-        let slept = tokio::task::spawn_blocking(move || std::thread::sleep(left)).await;
+        let until = std::time::Instant::now() + left;
+        let slept = tokio::task::spawn_blocking(move || crate::sleep_until_precisely(until)).await;
         if slept.is_err() {
             tokio::time::sleep_until(wake).await;
         }

@@ -285,6 +285,53 @@ impl FacetGeometry {
         }
     }
 
+    /// [`FacetGeometry::new`] of `Geometry::from_directions(omega_i, omega_r)`, computed from
+    /// the world-frame directions (unit, `z >= 0`, not checked) without the detour through the
+    /// incident plane's frame: the half vector, tilt and cross product are invariant under the
+    /// azimuthal rotation to that frame, and its frame vectors are, in the world frame,
+    /// `s_i = (-sin a_i, cos a_i, 0)` and `s_r = (sin a_r, -cos a_r, 0)` (`a` the azimuths; at
+    /// the zenith the same defaults as [`Geometry::from_directions`]). Equal to it up to
+    /// rounding; for integrands that call it millions of times.
+    pub fn from_world(omega_i: &Vector3<f64>, omega_r: &Vector3<f64>) -> Self {
+        let oi = Vector3::new(omega_i.x, omega_i.y, omega_i.z.clamp(COS_FLOOR, 1.0));
+        let or = Vector3::new(omega_r.x, omega_r.y, omega_r.z.clamp(COS_FLOOR, 1.0));
+        let sum = oi + or;
+        let len = sum.norm();
+        let h = sum / len;
+        let cos_beta = (0.5 * len).min(1.0);
+        let cos_alpha = h.z;
+        let tan2_alpha = (h.x * h.x + h.y * h.y) / (h.z * h.z);
+        let sin_ti = (oi.x * oi.x + oi.y * oi.y).sqrt();
+        let (ca, sa) = if sin_ti > 0.0 {
+            (oi.x / sin_ti, oi.y / sin_ti)
+        } else {
+            (1.0, 0.0)
+        };
+        let s_i = Vector3::new(-sa, ca, 0.0);
+        let x = ca * or.x + sa * or.y;
+        let y = -sa * or.x + ca * or.y;
+        let sin_tr = (x * x + y * y).sqrt();
+        let s_r = if sin_tr > 0.0 {
+            Vector3::new(or.y / sin_tr, -or.x / sin_tr, 0.0)
+        } else {
+            Vector3::new(sa, -ca, 0.0)
+        };
+        let cross = or.cross(&oi);
+        let cross_norm = cross.norm();
+        let s_f = if cross_norm > 0.0 {
+            cross / cross_norm
+        } else {
+            s_i
+        };
+        FacetGeometry {
+            cos_beta,
+            cos_alpha,
+            tan2_alpha,
+            rot_i: cos_sin_2eta(&s_i, &s_f, &-oi),
+            rot_r: cos_sin_2eta(&s_r, &s_f, &or),
+        }
+    }
+
     /// `R(-eta_r) M(beta) R(eta_i)` (Eq. 3.7) for the facet Mueller matrix of Eq. 3.5 with
     /// permittivity `eps`, expressed in the incident and reflected surface frames.
     pub fn rotated_fresnel(&self, eps: Complex64) -> Matrix3<f64> {

@@ -20,8 +20,15 @@
 //! * **Field of view**: the mean and covariance over the image are integrals over the image
 //!   plane, computed with tensor Gauss-Legendre rules of order 2, 3, 4, 6, 8, 12 until the mean
 //!   and the covariance's scale change by less than `tol / 4` (the last change is reported and
-//!   added to the error). A probe of the field's corners with the cheap terms decides whether one
-//!   ray suffices (a 1-degree field of view: `Sigma_g` skipped).
+//!   added to the error). A probe of the field's corners decides whether one ray suffices (a
+//!   1-degree field of view: `Sigma_g` skipped); when the cheap terms (direct, path) alone vary
+//!   by `tol / 4` it does not integrate the skylight.
+//! * **Skylight over the field**: a tensor polynomial through Chebyshev-Lobatto rays (3 x 3, then
+//!   5 points in one direction, the other, both; the probe's rays reused), accepted once it
+//!   predicts the four order-2 Gauss-Legendre rays to `tol / 8`, replaces the hemisphere
+//!   integral at every field ray; its miss and its rays' quadrature errors are reported
+//!   (`Prepared::lobatto_sky`). If it never does, every field ray integrates its own skylight
+//!   as before.
 //!
 //! # Fidelity
 //!
@@ -302,36 +309,48 @@ struct Point {
     evaluations: usize,
 }
 
-/// The reflected skylight over the field as a tensor Lagrange polynomial through `m x m`
-/// Gauss-Legendre rays, in the camera frame.
+/// The reflected skylight over the field as a tensor Lagrange polynomial through Gauss-Legendre
+/// or Chebyshev-Lobatto rays, in the camera frame.
 struct SkyFit {
+    /// Nodes in `u`.
     nodes: Vec<f64>,
+    /// Nodes in `v` (the same as in `u` but for the interpolant of [`Prepared::lobatto_sky`]).
+    nodes_v: Vec<f64>,
+    /// `values[i * nodes_v.len() + j]` at `(nodes[i], nodes_v[j])`.
     values: Vec<Vector3<f64>>,
     /// The largest quadrature error of the fitted values.
     error: f64,
 }
 
-impl SkyFit {
-    fn basis(&self, x: f64, i: usize) -> f64 {
-        self.nodes
-            .iter()
-            .enumerate()
-            .filter(|&(k, _)| k != i)
-            .map(|(_, &xk)| (x - xk) / (self.nodes[i] - xk))
-            .product()
-    }
+/// The Lagrange basis polynomial of node `i` of `nodes` at `x`.
+fn lagrange_basis(nodes: &[f64], x: f64, i: usize) -> f64 {
+    nodes
+        .iter()
+        .enumerate()
+        .filter(|&(k, _)| k != i)
+        .map(|(_, &xk)| (x - xk) / (nodes[i] - xk))
+        .product()
+}
 
+impl SkyFit {
     fn at(&self, u: f64, v: f64) -> Vector3<f64> {
-        let m = self.nodes.len();
+        let mv = self.nodes_v.len();
         let mut out = Vector3::zeros();
-        for i in 0..m {
-            let bu = self.basis(u, i);
-            for j in 0..m {
-                out += self.values[i * m + j] * (bu * self.basis(v, j));
+        for i in 0..self.nodes.len() {
+            let bu = lagrange_basis(&self.nodes, u, i);
+            for j in 0..mv {
+                out += self.values[i * mv + j] * (bu * lagrange_basis(&self.nodes_v, v, j));
             }
         }
         out
     }
+}
+
+/// [`Prepared::lobatto_sky`]'s result: the interpolant with its interpolation error, if it
+/// predicts its check rays, and the integrand evaluations spent.
+struct LobattoSky {
+    fit: Option<(SkyFit, f64)>,
+    evaluations: usize,
 }
 
 /// The sky, resolved.
@@ -724,6 +743,113 @@ impl Prepared {
         ])
     }
 
+    /// The reflected skylight over the field as a tensor polynomial through Chebyshev-Lobatto
+    /// rays, 3 x 3 (`{-1, 0, 1}^2`: the centre and corners may come from `probed`; the others
+    /// are integrated with `inc`), checked at the four rays `(+-1/sqrt 3, +-1/sqrt 3)`; when it
+    /// misses them by `target` or more, the same with 5 points (`{-1, -1/sqrt 2, 0, 1/sqrt 2,
+    /// 1}`) in `u`, then in `v`, then in both, each level reusing the rays before.
+    ///
+    /// The check rays are where a 3-point interpolant's leading error term,
+    /// `f''' / 6 x (x^2 - 1)` in each direction, is largest, and the four signs combine the two
+    /// directions' terms in every way, so the largest miss there is the interpolant's largest
+    /// error to leading order. For 5 points, `x (x^2 - 1) (x^2 - 1/2)` is 1.81 times larger at
+    /// its extremum (`x = 0.36`) than at `1/sqrt 3`, so a miss of a level with 5 points in a
+    /// direction is doubled. As for the field orders' fit in [`Prepared::evaluate`], the misses
+    /// are net of the quadrature errors of the rays involved; those (the fitted rays' and the
+    /// check rays') are reported as the fit's `error`, so that the two together are at least
+    /// the raw miss. Returns the interpolant and its interpolation error (absolute), or `None`.
+    fn lobatto_sky(
+        &self,
+        surface: &Surface,
+        f00: f64,
+        inc: Include,
+        probed: &[((f64, f64), Point)],
+        target: f64,
+    ) -> Result<LobattoSky, ModelError> {
+        let mut evaluations = 0;
+        let mut rays: Vec<((f64, f64), Point)> = probed.to_vec();
+        let mut ray =
+            |u: f64, v: f64, rays: &mut Vec<((f64, f64), Point)>| -> Result<Point, ModelError> {
+                if let Some((_, p)) = rays
+                    .iter()
+                    .find(|((a, b), _)| (a - u).abs() < 1e-12 && (b - v).abs() < 1e-12)
+                {
+                    return Ok(*p);
+                }
+                let p = self.point(surface, f00, &self.field.ray(u, v, (0, 0))?, inc)?;
+                evaluations += p.evaluations;
+                rays.push(((u, v), p));
+                Ok(p)
+            };
+        let g = 1.0 / 3f64.sqrt();
+        let mut checks = Vec::with_capacity(4);
+        for (u, v) in [(-g, -g), (g, -g), (-g, g), (g, g)] {
+            checks.push(((u, v), ray(u, v, &mut rays)?));
+        }
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let (three, five): (&[f64], &[f64]) = (&[-1.0, 0.0, 1.0], &[-1.0, -h, 0.0, h, 1.0]);
+        // 5 x 3 and 3 x 5 are subsets of 5 x 5: trying them first costs no ray the 5 x 5
+        // would not need. The direction whose part of the 3 x 3's misses (odd in it) is the
+        // larger gets its 5 points first.
+        let mut levels = [
+            (three, three, 1.0),
+            (five, three, 2.0),
+            (three, five, 2.0),
+            (five, five, 2.0),
+        ];
+        for k in 0..levels.len() {
+            let (nodes_u, nodes_v, factor) = levels[k];
+            let mut values = Vec::with_capacity(nodes_u.len() * nodes_v.len());
+            let mut error = 0.0f64;
+            for &u in nodes_u {
+                for &v in nodes_v {
+                    let p = ray(u, v, &mut rays)?;
+                    values.push(p.sky);
+                    error = error.max(p.sky_error);
+                }
+            }
+            let fit = SkyFit {
+                nodes: nodes_u.to_vec(),
+                nodes_v: nodes_v.to_vec(),
+                values,
+                error,
+            };
+            let mut miss = 0.0f64;
+            for ((u, v), p) in &checks {
+                let d = (fit.at(*u, *v) - p.sky).norm() - p.sky_error - fit.error;
+                miss = miss.max(d);
+            }
+            let interpolation_error = factor * miss.max(0.0);
+            if k == 0 {
+                let (mut odd_u, mut odd_v) = (Vector3::zeros(), Vector3::zeros());
+                for ((u, v), p) in &checks {
+                    let r = fit.at(*u, *v) - p.sky;
+                    odd_u += r * u.signum();
+                    odd_v += r * v.signum();
+                }
+                if odd_v.norm() > odd_u.norm() {
+                    levels.swap(1, 2);
+                }
+            }
+            if interpolation_error < target {
+                let fit = SkyFit {
+                    error: fit
+                        .error
+                        .max(checks.iter().fold(0.0f64, |m, c| m.max(c.1.sky_error))),
+                    ..fit
+                };
+                return Ok(LobattoSky {
+                    fit: Some((fit, interpolation_error)),
+                    evaluations,
+                });
+            }
+        }
+        Ok(LobattoSky {
+            fit: None,
+            evaluations,
+        })
+    }
+
     /// Evaluates one material over the field of view.
     pub fn evaluate(&self, material: &SceneMaterial) -> Result<MaterialResult, ModelError> {
         let tol = self.tol;
@@ -745,6 +871,7 @@ impl Prepared {
         )?;
         let mut evaluations = diffuse.specular_albedo.evaluations;
         let mut f00 = diffuse.f00;
+        let coarse_f00 = f00;
         let centre = self.field.ray(0.0, 0.0, (0, 0))?;
         let direct_only = Include {
             skylight: false,
@@ -832,6 +959,7 @@ impl Prepared {
             evaluations += diffuse.specular_albedo.evaluations;
             f00 = diffuse.f00;
         }
+        let f00_unchanged = f00 == coarse_f00;
         // Every tolerance from here on is relative to the estimated S0.
         let s0_direct = s0_est;
         let inc = Include {
@@ -841,27 +969,98 @@ impl Prepared {
             coarse_table: false,
         };
 
-        // Geometry: the field's corners, with every included term (skylight at the coarse
-        // tolerance / 32, its error added), decide whether one ray is enough: the field's mean then
-        // differs from the centre by less than the largest corner difference.
+        // Geometry: the field's corners decide whether one ray is enough: the field's mean then
+        // differs from the centre by less than the largest corner difference. The cheap terms
+        // (direct and path) first: when they alone vary by tol/4 or more the field is sampled
+        // whatever the skylight does, and the corners' skylight is not integrated here (it is
+        // at most a needless sampling when the skylight's variation cancels theirs). Otherwise
+        // every included term (skylight at tol/16, its error added).
+        let corners = [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)];
+        let cheap = Include {
+            skylight: false,
+            ..inc
+        };
+        let cheap_centre = self.point(surface, f00, &centre, cheap)?;
+        let mut cheap_spread = 0.0f64;
+        let mut corner_tiles = Vec::with_capacity(4);
+        for (u, v) in corners {
+            let t = self.field.ray(u, v, (0, 0))?;
+            let p = self.point(surface, f00, &t, cheap)?;
+            cheap_spread = cheap_spread.max((p.total - cheap_centre.total).norm() / s0_direct);
+            corner_tiles.push(((u, v), t));
+        }
+        // Rays whose skylight is already integrated, to tol/8 or tighter: with the centre they
+        // are rays of the sky's field interpolant below.
+        let mut probed: Vec<((f64, f64), Point)> = Vec::new();
         let probe = Include {
             tol_abs: tol / 16.0 * s0_direct,
             ..inc
         };
-        let c0 = self.point(surface, f00, &centre, probe)?;
-        evaluations += c0.evaluations;
-        let mut spread = 0.0f64;
-        for (u, v) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
-            let t = self.field.ray(u, v, (0, 0))?;
-            let p = self.point(surface, f00, &t, probe)?;
-            evaluations += p.evaluations;
-            let diff = (p.total - c0.total).norm() + p.sky_error + c0.sky_error;
-            spread = spread.max(diff / s0_direct);
+        let (spread, c0) = if cheap_spread >= tol / 4.0 {
+            (cheap_spread, None)
+        } else {
+            // The centre: the coarse integral's skylight on the cheap terms when it already
+            // meets the probe's tol/16 and its Lambertian term is current (the point is linear
+            // in its terms), else integrated.
+            let c0 = if skylight && f00_unchanged && coarse.sky_error <= tol / 16.0 * s0_direct {
+                Point {
+                    total: cheap_centre.total + coarse.sky,
+                    surface: cheap_centre.surface + coarse.sky,
+                    sky: coarse.sky,
+                    sky_error: coarse.sky_error,
+                    evaluations: 0,
+                }
+            } else {
+                let c0 = self.point(surface, f00, &centre, probe)?;
+                evaluations += c0.evaluations;
+                c0
+            };
+            let mut spread = 0.0f64;
+            probed.push(((0.0, 0.0), c0));
+            for ((u, v), t) in &corner_tiles {
+                let p = self.point(surface, f00, t, probe)?;
+                evaluations += p.evaluations;
+                let diff = (p.total - c0.total).norm() + p.sky_error + c0.sky_error;
+                spread = spread.max(diff / s0_direct);
+                probed.push(((*u, *v), p));
+            }
+            (spread, Some(c0))
+        };
+        // The coarse integral is the centre's skylight when it is tight enough and the
+        // Lambertian term it includes was not changed since.
+        if skylight
+            && probed.is_empty()
+            && f00_unchanged
+            && coarse.sky_error <= tol / 8.0 * s0_direct
+        {
+            probed.push(((0.0, 0.0), coarse));
         }
         let mut sky_fit_error = 0.0;
+        // The sky over the field as an interpolant through Chebyshev-Lobatto rays (the probe's
+        // reused), checked at rays it was not built from; `None` when it does not predict them
+        // to tol/8 and every field ray integrates its own skylight (below).
+        let lobatto = if skylight && spread >= tol / 4.0 {
+            let per_ray = Include {
+                tol_abs: tol / 8.0 * s0_direct,
+                ..inc
+            };
+            let l = self.lobatto_sky(surface, f00, per_ray, &probed, tol / 8.0 * s0_direct)?;
+            evaluations += l.evaluations;
+            l.fit
+        } else {
+            None
+        };
         let (mean, cov_g, surface_mean, field_change, sky_error, order) = if spread < tol / 4.0 {
-            let p = self.point(surface, f00, &centre, inc)?;
-            evaluations += p.evaluations;
+            // One ray: the probe's centre is it, with every included term and its skylight at
+            // tol/16, tighter than the tol/4 a lone ray needs.
+            let p = match c0 {
+                Some(p) => p,
+                None => {
+                    let p = self.point(surface, f00, &centre, inc)?;
+                    evaluations += p.evaluations;
+                    p
+                }
+            };
             (p.total, Matrix3::zeros(), p.surface, spread, p.sky_error, 1)
         } else {
             // The skylight varies slowly over the field: once the polynomial through the last
@@ -872,8 +1071,16 @@ impl Prepared {
                 tol_abs: tol / 8.0 * s0_direct,
                 ..inc
             };
-            let mut fit: Option<SkyFit> = None;
             let mut fit_final = !skylight;
+            let mut fit: Option<SkyFit> = None;
+            // The sky's quadrature error at the fitted rays, carried by every field point.
+            let mut fit_quadrature_error = 0.0;
+            if let Some((f, interpolation_error)) = lobatto {
+                sky_fit_error = interpolation_error / s0_direct;
+                fit_quadrature_error = f.error;
+                fit = Some(f);
+                fit_final = true;
+            }
             let mut previous: Option<(Vector3<f64>, f64)> = None;
             let orders = [2, 3, 4, 6, 8, 12];
             let mut k = 0;
@@ -912,6 +1119,7 @@ impl Prepared {
                             let sky = f.at(u, v);
                             p.total += sky;
                             p.surface += sky;
+                            p.sky_error = fit_quadrature_error;
                         }
                         let w = wu * wv / 4.0;
                         mean += p.total * w;
@@ -925,9 +1133,11 @@ impl Prepared {
                     if predicted {
                         fit_final = true;
                         sky_fit_error = worst_prediction.max(0.0) / s0_direct;
+                        fit_quadrature_error = worst_sky_error;
                     }
                     fit = Some(SkyFit {
                         nodes: gl.iter().map(|p| p.0).collect(),
+                        nodes_v: gl.iter().map(|p| p.0).collect(),
                         values,
                         error: worst_sky_error,
                     });
@@ -1416,6 +1626,84 @@ mod tests {
             smooth[0].evaluations,
             rough[0].evaluations
         );
+    }
+
+    /// The sky's field interpolant through Chebyshev-Lobatto rays, in the rooftop's geometry
+    /// (60 deg off nadir, looking away from the sun, an 8-degree field), predicts the skylight
+    /// of rays it was not built from, each integrated to 1e-9 of S0, within its reported
+    /// interpolation error plus the quadrature errors involved, and within tol/4 of S0.
+    #[test]
+    fn lobatto_sky_predicts_other_rays_within_its_error() {
+        let tol = 1e-4;
+        let s = spec(30.0, 60.0, 300.0, 8.0);
+        let p = Prepared::new(&s, tol).unwrap();
+        for m in [glass(0.1), asphalt()] {
+            let f00 = m
+                .surface
+                .diffuse(s.sun_zenith_deg.to_radians(), Tolerance::absolute(1e-10))
+                .unwrap()
+                .f00;
+            let centre = p.field.ray(0.0, 0.0, (0, 0)).unwrap();
+            let inc = Include {
+                skylight: true,
+                path: false,
+                tol_abs: 0.0,
+                coarse_table: false,
+            };
+            let s0 = p
+                .point(
+                    &m.surface,
+                    f00,
+                    &centre,
+                    Include {
+                        tol_abs: 1e-6,
+                        ..inc
+                    },
+                )
+                .unwrap()
+                .total[0];
+            let per_ray = Include {
+                tol_abs: tol / 8.0 * s0,
+                ..inc
+            };
+            let l = p
+                .lobatto_sky(&m.surface, f00, per_ray, &[], tol / 8.0 * s0)
+                .unwrap();
+            let (fit, interpolation_error) = l.fit.expect("the interpolant predicts its checks");
+            for (u, v) in [
+                (0.3, -0.8),
+                (-0.9, 0.45),
+                (0.7, 0.7),
+                (-0.2, 0.1),
+                (1.0, 0.5),
+            ] {
+                let t = p.field.ray(u, v, (0, 0)).unwrap();
+                let exact = p
+                    .point(
+                        &m.surface,
+                        f00,
+                        &t,
+                        Include {
+                            tol_abs: 1e-9 * s0,
+                            ..inc
+                        },
+                    )
+                    .unwrap();
+                let d = (fit.at(u, v) - exact.sky).norm();
+                assert!(
+                    d <= interpolation_error + fit.error + exact.sky_error,
+                    "{} at ({u}, {v}): {d:e} vs {interpolation_error:e} + {:e}",
+                    m.name,
+                    fit.error
+                );
+                assert!(
+                    d <= tol / 4.0 * s0,
+                    "{} at ({u}, {v}): {:e} of S0",
+                    m.name,
+                    d / s0
+                );
+            }
+        }
     }
 
     #[test]

@@ -128,9 +128,15 @@ pub fn specular_skylight<S: SkyRadiance + ?Sized>(
     let e2 = Vector3::z().cross(&e1);
     const T: f64 = 6.5;
     let truncation = 2.0 * (-T * T).exp();
+    // The inner integrals run along t at fixed psi: its sine and cosine are kept.
+    let mut last_psi = (f64::NAN, 0.0, 1.0);
     let f = |psi: f64, t: f64| -> [f64; 3] {
         let rho = sigma * std::f64::consts::SQRT_2 * t;
-        let (sp, cp) = psi.sin_cos();
+        if psi.to_bits() != last_psi.0.to_bits() {
+            let (sp, cp) = psi.sin_cos();
+            last_psi = (psi, sp, cp);
+        }
+        let (_, sp, cp) = last_psi;
         let hv = Vector3::z() - e1 * (rho * cp) - e2 * (rho * sp);
         let h = hv / hv.norm();
         let cos_beta = omega_view.dot(&h);
@@ -146,10 +152,9 @@ pub fn specular_skylight<S: SkyRadiance + ?Sized>(
         let g_cb_over_cv = (cos_beta / cv)
             .min(2.0 * cos_alpha)
             .min(2.0 * cos_alpha * cos_d / cv);
-        let Ok(geometry) = Geometry::from_directions(&omega_d.normalize(), omega_view) else {
-            return [0.0; 3];
-        };
-        let m = FacetGeometry::new(&geometry).rotated_fresnel(eps);
+        // omega_d is unit and above the horizon, omega_view checked: the world-frame facet
+        // geometry, without the detour through the incident plane's frame.
+        let m = FacetGeometry::from_world(&omega_d.normalize(), omega_view).rotated_fresnel(eps);
         let s = sky.stokes_from(&omega_d);
         let w = 2.0 * t * (-t * t).exp() * g_cb_over_cv / (2.0 * PI);
         let out = m * s.0 * w;
@@ -210,9 +215,16 @@ pub fn direct_skylight<S: SkyRadiance + ?Sized>(
     tol: Tolerance,
 ) -> Result<StokesIntegral, ModelError> {
     check_view(omega_view)?;
+    // The inner integrals run along mu at fixed phi: its sine and cosine are kept.
+    let mut last_phi = (f64::NAN, 0.0, 1.0);
     let f = |phi: f64, mu: f64| -> [f64; 3] {
+        if phi.to_bits() != last_phi.0.to_bits() {
+            let (sp, cp) = phi.sin_cos();
+            last_phi = (phi, sp, cp);
+        }
+        let (_, sp, cp) = last_phi;
         let s = (1.0 - mu * mu).max(0.0).sqrt();
-        let d = Vector3::new(s * phi.cos(), s * phi.sin(), mu);
+        let d = Vector3::new(s * cp, s * sp, mu);
         let Ok(g) = Geometry::from_directions(&d, omega_view) else {
             return [0.0; 3];
         };
@@ -368,6 +380,43 @@ mod tests {
             narrow.evaluations,
             broad.evaluations
         );
+    }
+
+    /// The world-frame facet geometry used by the slope-space integrand equals the one built
+    /// through [`Geometry::from_directions`] (1e-12: rounding only) over a grid of directions
+    /// that includes the zenith (both frames' defaults), the horizon's COS_FLOOR clamp and the
+    /// specular direction. Exact retro-reflection (`omega_i = omega_r`) is left out: there the
+    /// facet frame is `0/0` and the plane-frame path picks it from rounding noise in
+    /// `omega_r x omega_i` (a set of measure zero for the integrand).
+    #[test]
+    fn world_frame_facet_geometry_equals_the_plane_frame_one() {
+        let mut dirs = vec![Vector3::z(), Vector3::new(1.0, 0.0, 0.0)];
+        for z in [0.0, 1e-3, 20.0, 45.0, 70.0, 89.9] {
+            for a in [0.0, 37.0, 90.0, 181.0, 300.0] {
+                dirs.push(direction_from_deg(z, a));
+            }
+        }
+        for oi in &dirs {
+            for or in dirs.iter().filter(|d| *d != oi) {
+                let a = FacetGeometry::from_world(oi, or);
+                let b = FacetGeometry::new(&Geometry::from_directions(oi, or).unwrap());
+                let pairs = [
+                    (a.cos_beta, b.cos_beta),
+                    (a.cos_alpha, b.cos_alpha),
+                    (a.tan2_alpha, b.tan2_alpha),
+                    (a.rot_i.0, b.rot_i.0),
+                    (a.rot_i.1, b.rot_i.1),
+                    (a.rot_r.0, b.rot_r.0),
+                    (a.rot_r.1, b.rot_r.1),
+                ];
+                for (x, y) in pairs {
+                    assert!(
+                        (x - y).abs() <= 1e-12 * (1.0 + y.abs()),
+                        "{oi:?} {or:?}: {x} vs {y}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
