@@ -255,8 +255,19 @@ pub struct FacetGeometry {
 impl FacetGeometry {
     /// Half vector, tilt and signed frame rotations for a geometry (see the module docs).
     pub fn new(g: &Geometry) -> Self {
-        let omega_i = g.omega_i();
-        let omega_r = g.omega_r();
+        let s_i = Vector3::new(0.0, 1.0, 0.0);
+        let s_r = Vector3::new(g.sin_phi, -g.cos_phi, 0.0);
+        FacetGeometry::from_frames(&g.omega_i(), &g.omega_r(), &s_i, &s_r)
+    }
+
+    /// The facet geometry of unit directions `omega_i`, `omega_r` (`z > 0`) whose incident and
+    /// reflected surface frames have the horizontal vectors `s_i` and `s_r`.
+    fn from_frames(
+        omega_i: &Vector3<f64>,
+        omega_r: &Vector3<f64>,
+        s_i: &Vector3<f64>,
+        s_r: &Vector3<f64>,
+    ) -> Self {
         let sum = omega_i + omega_r;
         // |sum| >= sum.z >= 2 COS_FLOOR > 0, so the half vector is always defined.
         let len = sum.norm();
@@ -265,23 +276,21 @@ impl FacetGeometry {
         let cos_alpha = h.z;
         let tan2_alpha = (h.x * h.x + h.y * h.y) / (h.z * h.z);
         let k_i = -omega_i;
-        let k_r = omega_r;
-        let s_i = Vector3::new(0.0, 1.0, 0.0);
-        let s_r = Vector3::new(g.sin_phi, -g.cos_phi, 0.0);
+        let k_r = *omega_r;
         // k_i × h is proportional to omega_r × omega_i.
-        let cross = omega_r.cross(&omega_i);
+        let cross = omega_r.cross(omega_i);
         let cross_norm = cross.norm();
         let s_f = if cross_norm > 0.0 {
             cross / cross_norm
         } else {
-            s_i
+            *s_i
         };
         FacetGeometry {
             cos_beta,
             cos_alpha,
             tan2_alpha,
-            rot_i: cos_sin_2eta(&s_i, &s_f, &k_i),
-            rot_r: cos_sin_2eta(&s_r, &s_f, &k_r),
+            rot_i: cos_sin_2eta(s_i, &s_f, &k_i),
+            rot_r: cos_sin_2eta(s_r, &s_f, &k_r),
         }
     }
 
@@ -295,12 +304,6 @@ impl FacetGeometry {
     pub fn from_world(omega_i: &Vector3<f64>, omega_r: &Vector3<f64>) -> Self {
         let oi = Vector3::new(omega_i.x, omega_i.y, omega_i.z.clamp(COS_FLOOR, 1.0));
         let or = Vector3::new(omega_r.x, omega_r.y, omega_r.z.clamp(COS_FLOOR, 1.0));
-        let sum = oi + or;
-        let len = sum.norm();
-        let h = sum / len;
-        let cos_beta = (0.5 * len).min(1.0);
-        let cos_alpha = h.z;
-        let tan2_alpha = (h.x * h.x + h.y * h.y) / (h.z * h.z);
         let sin_ti = (oi.x * oi.x + oi.y * oi.y).sqrt();
         let (ca, sa) = if sin_ti > 0.0 {
             (oi.x / sin_ti, oi.y / sin_ti)
@@ -316,20 +319,7 @@ impl FacetGeometry {
         } else {
             Vector3::new(sa, -ca, 0.0)
         };
-        let cross = or.cross(&oi);
-        let cross_norm = cross.norm();
-        let s_f = if cross_norm > 0.0 {
-            cross / cross_norm
-        } else {
-            s_i
-        };
-        FacetGeometry {
-            cos_beta,
-            cos_alpha,
-            tan2_alpha,
-            rot_i: cos_sin_2eta(&s_i, &s_f, &-oi),
-            rot_r: cos_sin_2eta(&s_r, &s_f, &or),
-        }
+        FacetGeometry::from_frames(&oi, &or, &s_i, &s_r)
     }
 
     /// `R(-eta_r) M(beta) R(eta_i)` (Eq. 3.7) for the facet Mueller matrix of Eq. 3.5 with
