@@ -1199,13 +1199,7 @@ impl Loop<'_> {
         let cam = self.camera.clone();
         let (w, h) = (self.width, self.height);
         let (frame_tx, frame_rx) = oneshot::channel();
-        let (exposed_tx, exposed_rx) = match next_deg {
-            Some(_) => {
-                let (tx, rx) = oneshot::channel();
-                (Some(tx), Some(rx))
-            }
-            None => (None, None),
-        };
+        let (exposed_tx, exposed_rx) = next_deg.map(|_| oneshot::channel()).unzip();
         self.watch(async move {
             cam.send(CamCmd::Acquire {
                 deadline: grab_deadline,

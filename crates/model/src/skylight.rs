@@ -128,15 +128,9 @@ pub fn specular_skylight<S: SkyRadiance + ?Sized>(
     let e2 = Vector3::z().cross(&e1);
     const T: f64 = 6.5;
     let truncation = 2.0 * (-T * T).exp();
-    // The inner integrals run along t at fixed psi: its sine and cosine are kept.
-    let mut last_psi = (f64::NAN, 0.0, 1.0);
     let f = |psi: f64, t: f64| -> [f64; 3] {
         let rho = sigma * std::f64::consts::SQRT_2 * t;
-        if psi.to_bits() != last_psi.0.to_bits() {
-            let (sp, cp) = psi.sin_cos();
-            last_psi = (psi, sp, cp);
-        }
-        let (_, sp, cp) = last_psi;
+        let (sp, cp) = psi.sin_cos();
         let hv = Vector3::z() - e1 * (rho * cp) - e2 * (rho * sp);
         let h = hv / hv.norm();
         let cos_beta = omega_view.dot(&h);
@@ -215,16 +209,9 @@ pub fn direct_skylight<S: SkyRadiance + ?Sized>(
     tol: Tolerance,
 ) -> Result<StokesIntegral, ModelError> {
     check_view(omega_view)?;
-    // The inner integrals run along mu at fixed phi: its sine and cosine are kept.
-    let mut last_phi = (f64::NAN, 0.0, 1.0);
     let f = |phi: f64, mu: f64| -> [f64; 3] {
-        if phi.to_bits() != last_phi.0.to_bits() {
-            let (sp, cp) = phi.sin_cos();
-            last_phi = (phi, sp, cp);
-        }
-        let (_, sp, cp) = last_phi;
         let s = (1.0 - mu * mu).max(0.0).sqrt();
-        let d = Vector3::new(s * cp, s * sp, mu);
+        let d = Vector3::new(s * phi.cos(), s * phi.sin(), mu);
         let Ok(g) = Geometry::from_directions(&d, omega_view) else {
             return [0.0; 3];
         };
