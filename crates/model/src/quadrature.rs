@@ -65,7 +65,7 @@ impl Tolerance {
         }
     }
 
-    fn target(&self, value: f64) -> f64 {
+    pub(crate) fn target(&self, value: f64) -> f64 {
         self.abs.max(self.rel * value.abs())
     }
 }
@@ -259,6 +259,13 @@ fn scalar(r: IntegralN<1>) -> Integral {
         evaluations: r.evaluations,
         converged: r.converged,
     }
+}
+
+/// [`gauss_legendre`]`(n)`, computed once per process for every `n` in `[1, 64]`.
+pub(crate) fn gauss_legendre_table(n: usize) -> &'static [(f64, f64)] {
+    static TABLE: std::sync::OnceLock<Vec<Vec<(f64, f64)>>> = std::sync::OnceLock::new();
+    let table = TABLE.get_or_init(|| (1..=64).map(gauss_legendre).collect());
+    &table[n.clamp(1, 64) - 1]
 }
 
 /// Gauss-Legendre nodes and weights on `[-1, 1]` for `n` in `[1, 64]` (Newton's iteration on

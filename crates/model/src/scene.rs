@@ -285,6 +285,10 @@ impl SkyRadiance for BandSky<'_> {
         let pol = p12 * a;
         Stokes::new(intensity, pol * c2, pol * s2)
     }
+
+    fn peak(&self) -> Option<Vector3<f64>> {
+        Some(self.prepared.sun)
+    }
 }
 
 /// What [`Prepared::point`] includes.

@@ -8,14 +8,25 @@
 //! view `omega_v`, each facet normal `h` reflects exactly one sky direction
 //! `omega_d = 2 (omega_v . h) h - omega_v`, `dOmega_d = 4 (omega_v . h) dOmega_h`, and the
 //! Gaussian slope measure absorbs the lobe, so the cost does not grow as `sigma -> 0`
-//! (`sigma = 0.05` costs what `sigma = 0.5` does). The Lambertian part is `f00_d` times the sky
-//! irradiance, and the vegetation lobe, which is broad, is integrated over the hemisphere
+//! (`sigma = 0.05` costs what `sigma = 0.5` does).
+//!
+//! In polar slope coordinates `(psi, t)` the integrand is smooth between known curves: the
+//! reflected ray's horizon (the support ends there), the shadowing term's branch switches (a
+//! line, a circle and a cubic that `rho = tan x` turns into `tan 3x = cos theta_v / k`), and
+//! the azimuths where `k = cos psi sin theta_v` is `0` or `-cos theta_v` (where the switches
+//! enter a line or meet). A product Gauss-Legendre rule on the smooth pieces converges
+//! geometrically; the sky's peak (the sun's aureole) is one more split in both directions. On
+//! the rooftop scene at 1e-4 this takes 0.53 million evaluations where the adaptive rule took
+//! 0.72 million (1.2 million at 1e-5 against 2.4), and the adaptive rule remains the fallback.
+//! The Lambertian part is `f00_d` times the sky irradiance, and the vegetation lobe, which is broad, is integrated over the hemisphere
 //! directly. Every result carries the quadrature's error estimate and evaluation count.
 
 use crate::error::ModelError;
 use crate::pbrdf::{FacetGeometry, Geometry, Surface, COS_FLOOR};
 use crate::polarization::Stokes;
-use crate::quadrature::{integrate_2d_split_n, integrate_periodic_split_n, Tolerance};
+use crate::quadrature::{
+    gauss_legendre_table, integrate_2d_split_n, integrate_periodic_split_n, IntegralN, Tolerance,
+};
 use crate::sky::RayleighSky;
 use nalgebra::Vector3;
 use std::f64::consts::PI;
@@ -25,6 +36,12 @@ use std::f64::consts::PI;
 pub trait SkyRadiance {
     /// Stokes radiance arriving from unit direction `towards` (`z >= 0`).
     fn stokes_from(&self, towards: &Vector3<f64>) -> Stokes;
+
+    /// A direction near which the radiance varies fastest, if there is one (the sun, whose
+    /// aureole the aerosol's forward scattering makes): quadrature rules split there.
+    fn peak(&self) -> Option<Vector3<f64>> {
+        None
+    }
 }
 
 /// A Rayleigh sky lit by the sun in a given direction.
@@ -42,6 +59,10 @@ impl SkyRadiance for SunlitRayleigh {
         self.sky
             .stokes(&self.sun, &t)
             .unwrap_or(Stokes::new(0.0, 0.0, 0.0))
+    }
+
+    fn peak(&self) -> Option<Vector3<f64>> {
+        Some(self.sun)
     }
 }
 
@@ -106,9 +127,264 @@ fn check_view(omega_view: &Vector3<f64>) -> Result<(), ModelError> {
     }
 }
 
+/// The slope-space integrand of [`specular_skylight`] for one view: `value(psi, t)` is the
+/// reflected Stokes vector's density over the facet slope `rho (cos psi, sin psi)`,
+/// `rho = sigma sqrt(2) t`, in the measure `dpsi dt` (the Gaussian slope weight
+/// `2 t exp(-t^2) / (2 pi)` included).
+struct SlopeIntegrand<'a, S: SkyRadiance + ?Sized> {
+    eps: num_complex::Complex64,
+    sigma: f64,
+    sky: &'a S,
+    omega_view: Vector3<f64>,
+    /// `cos theta_v`, floored at [`COS_FLOOR`].
+    cv: f64,
+    /// `sin theta_v`.
+    sv: f64,
+    /// Unit horizontal vector towards the view's azimuth (x at nadir); `e2 = z x e1`.
+    e1: Vector3<f64>,
+    e2: Vector3<f64>,
+    /// The facet slope that reflects the sky's peak into the view, as `(psi, t)`.
+    peak: Option<(f64, f64)>,
+}
+
+/// Fixed splits of every line in `t`, so that no piece spans more than the Gaussian weight's
+/// scale where it matters.
+const SLOPE_SPLITS: [f64; 2] = [1.5, 3.0];
+
+/// Truncation of the slope measure: `t <= T`, leaving out `exp(-T^2)` of it.
+const SLOPE_T: f64 = 6.5;
+
+impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
+    fn new(eps: num_complex::Complex64, sigma: f64, sky: &'a S, omega_view: &Vector3<f64>) -> Self {
+        let cv = omega_view.z.max(COS_FLOOR);
+        let sv = (omega_view.x * omega_view.x + omega_view.y * omega_view.y).sqrt();
+        let e1 = if sv > 0.0 {
+            Vector3::new(omega_view.x / sv, omega_view.y / sv, 0.0)
+        } else {
+            Vector3::x()
+        };
+        let e2 = Vector3::z().cross(&e1);
+        // h ∝ z - rho (cos psi e1 + sin psi e2), so the slope is -(h.e1, h.e2) / h.z.
+        let peak = sky.peak().and_then(|d| {
+            let h = d + omega_view;
+            if d.z <= 0.0 || h.z <= 0.0 {
+                return None;
+            }
+            let (p, q) = (-h.dot(&e1) / h.z, -h.dot(&e2) / h.z);
+            let t = p.hypot(q) / (sigma * std::f64::consts::SQRT_2);
+            let psi = q.atan2(p);
+            let psi = if psi < -std::f64::consts::FRAC_PI_2 {
+                psi + 2.0 * PI
+            } else {
+                psi
+            };
+            (t < SLOPE_T).then_some((psi, t))
+        });
+        SlopeIntegrand {
+            eps,
+            sigma,
+            sky,
+            omega_view: *omega_view,
+            cv,
+            sv,
+            e1,
+            e2,
+            peak,
+        }
+    }
+
+    #[inline]
+    fn value(&self, psi: f64, t: f64) -> [f64; 3] {
+        let rho = self.sigma * std::f64::consts::SQRT_2 * t;
+        let (sp, cp) = psi.sin_cos();
+        let hv = Vector3::z() - self.e1 * (rho * cp) - self.e2 * (rho * sp);
+        let h = hv / hv.norm();
+        let cos_beta = self.omega_view.dot(&h);
+        if cos_beta <= 0.0 {
+            return [0.0; 3];
+        }
+        let omega_d = h * (2.0 * cos_beta) - self.omega_view;
+        let cos_d = omega_d.z;
+        if cos_d <= 0.0 {
+            return [0.0; 3];
+        }
+        let cv = self.cv;
+        let cos_alpha = h.z;
+        let g_cb_over_cv = (cos_beta / cv)
+            .min(2.0 * cos_alpha)
+            .min(2.0 * cos_alpha * cos_d / cv);
+        // omega_d is unit and above the horizon, omega_view checked: the world-frame facet
+        // geometry, without the detour through the incident plane's frame.
+        let m = FacetGeometry::from_world(&omega_d.normalize(), &self.omega_view)
+            .rotated_fresnel(self.eps);
+        let s = self.sky.stokes_from(&omega_d);
+        let w = 2.0 * t * (-t * t).exp() * g_cb_over_cv / (2.0 * PI);
+        let out = m * s.0 * w;
+        [out[0], out[1], out[2]]
+    }
+
+    /// The integrand's kinks along `t` at azimuth `psi` (`k = cos psi sin theta_v`), in slope
+    /// `rho`: facet turning away (`cos beta = 0`): `rho = cos theta_v / k`; reflected ray at the
+    /// horizon (`cos theta_d = 0`): `cos theta_v rho^2 + 2 k rho - cos theta_v = 0`; the
+    /// shadowing min switching branches: `rho = -cos theta_v / k` and `rho = -k / cos theta_v`.
+    fn kinks(&self, psi: f64, out: &mut Vec<f64>) {
+        let (k, cv) = (psi.cos() * self.sv, self.cv);
+        let to_t = 1.0 / (self.sigma * std::f64::consts::SQRT_2);
+        if k != 0.0 {
+            out.push(cv / k * to_t);
+            out.push(-cv / k * to_t);
+        }
+        out.push(-k / cv * to_t);
+        out.push((-k + k.hypot(cv)) / cv * to_t);
+    }
+
+    /// The smooth pieces of the line at azimuth `psi`, as `t` from 0 to the end of the
+    /// integrand's support: the line ends where the reflected ray reaches the horizon
+    /// (`cos theta_v rho^2 + 2 k rho - cos theta_v = 0`, `k = cos psi sin theta_v`; beyond it
+    /// the integrand is 0) or at `T`, and breaks where the shadowing `min(A, B, C)` (`A =
+    /// cos beta / cos theta_v`, `B = 2 cos alpha`, `C = 2 cos alpha cos theta_d / cos theta_v`)
+    /// switches branches: `A = B` at `rho = -cos theta_v / k`, `B = C` at
+    /// `rho = -k / cos theta_v`, and `A = C` on the cubic
+    /// `k rho^3 - 3 cos theta_v rho^2 - 3 k rho + cos theta_v = 0`, which with `rho = tan x` is
+    /// `tan 3x = cos theta_v / k`. A switch is a break only where its two branches are the
+    /// minimum.
+    fn pieces(&self, psi: f64, out: &mut Vec<f64>) {
+        out.clear();
+        let (k, cv) = (psi.cos() * self.sv, self.cv);
+        let to_t = 1.0 / (self.sigma * std::f64::consts::SQRT_2);
+        let end = ((-k + k.hypot(cv)) / cv * to_t).min(SLOPE_T);
+        let abc = |rho: f64| {
+            let c = 1.0 / (1.0 + rho * rho).sqrt();
+            (
+                (cv - k * rho) * c / cv,
+                2.0 * c,
+                2.0 * c * c * c * (cv - 2.0 * k * rho - cv * rho * rho) / cv,
+            )
+        };
+        out.push(0.0);
+        let mut push = |rho: f64, active: bool| {
+            let t = rho * to_t;
+            if active && t > 0.0 && t < end {
+                out.push(t);
+            }
+        };
+        let slack = 1.0 + 1e-9;
+        if k < 0.0 {
+            let r = -cv / k;
+            let (a, _, c) = abc(r);
+            push(r, a <= c * slack);
+            let r = -k / cv;
+            let (a, b, _) = abc(r);
+            push(r, b <= a * slack);
+        }
+        let phi0 = cv.atan2(k);
+        for x in [phi0 / 3.0, (phi0 + PI) / 3.0] {
+            if x < std::f64::consts::FRAC_PI_2 {
+                let r = x.tan();
+                let (_, b, c) = abc(r);
+                push(r, c <= b * slack);
+            }
+        }
+        for t in SLOPE_SPLITS.into_iter().chain(self.peak.map(|p| p.1)) {
+            if t > 0.0 && t < end {
+                out.push(t);
+            }
+        }
+        out.push(end.max(0.0));
+        out.sort_by(f64::total_cmp);
+        out.dedup();
+    }
+
+    /// The integral by the adaptive rule: periodic trapezoid in `psi`, adaptive Gauss-Kronrod
+    /// along each line, split at [`SlopeIntegrand::kinks`].
+    fn adaptive(&self, tol: Tolerance) -> IntegralN<3> {
+        integrate_periodic_split_n(
+            |psi, t| self.value(psi, t),
+            (0.0, 2.0 * PI),
+            (0.0, SLOPE_T),
+            |psi, out: &mut Vec<f64>| self.kinks(psi, out),
+            tol,
+        )
+    }
+
+    /// The azimuth arcs on which the line integrals are smooth: split where `k = 0` (`psi =
+    /// +-pi/2`, where the `B = C` break enters the line at `t = 0`) and, for views more than
+    /// 45 deg off the normal, where `k = -cos theta_v` (`A = B = C` at one point of the line:
+    /// there the kinks change which branches they join). Returns how many of `out` are set.
+    fn arcs(&self, out: &mut [(f64, f64); 5]) -> usize {
+        let h = std::f64::consts::FRAC_PI_2;
+        out[0] = (-h, h);
+        let mut count = if self.sv > self.cv {
+            let star = (-self.cv / self.sv).acos();
+            out[1] = (h, star);
+            out[2] = (star, 2.0 * PI - star);
+            out[3] = (2.0 * PI - star, 3.0 * h);
+            4
+        } else {
+            out[1] = (h, 3.0 * h);
+            2
+        };
+        if let Some((psi, _)) = self.peak {
+            if let Some(i) = out[..count].iter().position(|&(a, b)| a < psi && psi < b) {
+                let (a, b) = out[i];
+                out[i] = (a, psi);
+                out[count] = (psi, b);
+                count += 1;
+            }
+        }
+        count
+    }
+
+    /// The integral by a product Gauss-Legendre rule: `n` azimuths in each half
+    /// `(-pi/2, pi/2)`, `(pi/2, 3 pi/2)` (split where `k = 0`, where the `B = C` break enters
+    /// the line at `t = 0`), `q` points on each smooth piece of each line.
+    fn gauss(&self, n: usize, q: usize, pieces: &mut Vec<f64>) -> ([f64; 3], usize) {
+        let mut sum = [0.0; 3];
+        let mut evaluations = 0;
+        let mut arcs = [(0.0, 0.0); 5];
+        let count = self.arcs(&mut arcs);
+        for &(a, b) in &arcs[..count] {
+            // Each arc gets its share of n by length, but at least n / 2: the short arcs next
+            // to psi = +-pi/2 of a grazing view hold its fastest variation (on the scale
+            // cos theta_v / sin theta_v).
+            let m = ((n as f64 * (b - a) / PI).round() as usize)
+                .max(n.div_ceil(2))
+                .max(3);
+            let gn = gauss_legendre_table(m);
+            let (centre, half) = (0.5 * (a + b), 0.5 * (b - a));
+            for &(x, wx) in gn {
+                let psi = centre + half * x;
+                let wpsi = half * wx;
+                self.pieces(psi, pieces);
+                for w in pieces.windows(2) {
+                    let (mid, half) = (0.5 * (w[0] + w[1]), 0.5 * (w[1] - w[0]));
+                    if half <= 0.0 {
+                        continue;
+                    }
+                    let gq = gauss_legendre_table(q);
+                    for &(y, wy) in gq {
+                        let v = self.value(psi, mid + half * y);
+                        let wt = wpsi * half * wy;
+                        for (s, x) in sum.iter_mut().zip(&v) {
+                            *s += x * wt;
+                        }
+                    }
+                    evaluations += gq.len();
+                }
+            }
+        }
+        (sum, evaluations)
+    }
+}
+
 /// The specular part of Eq. 3.22 for a microfacet surface of permittivity `eps` and roughness
 /// `sigma`, integrated in facet-slope space (module docs). The result is in the reflected
 /// surface frame of `omega_view`.
+///
+/// The rule is a product Gauss-Legendre rule on the integrand's smooth pieces
+/// ([`SlopeIntegrand::gauss`]) at increasing levels ([`GAUSS_LEVELS`]); if the last level does
+/// not meet `tol` (a sky with a sharp feature inside the lobe), the adaptive rule takes over and
+/// the better of the two is returned.
 pub fn specular_skylight<S: SkyRadiance + ?Sized>(
     eps: num_complex::Complex64,
     sigma: f64,
@@ -117,63 +393,70 @@ pub fn specular_skylight<S: SkyRadiance + ?Sized>(
     tol: Tolerance,
 ) -> Result<StokesIntegral, ModelError> {
     check_view(omega_view)?;
-    let cv = omega_view.z.max(COS_FLOOR);
-    let sv = (omega_view.x * omega_view.x + omega_view.y * omega_view.y).sqrt();
-    // Local horizontal basis: e1 towards the view's azimuth (x at nadir), e2 = z × e1.
-    let e1 = if sv > 0.0 {
-        Vector3::new(omega_view.x / sv, omega_view.y / sv, 0.0)
+    let integrand = SlopeIntegrand::new(eps, sigma, sky, omega_view);
+    let truncation = 2.0 * (-SLOPE_T * SLOPE_T).exp() * sky.stokes_from(&Vector3::z()).0[0].abs();
+    let mut pieces = Vec::with_capacity(8);
+    let (mut previous, mut evaluations) =
+        integrand.gauss(GAUSS_LEVELS[0].0, GAUSS_LEVELS[0].1, &mut pieces);
+    let mut last_change = f64::INFINITY;
+    let mut best = (previous, f64::INFINITY);
+    for &(n, q) in &GAUSS_LEVELS[1..] {
+        let (value, e) = integrand.gauss(n, q, &mut pieces);
+        evaluations += e;
+        let change = value
+            .iter()
+            .zip(&previous)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        // The larger of the last two changes: one change alone can be small by a coincidence
+        // of two levels' errors (it was, in 8 % of 960 views and tolerances tried, by up to
+        // 7x; the pair never was, see `product_rule_error_covers_the_actual_error`).
+        let error = change.max(last_change) + truncation;
+        if error < best.1 {
+            best = (value, error);
+        }
+        if error <= tol.target(value.iter().fold(0.0f64, |m, x| m.max(x.abs()))) {
+            return Ok(StokesIntegral {
+                stokes: Stokes::new(value[0], value[1], value[2]),
+                error,
+                evaluations,
+                converged: true,
+            });
+        }
+        previous = value;
+        last_change = change;
+    }
+    // Not smooth enough for the product rule (a sharp feature of the sky inside the lobe, say):
+    // the adaptive rule, or the product rule's last level if that is better.
+    let r = integrand.adaptive(tol);
+    evaluations += r.evaluations;
+    let (value, error, converged) = if r.error + truncation <= best.1 {
+        (r.value, r.error + truncation, r.converged)
     } else {
-        Vector3::x()
+        (best.0, best.1, false)
     };
-    let e2 = Vector3::z().cross(&e1);
-    const T: f64 = 6.5;
-    let truncation = 2.0 * (-T * T).exp();
-    let f = |psi: f64, t: f64| -> [f64; 3] {
-        let rho = sigma * std::f64::consts::SQRT_2 * t;
-        let (sp, cp) = psi.sin_cos();
-        let hv = Vector3::z() - e1 * (rho * cp) - e2 * (rho * sp);
-        let h = hv / hv.norm();
-        let cos_beta = omega_view.dot(&h);
-        if cos_beta <= 0.0 {
-            return [0.0; 3];
-        }
-        let omega_d = h * (2.0 * cos_beta) - omega_view;
-        let cos_d = omega_d.z;
-        if cos_d <= 0.0 {
-            return [0.0; 3];
-        }
-        let cos_alpha = h.z;
-        let g_cb_over_cv = (cos_beta / cv)
-            .min(2.0 * cos_alpha)
-            .min(2.0 * cos_alpha * cos_d / cv);
-        // omega_d is unit and above the horizon, omega_view checked: the world-frame facet
-        // geometry, without the detour through the incident plane's frame.
-        let m = FacetGeometry::from_world(&omega_d.normalize(), omega_view).rotated_fresnel(eps);
-        let s = sky.stokes_from(&omega_d);
-        let w = 2.0 * t * (-t * t).exp() * g_cb_over_cv / (2.0 * PI);
-        let out = m * s.0 * w;
-        [out[0], out[1], out[2]]
-    };
-    // Kinks along t at fixed psi, as for the albedo (k = cos psi sin theta_v).
-    let breaks = |psi: f64, out: &mut Vec<f64>| {
-        let k = psi.cos() * sv;
-        let to_t = 1.0 / (sigma * std::f64::consts::SQRT_2);
-        if k != 0.0 {
-            out.push(cv / k * to_t);
-            out.push(-cv / k * to_t);
-        }
-        out.push(-k / cv * to_t);
-        out.push((-k + k.hypot(cv)) / cv * to_t);
-    };
-    let r = integrate_periodic_split_n(f, (0.0, 2.0 * PI), (0.0, T), breaks, tol);
-    let scale = sky.stokes_from(&Vector3::z()).0[0].abs().max(1e-300);
     Ok(StokesIntegral {
-        stokes: Stokes::new(r.value[0], r.value[1], r.value[2]),
-        error: r.error + truncation * scale,
-        evaluations: r.evaluations,
-        converged: r.converged,
+        stokes: Stokes::new(value[0], value[1], value[2]),
+        error,
+        evaluations,
+        converged,
     })
 }
+
+/// The product rule's levels `(n, q)` for [`SlopeIntegrand::gauss`], each about 1.3-1.5 times
+/// the last in both directions. A level is accepted when the larger of its change from the level
+/// before and that level's change from the one before it is below the tolerance; that larger
+/// change is its reported error.
+const GAUSS_LEVELS: [(usize, usize); 9] = [
+    (4, 4),
+    (6, 5),
+    (8, 6),
+    (12, 8),
+    (16, 10),
+    (24, 12),
+    (32, 16),
+    (48, 20),
+    (64, 24),
+];
 
 /// The whole of Eq. 3.22 for a surface: specular (slope space or, for vegetation, direct) plus
 /// `f00_d` times the sky irradiance `e_sky` (from [`sky_irradiance`]).
@@ -404,6 +687,164 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Experiment: product Gauss rule against the adaptive reference.
+    /// A Rayleigh sky plus an aerosol aureole around the sun (Henyey-Greenstein, g = 0.7, in
+    /// S0 only): the peaked sky the product rule splits at.
+    struct AureoleSky(SunlitRayleigh);
+
+    impl SkyRadiance for AureoleSky {
+        fn stokes_from(&self, towards: &Vector3<f64>) -> Stokes {
+            let mut s = self.0.stokes_from(towards);
+            let g: f64 = 0.7;
+            let c = self.0.sun.dot(towards);
+            s.0[0] += 0.2 * (1.0 - g * g) / (1.0 + g * g - 2.0 * g * c).powf(1.5);
+            s
+        }
+
+        fn peak(&self) -> Option<Vector3<f64>> {
+            Some(self.0.sun)
+        }
+    }
+
+    fn aureole(zenith_deg: f64, azimuth_deg: f64) -> AureoleSky {
+        AureoleSky(SunlitRayleigh {
+            sky: RayleighSky::at_wavelength(550.0).unwrap(),
+            sun: direction_from_deg(zenith_deg, azimuth_deg),
+        })
+    }
+
+    /// The product rule's reported error covers its actual error against the same rule far
+    /// past convergence (160 azimuths per half, 64 points per piece: changes below 1e-12 of S0)
+    /// for smooth and rough lobes, views from nadir to 88 deg, the sun in and out of the lobe,
+    /// at 1e-3 and 1e-6 of S0. One change alone fell short of the error in 8 % of such cases;
+    /// the larger of the last two never did.
+    #[test]
+    fn product_rule_error_covers_the_actual_error() {
+        let eps = RefractiveIndex::new(1.5, 0.0).unwrap().permittivity();
+        let mut cases = 0;
+        for sky in [aureole(33.6, 115.0), aureole(70.0, 300.0)] {
+            for sigma in [0.02, 0.1, 0.5, 1.0] {
+                for (tv, av) in [
+                    (0.0, 0.0),
+                    (30.0, 200.0),
+                    (60.0, 300.0),
+                    (80.0, 0.0),
+                    (88.0, 115.0),
+                ] {
+                    let view = direction_from_deg(tv, av);
+                    let integrand = SlopeIntegrand::new(eps, sigma, &sky, &view);
+                    let reference = integrand.gauss(160, 64, &mut Vec::new()).0;
+                    let s0 = reference[0];
+                    for rel in [1e-3, 1e-6] {
+                        let r = specular_skylight(
+                            eps,
+                            sigma,
+                            &sky,
+                            &view,
+                            Tolerance::absolute(rel * s0),
+                        )
+                        .unwrap();
+                        let actual =
+                            (0..3).fold(0.0f64, |m, i| m.max((r.stokes.0[i] - reference[i]).abs()));
+                        assert!(r.converged, "sigma {sigma} view {tv}/{av} rel {rel}: {r:?}");
+                        assert!(
+                            actual <= r.error + 1e-12 * s0,
+                            "sigma {sigma} view {tv}/{av} rel {rel}: actual {actual:e} > reported {:e}",
+                            r.error
+                        );
+                        assert!(r.error <= rel * s0);
+                        cases += 1;
+                    }
+                }
+            }
+        }
+        assert_eq!(cases, 80);
+    }
+
+    /// The product rule meets the tolerance with fewer than three quarters of the adaptive
+    /// rule's evaluations on the rooftop's paint and asphalt, 60 deg off nadir, with the sun's
+    /// aureole in the lobe, at 1e-5 of S0 (measured: 9040 against 14595, and 4696 against
+    /// 15480), and the two agree within their errors.
+    #[test]
+    fn product_rule_is_cheaper_than_the_adaptive_rule() {
+        let eps = RefractiveIndex::new(1.5, 0.0).unwrap().permittivity();
+        let sky = aureole(33.6, 115.0);
+        for sigma in [0.3, 0.5] {
+            let view = direction_from_deg(60.0, 300.0);
+            let integrand = SlopeIntegrand::new(eps, sigma, &sky, &view);
+            let s0 = integrand.gauss(64, 24, &mut Vec::new()).0[0];
+            let tol = Tolerance::absolute(1e-5 * s0);
+            let product = specular_skylight(eps, sigma, &sky, &view, tol).unwrap();
+            let adaptive = integrand.adaptive(tol);
+            assert!(product.converged && adaptive.converged);
+            assert!(
+                4 * product.evaluations < 3 * adaptive.evaluations,
+                "sigma {sigma}: {} vs {}",
+                product.evaluations,
+                adaptive.evaluations
+            );
+            let d = (0..3).fold(0.0f64, |m, i| {
+                m.max((product.stokes.0[i] - adaptive.value[i]).abs())
+            });
+            assert!(d <= product.error + adaptive.error, "sigma {sigma}: {d:e}");
+        }
+    }
+
+    /// A sky with a sharp edge (bright only towards +y): the product rule cannot converge
+    /// geometrically, and the answer, whichever rule gives it, is within its reported error of
+    /// the direct hemisphere integral split at the edge.
+    #[test]
+    fn discontinuous_sky_stays_honest() {
+        struct HalfSky;
+        impl SkyRadiance for HalfSky {
+            fn stokes_from(&self, towards: &Vector3<f64>) -> Stokes {
+                Stokes::unpolarized(if towards.y > 0.0 { 1.0 } else { 0.0 })
+            }
+        }
+        let s = glass(0.3);
+        let Surface::Microfacet { lobe, .. } = s else {
+            unreachable!()
+        };
+        let view = direction_from_deg(50.0, 180.0);
+        let r = specular_skylight(
+            lobe.index().permittivity(),
+            lobe.sigma(),
+            &HalfSky,
+            &view,
+            Tolerance::absolute(1e-6),
+        )
+        .unwrap();
+        // The edge is phi = 0 and pi in the direct parametrisation: split there.
+        let reference = integrate_2d_split_n(
+            |phi, mu: f64| {
+                let st = (1.0 - mu * mu).max(0.0).sqrt();
+                let d = Vector3::new(st * phi.cos(), st * phi.sin(), mu);
+                let Ok(g) = Geometry::from_directions(&d, &view) else {
+                    return [0.0; 3];
+                };
+                let out = s.specular(&g).0 * HalfSky.stokes_from(&d).0 * mu;
+                [out[0], out[1], out[2]]
+            },
+            (0.0, PI),
+            (0.0, 1.0),
+            |_, _| {},
+            Tolerance {
+                abs: 1e-10,
+                rel: 1e-12,
+                max_intervals: 2000,
+            },
+        );
+        let d = (0..3).fold(0.0f64, |m, i| {
+            m.max((r.stokes.0[i] - reference.value[i]).abs())
+        });
+        assert!(
+            d <= r.error + reference.error,
+            "{d:e} vs {:e}: {r:?}",
+            r.error
+        );
+        assert!(r.converged, "{r:?}");
     }
 
     #[test]
