@@ -199,14 +199,23 @@ const TABLE_INTERVALS: usize = 256;
 
 /// 4-point Lagrange interpolation on a uniform grid over `[0, 1]` (`values.len() - 1` intervals).
 fn lagrange4(values: &[f64], x: f64) -> f64 {
-    let m = values.len() - 1;
+    lagrange4_pair(values, values, x).0
+}
+
+/// [`lagrange4`] of two tables of the same length at the same `x`, sharing the stencil.
+fn lagrange4_pair(a: &[f64], b: &[f64], x: f64) -> (f64, f64) {
+    let m = a.len() - 1;
     let t = x.clamp(0.0, 1.0) * m as f64;
     let j = (t.floor() as usize).clamp(1, m.saturating_sub(2).max(1));
     let s = t - j as f64; // stencil j-1, j, j+1, j+2 at -1, 0, 1, 2
-    let (a, b, c, d) = (values[j - 1], values[j], values[j + 1], values[j + 2]);
-    -s * (s - 1.0) * (s - 2.0) / 6.0 * a + (s + 1.0) * (s - 1.0) * (s - 2.0) / 2.0 * b
-        - (s + 1.0) * s * (s - 2.0) / 2.0 * c
-        + (s + 1.0) * s * (s - 1.0) / 6.0 * d
+    let w = [
+        -s * (s - 1.0) * (s - 2.0) / 6.0,
+        (s + 1.0) * (s - 1.0) * (s - 2.0) / 2.0,
+        -(s + 1.0) * s * (s - 2.0) / 2.0,
+        (s + 1.0) * s * (s - 1.0) / 6.0,
+    ];
+    let dot = |v: &[f64]| w[0] * v[j - 1] + w[1] * v[j] + w[2] * v[j + 1] + w[3] * v[j + 2];
+    (dot(a), dot(b))
 }
 
 /// Complete elliptic integral of the second kind `E(m)`, `m = k^2` in `[0, 1]`, by the
@@ -269,7 +278,7 @@ impl SkyRadiance for BandSky<'_> {
             return Stokes(t.stokes_from(towards).0 * self.table_scale);
         }
         let mu = towards.z.max(0.0);
-        let (a, b) = (lagrange4(&self.a, mu), lagrange4(&self.b, mu));
+        let (a, b) = lagrange4_pair(&self.a, &self.b, mu);
         let c = p.sun.dot(towards).clamp(-1.0, 1.0);
         let (p11, p12) = p.rayleigh.phase(c);
         let intensity = p11 * a + ClearSky::henyey_greenstein(p.atmosphere.aerosol_g, c) * b;

@@ -195,9 +195,22 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
 
     #[inline]
     fn value(&self, psi: f64, t: f64) -> [f64; 3] {
-        let rho = self.sigma * std::f64::consts::SQRT_2 * t;
+        self.value_along(&self.direction(psi), t)
+    }
+
+    /// The horizontal unit vector of azimuth `psi` from `e1` towards `e2`.
+    #[inline]
+    fn direction(&self, psi: f64) -> Vector3<f64> {
         let (sp, cp) = psi.sin_cos();
-        let hv = Vector3::z() - self.e1 * (rho * cp) - self.e2 * (rho * sp);
+        self.e1 * cp + self.e2 * sp
+    }
+
+    /// [`SlopeIntegrand::value`] on the line of horizontal direction `along` (from
+    /// [`SlopeIntegrand::direction`]: the product rule computes it once per line).
+    #[inline]
+    fn value_along(&self, along: &Vector3<f64>, t: f64) -> [f64; 3] {
+        let rho = self.sigma * std::f64::consts::SQRT_2 * t;
+        let hv = Vector3::z() - along * rho;
         let h = hv / hv.norm();
         let cos_beta = self.omega_view.dot(&h);
         if cos_beta <= 0.0 {
@@ -356,6 +369,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
                 let psi = centre + half * x;
                 let wpsi = half * wx;
                 self.pieces(psi, pieces);
+                let along = self.direction(psi);
                 for w in pieces.windows(2) {
                     let (mid, half) = (0.5 * (w[0] + w[1]), 0.5 * (w[1] - w[0]));
                     if half <= 0.0 {
@@ -363,7 +377,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
                     }
                     let gq = gauss_legendre_table(q);
                     for &(y, wy) in gq {
-                        let v = self.value(psi, mid + half * y);
+                        let v = self.value_along(&along, mid + half * y);
                         let wt = wpsi * half * wy;
                         for (s, x) in sum.iter_mut().zip(&v) {
                             *s += x * wt;
