@@ -580,6 +580,24 @@ pub fn reflected_skylight<S: SkyRadiance + ?Sized>(
     Ok(r)
 }
 
+/// The integrand of [`direct_skylight`] over `(phi, mu = cos theta)` of the incident direction:
+/// the surface's specular Mueller matrix times the sky's Stokes vector times `mu`.
+fn hemisphere_integrand<'a, S: SkyRadiance + ?Sized>(
+    surface: &'a Surface,
+    sky: &'a S,
+    omega_view: &'a Vector3<f64>,
+) -> impl Fn(f64, f64) -> [f64; 3] + Copy + 'a {
+    move |phi: f64, mu: f64| {
+        let s = (1.0 - mu * mu).max(0.0).sqrt();
+        let d = Vector3::new(s * phi.cos(), s * phi.sin(), mu);
+        let Ok(g) = Geometry::from_directions(&d, omega_view) else {
+            return [0.0; 3];
+        };
+        let out = surface.specular(&g).0 * sky.stokes_from(&d).0 * mu;
+        [out[0], out[1], out[2]]
+    }
+}
+
 /// Eq. 3.22's specular part by direct integration over incident directions `(phi_d, cos theta_d)`,
 /// using the surface's own Mueller matrix: right for broad lobes (vegetation, very rough
 /// surfaces) and an independent check of [`specular_skylight`]. A product Gauss-Legendre rule
@@ -592,15 +610,7 @@ pub fn direct_skylight<S: SkyRadiance + ?Sized>(
     tol: Tolerance,
 ) -> Result<StokesIntegral, ModelError> {
     check_view(omega_view)?;
-    let f = |phi: f64, mu: f64| -> [f64; 3] {
-        let s = (1.0 - mu * mu).max(0.0).sqrt();
-        let d = Vector3::new(s * phi.cos(), s * phi.sin(), mu);
-        let Ok(g) = Geometry::from_directions(&d, omega_view) else {
-            return [0.0; 3];
-        };
-        let out = surface.specular(&g).0 * sky.stokes_from(&d).0 * mu;
-        [out[0], out[1], out[2]]
-    };
+    let f = hemisphere_integrand(surface, sky, omega_view);
     // The integrand is smooth but at two points: light from the sensor's own direction (the
     // facet frame is 0/0 there) and the sky's peak; the product rule's lines pass through both.
     let azimuth = |d: &Vector3<f64>| d.y.atan2(d.x);
@@ -643,6 +653,38 @@ mod tests {
 
     fn glass(sigma: f64) -> Surface {
         Surface::microfacet(RefractiveIndex::new(1.52, 0.0).unwrap(), sigma, 0.1).unwrap()
+    }
+
+    /// Asserts that `r` converged and that its actual error against `reference` (largest
+    /// component) is within its reported error plus `slack` (the reference's own uncertainty).
+    fn assert_honest(r: &StokesIntegral, reference: &[f64; 3], slack: f64, case: &str) {
+        let actual = (0..3).fold(0.0f64, |m, i| m.max((r.stokes.0[i] - reference[i]).abs()));
+        assert!(r.converged, "{case}: {r:?}");
+        assert!(
+            actual <= r.error + slack,
+            "{case}: actual {actual:e} > reported {:e}",
+            r.error
+        );
+    }
+
+    /// [`specular_skylight`] of a microfacet surface's lobe to an absolute tolerance.
+    fn glass_specular<S: SkyRadiance>(
+        surface: &Surface,
+        sky: &S,
+        view: &Vector3<f64>,
+        tol_abs: f64,
+    ) -> StokesIntegral {
+        let Surface::Microfacet { lobe, .. } = surface else {
+            unreachable!()
+        };
+        specular_skylight(
+            lobe.index().permittivity(),
+            lobe.sigma(),
+            sky,
+            view,
+            Tolerance::absolute(tol_abs),
+        )
+        .unwrap()
     }
 
     /// A uniform unpolarised sky: by reciprocity the reflected S0 is L times the specular albedo
@@ -728,18 +770,8 @@ mod tests {
             sun: direction_from_deg(50.0, 10.0),
         };
         let s = glass(0.4);
-        let Surface::Microfacet { lobe, .. } = s else {
-            unreachable!()
-        };
         let view = direction_from_deg(45.0, 170.0);
-        let a = specular_skylight(
-            lobe.index().permittivity(),
-            lobe.sigma(),
-            &sky,
-            &view,
-            Tolerance::absolute(1e-10),
-        )
-        .unwrap();
+        let a = glass_specular(&s, &sky, &view, 1e-10);
         let b = direct_skylight(
             &s,
             &sky,
@@ -878,13 +910,11 @@ mod tests {
                             Tolerance::absolute(rel * s0),
                         )
                         .unwrap();
-                        let actual =
-                            (0..3).fold(0.0f64, |m, i| m.max((r.stokes.0[i] - reference[i]).abs()));
-                        assert!(r.converged, "sigma {sigma} view {tv}/{av} rel {rel}: {r:?}");
-                        assert!(
-                            actual <= r.error + 1e-12 * s0,
-                            "sigma {sigma} view {tv}/{av} rel {rel}: actual {actual:e} > reported {:e}",
-                            r.error
+                        assert_honest(
+                            &r,
+                            &reference,
+                            1e-12 * s0,
+                            &format!("sigma {sigma} view {tv}/{av} rel {rel}"),
                         );
                         assert!(r.error <= rel * s0);
                         cases += 1;
@@ -936,29 +966,11 @@ mod tests {
             }
         }
         let s = glass(0.3);
-        let Surface::Microfacet { lobe, .. } = s else {
-            unreachable!()
-        };
         let view = direction_from_deg(50.0, 180.0);
-        let r = specular_skylight(
-            lobe.index().permittivity(),
-            lobe.sigma(),
-            &HalfSky,
-            &view,
-            Tolerance::absolute(1e-6),
-        )
-        .unwrap();
+        let r = glass_specular(&s, &HalfSky, &view, 1e-6);
         // The edge is phi = 0 and pi in the direct parametrisation: split there.
         let reference = integrate_2d_split_n(
-            |phi, mu: f64| {
-                let st = (1.0 - mu * mu).max(0.0).sqrt();
-                let d = Vector3::new(st * phi.cos(), st * phi.sin(), mu);
-                let Ok(g) = Geometry::from_directions(&d, &view) else {
-                    return [0.0; 3];
-                };
-                let out = s.specular(&g).0 * HalfSky.stokes_from(&d).0 * mu;
-                [out[0], out[1], out[2]]
-            },
+            hemisphere_integrand(&s, &HalfSky, &view),
             (0.0, PI),
             (0.0, 1.0),
             |_, _| {},
@@ -997,15 +1009,7 @@ mod tests {
                 (75.0, 115.0),
             ] {
                 let view = direction_from_deg(tv, av);
-                let f = |phi: f64, mu: f64| -> [f64; 3] {
-                    let st = (1.0 - mu * mu).max(0.0).sqrt();
-                    let d = Vector3::new(st * phi.cos(), st * phi.sin(), mu);
-                    let Ok(g) = Geometry::from_directions(&d, &view) else {
-                        return [0.0; 3];
-                    };
-                    let out = leaf.specular(&g).0 * sky.stokes_from(&d).0 * mu;
-                    [out[0], out[1], out[2]]
-                };
+                let f = hemisphere_integrand(&leaf, &sky, &view);
                 let splits = |d: &Vector3<f64>| (d.y.atan2(d.x), d.z);
                 let (pv, mv) = splits(&view);
                 let (ps, ms) = splits(&sky.0.sun);
@@ -1025,13 +1029,11 @@ mod tests {
                 for rel in [1e-3, 1e-6] {
                     let r =
                         direct_skylight(&leaf, &sky, &view, Tolerance::absolute(rel * s0)).unwrap();
-                    let actual =
-                        (0..3).fold(0.0f64, |m, i| m.max((r.stokes.0[i] - reference[i]).abs()));
-                    assert!(r.converged, "view {tv}/{av} rel {rel}: {r:?}");
-                    assert!(
-                        actual <= r.error + 2e-8 * s0,
-                        "view {tv}/{av} rel {rel}: actual {actual:e} > reported {:e}",
-                        r.error
+                    assert_honest(
+                        &r,
+                        &reference,
+                        2e-8 * s0,
+                        &format!("view {tv}/{av} rel {rel}"),
                     );
                     cases += 1;
                 }
