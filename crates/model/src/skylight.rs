@@ -16,10 +16,13 @@
 //! the azimuths where `k = cos psi sin theta_v` is `0` or `-cos theta_v` (where the switches
 //! enter a line or meet). A product Gauss-Legendre rule on the smooth pieces converges
 //! geometrically; the sky's peak (the sun's aureole) is one more split in both directions. On
-//! the rooftop scene at 1e-4 this takes 0.53 million evaluations where the adaptive rule took
-//! 0.72 million (1.2 million at 1e-5 against 2.4), and the adaptive rule remains the fallback.
-//! The Lambertian part is `f00_d` times the sky irradiance, and the vegetation lobe, which is broad, is integrated over the hemisphere
-//! directly. Every result carries the quadrature's error estimate and evaluation count.
+//! the rooftop scene at 1e-4 the scene takes 0.45 million evaluations where it took 0.72 million
+//! with the adaptive rule alone (0.83 million at 1e-5 against 2.4), and the adaptive rule
+//! remains the fallback (docs/BENCHMARKS.md, "Scene evaluation").
+//!
+//! The Lambertian part is `f00_d` times the sky irradiance, and the vegetation lobe, which is
+//! broad, is integrated over the hemisphere directly, by the same kind of product rule. Every
+//! result carries the quadrature's error estimate and evaluation count.
 
 use crate::error::ModelError;
 use crate::pbrdf::{FacetGeometry, Geometry, Surface, COS_FLOOR};
@@ -348,9 +351,10 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
         count
     }
 
-    /// The integral by a product Gauss-Legendre rule: `n` azimuths in each half
-    /// `(-pi/2, pi/2)`, `(pi/2, 3 pi/2)` (split where `k = 0`, where the `B = C` break enters
-    /// the line at `t = 0`), `q` points on each smooth piece of each line.
+    /// The integral by a product Gauss-Legendre rule: `n` azimuths per half turn over the arcs
+    /// of [`SlopeIntegrand::arcs`] (at least `n / 2` per arc, at most 64), `q` points on each
+    /// smooth piece of each line from [`SlopeIntegrand::pieces`] (about half as many beyond the
+    /// last fixed split).
     fn gauss(&self, n: usize, q: usize, pieces: &mut Vec<f64>) -> ([f64; 3], usize) {
         let mut sum = [0.0; 3];
         let mut evaluations = 0;
@@ -402,7 +406,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
 /// surface frame of `omega_view`.
 ///
 /// The rule is a product Gauss-Legendre rule on the integrand's smooth pieces
-/// ([`SlopeIntegrand::gauss`]) at increasing levels ([`GAUSS_LEVELS`]); if the last level does
+/// (`SlopeIntegrand::gauss`) at increasing levels (`GAUSS_LEVELS`); if the last level does
 /// not meet `tol` (a sky with a sharp feature inside the lobe), the adaptive rule takes over and
 /// the better of the two is returned.
 pub fn specular_skylight<S: SkyRadiance + ?Sized>(
@@ -601,7 +605,7 @@ fn hemisphere_integrand<'a, S: SkyRadiance + ?Sized>(
 /// Eq. 3.22's specular part by direct integration over incident directions `(phi_d, cos theta_d)`,
 /// using the surface's own Mueller matrix: right for broad lobes (vegetation, very rough
 /// surfaces) and an independent check of [`specular_skylight`]. A product Gauss-Legendre rule
-/// split at the view's and the sky peak's azimuth and elevation ([`hemisphere_gauss`]), with
+/// split at the view's and the sky peak's azimuth and elevation (`hemisphere_gauss`), with
 /// the adaptive rule as its fallback, as in [`specular_skylight`].
 pub fn direct_skylight<S: SkyRadiance + ?Sized>(
     surface: &Surface,
@@ -873,7 +877,8 @@ mod tests {
     }
 
     /// The product rule's reported error covers its actual error against the same rule far
-    /// past convergence (160 azimuths per half, 64 points per piece: changes below 1e-12 of S0)
+    /// past convergence (64 azimuths per arc, the node table's largest, and 64 points per piece;
+    /// itself within 1e-9 of S0 of the adaptive rule, checked here)
     /// for smooth and rough lobes, views from nadir to 88 deg, the sun in and out of the lobe,
     /// at 1e-3 and 1e-6 of S0. One change alone fell short of the error in 6-8 % of such cases;
     /// the larger of the last two never did.
@@ -892,6 +897,7 @@ mod tests {
                 ] {
                     let view = direction_from_deg(tv, av);
                     let integrand = SlopeIntegrand::new(eps, sigma, &sky, &view);
+                    // 160 asks for more than the node table holds: every arc gets its 64.
                     let reference = integrand.gauss(160, 64, &mut Vec::new()).0;
                     let s0 = reference[0];
                     // The reference against the adaptive rule (an independent partition).
