@@ -203,7 +203,7 @@ fn sum_pieces<const N: usize>(pieces: &[Piece<N>]) -> ([f64; N], f64) {
     (value, error)
 }
 
-fn max_abs<const N: usize>(v: &[f64; N]) -> f64 {
+pub(crate) fn max_abs<const N: usize>(v: &[f64; N]) -> f64 {
     v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
 }
 

@@ -58,7 +58,7 @@ use crate::atmosphere::{air_mass, slant_mu0, Atmosphere, Band, ClearSky};
 use crate::error::ModelError;
 use crate::pbrdf::Surface;
 use crate::polarization::{rotation_from_cos_sin_2eta, Stokes};
-use crate::quadrature::{gauss_legendre, integrate, Tolerance};
+use crate::quadrature::{gauss_legendre_table, integrate, Tolerance};
 use crate::sky::{downward_path, e_vector_in_frame, BerrySky, RayleighSky, AIR_DEPOLARIZATION};
 use crate::sky_table::SkyTable;
 use crate::skylight::{reflected_skylight, sky_irradiance, SkyRadiance};
@@ -199,23 +199,33 @@ const TABLE_INTERVALS: usize = 256;
 
 /// 4-point Lagrange interpolation on a uniform grid over `[0, 1]` (`values.len() - 1` intervals).
 fn lagrange4(values: &[f64], x: f64) -> f64 {
-    lagrange4_pair(values, values, x).0
+    let (j, w) = lagrange4_stencil(values.len(), x);
+    w[0] * values[j - 1] + w[1] * values[j] + w[2] * values[j + 1] + w[3] * values[j + 2]
 }
 
 /// [`lagrange4`] of two tables of the same length at the same `x`, sharing the stencil.
 fn lagrange4_pair(a: &[f64], b: &[f64], x: f64) -> (f64, f64) {
-    let m = a.len() - 1;
+    let (j, w) = lagrange4_stencil(a.len(), x);
+    let dot = |v: &[f64]| w[0] * v[j - 1] + w[1] * v[j] + w[2] * v[j + 1] + w[3] * v[j + 2];
+    (dot(a), dot(b))
+}
+
+/// The stencil of [`lagrange4`] on a table of `len` values: the index `j` of its second point
+/// (points `j - 1 ..= j + 2`) and the four weights at `x`.
+fn lagrange4_stencil(len: usize, x: f64) -> (usize, [f64; 4]) {
+    let m = len - 1;
     let t = x.clamp(0.0, 1.0) * m as f64;
     let j = (t.floor() as usize).clamp(1, m.saturating_sub(2).max(1));
     let s = t - j as f64; // stencil j-1, j, j+1, j+2 at -1, 0, 1, 2
-    let w = [
-        -s * (s - 1.0) * (s - 2.0) / 6.0,
-        (s + 1.0) * (s - 1.0) * (s - 2.0) / 2.0,
-        -(s + 1.0) * s * (s - 2.0) / 2.0,
-        (s + 1.0) * s * (s - 1.0) / 6.0,
-    ];
-    let dot = |v: &[f64]| w[0] * v[j - 1] + w[1] * v[j] + w[2] * v[j + 1] + w[3] * v[j + 2];
-    (dot(a), dot(b))
+    (
+        j,
+        [
+            -s * (s - 1.0) * (s - 2.0) / 6.0,
+            (s + 1.0) * (s - 1.0) * (s - 2.0) / 2.0,
+            -(s + 1.0) * s * (s - 2.0) / 2.0,
+            (s + 1.0) * s * (s - 1.0) / 6.0,
+        ],
+    )
 }
 
 /// Complete elliptic integral of the second kind `E(m)`, `m = k^2` in `[0, 1]`, by the
@@ -1099,7 +1109,7 @@ impl Prepared {
             let mut k = 0;
             loop {
                 let n = orders[k];
-                let gl = gauss_legendre(n);
+                let gl = gauss_legendre_table(n);
                 let mut mean = Vector3::zeros();
                 let mut second = Matrix3::zeros();
                 let mut surf = Vector3::zeros();
