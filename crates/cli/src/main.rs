@@ -725,7 +725,10 @@ fn bench_scene(reference_tol: f64, exponents: &[u32], min_runs: usize) -> anyhow
         min_runs.max(1),
         std::time::Duration::from_millis(200),
     )?;
-    print!("{}", polar_cli::bench::markdown(&rows, reference_tol));
+    print!(
+        "{}",
+        polar_cli::bench::markdown(&rows, reference_tol, polar_cli::bench::threads())
+    );
     Ok(ExitCode::SUCCESS)
 }
 

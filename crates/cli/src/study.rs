@@ -668,11 +668,12 @@ impl Study {
         context: &str,
     ) -> Result<[Radiance; 3], StudyError> {
         let p = Prepared::new(spec, self.settings.tolerance).map_err(at(context))?;
-        let mut out = Vec::with_capacity(3);
-        for m in materials {
-            out.push(Radiance::from_result(&p.evaluate(m).map_err(at(context))?));
-        }
-        Ok([out[0].clone(), out[1].clone(), out[2].clone()])
+        let r = p.evaluate_all(materials).map_err(at(context))?;
+        Ok([
+            Radiance::from_result(&r[0]),
+            Radiance::from_result(&r[1]),
+            Radiance::from_result(&r[2]),
+        ])
     }
 
     /// The sensor and processing chain of one class (module docs).

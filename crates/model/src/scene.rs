@@ -64,6 +64,7 @@ use crate::sky_table::SkyTable;
 use crate::skylight::{reflected_skylight, sky_irradiance, SkyRadiance};
 use crate::tiles::{Field, Pointing, Tile};
 use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
 use std::f64::consts::PI;
 use std::sync::Arc;
 
@@ -322,7 +323,7 @@ struct Include {
 }
 
 /// One field point's radiance in the camera frame.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 struct Point {
     total: Vector3<f64>,
     surface: Vector3<f64>,
@@ -666,6 +667,23 @@ impl Prepared {
         }
     }
 
+    /// [`Prepared::point`] at each of `tiles`, in parallel (rayon's pool: `RAYON_NUM_THREADS`
+    /// threads, by default one per core); the results in the order of `tiles`, the first
+    /// error in that order if any.
+    fn points(
+        &self,
+        surface: &Surface,
+        f00_diffuse: f64,
+        tiles: &[Tile],
+        inc: Include,
+    ) -> Result<Vec<Point>, ModelError> {
+        let results: Vec<Result<Point, ModelError>> = tiles
+            .par_iter()
+            .map(|t| self.point(surface, f00_diffuse, t, inc))
+            .collect();
+        results.into_iter().collect()
+    }
+
     /// One field point: camera-frame total and surface part.
     fn point(
         &self,
@@ -791,26 +809,47 @@ impl Prepared {
     ) -> Result<LobattoSky, ModelError> {
         let mut evaluations = 0;
         let mut rays: Vec<((f64, f64), Point)> = probed.to_vec();
-        let mut ray =
-            |u: f64, v: f64, rays: &mut Vec<((f64, f64), Point)>| -> Result<Point, ModelError> {
-                if let Some((_, p)) = rays
-                    .iter()
-                    .find(|((a, b), _)| (a - u).abs() < 1e-12 && (b - v).abs() < 1e-12)
-                {
-                    return Ok(*p);
+        let find = |rays: &[((f64, f64), Point)], u: f64, v: f64| {
+            rays.iter()
+                .find(|((a, b), _)| (a - u).abs() < 1e-12 && (b - v).abs() < 1e-12)
+                .map(|(_, p)| *p)
+        };
+        // The rays at `coords`: those not integrated yet are, in parallel.
+        let mut fetch = |coords: &[(f64, f64)],
+                         rays: &mut Vec<((f64, f64), Point)>|
+         -> Result<Vec<Point>, ModelError> {
+            let mut out = Vec::with_capacity(coords.len());
+            let mut missing = Vec::new();
+            for (i, &(u, v)) in coords.iter().enumerate() {
+                let known = find(rays, u, v);
+                if known.is_none() {
+                    missing.push((i, self.field.ray(u, v, (0, 0))?));
                 }
-                let p = self.point(surface, f00, &self.field.ray(u, v, (0, 0))?, inc)?;
+                out.push(known.unwrap_or_default());
+            }
+            let tiles: Vec<Tile> = missing.iter().map(|m| m.1).collect();
+            for ((i, _), p) in missing.iter().zip(self.points(surface, f00, &tiles, inc)?) {
                 evaluations += p.evaluations;
-                rays.push(((u, v), p));
-                Ok(p)
-            };
+                rays.push((coords[*i], p));
+                out[*i] = p;
+            }
+            Ok(out)
+        };
         let g = 1.0 / 3f64.sqrt();
-        let mut checks = Vec::with_capacity(4);
-        for (u, v) in [(-g, -g), (g, -g), (-g, g), (g, g)] {
-            checks.push(((u, v), ray(u, v, &mut rays)?));
-        }
+        let check_coords = [(-g, -g), (g, -g), (-g, g), (g, g)];
         let h = std::f64::consts::FRAC_1_SQRT_2;
         let (three, five): (&[f64], &[f64]) = (&[-1.0, 0.0, 1.0], &[-1.0, -h, 0.0, h, 1.0]);
+        let grid = |nodes_u: &[f64], nodes_v: &[f64]| -> Vec<(f64, f64)> {
+            nodes_u
+                .iter()
+                .flat_map(|&u| nodes_v.iter().map(move |&v| (u, v)))
+                .collect()
+        };
+        // The check rays and the 3 x 3 rays in one parallel batch.
+        let mut first: Vec<(f64, f64)> = check_coords.to_vec();
+        first.extend(grid(three, three));
+        let points = fetch(&first, &mut rays)?;
+        let checks: Vec<((f64, f64), Point)> = check_coords.into_iter().zip(points).collect();
         // 5 x 3 and 3 x 5 are subsets of 5 x 5: trying them first costs no ray the 5 x 5
         // would not need. The direction whose part of the 3 x 3's misses (odd in it) is the
         // larger gets its 5 points first.
@@ -822,15 +861,9 @@ impl Prepared {
         ];
         for k in 0..levels.len() {
             let (nodes_u, nodes_v, factor) = levels[k];
-            let mut values = Vec::with_capacity(nodes_u.len() * nodes_v.len());
-            let mut error = 0.0f64;
-            for &u in nodes_u {
-                for &v in nodes_v {
-                    let p = ray(u, v, &mut rays)?;
-                    values.push(p.sky);
-                    error = error.max(p.sky_error);
-                }
-            }
+            let points = fetch(&grid(nodes_u, nodes_v), &mut rays)?;
+            let values: Vec<Vector3<f64>> = points.iter().map(|p| p.sky).collect();
+            let error = points.iter().fold(0.0f64, |m, p| m.max(p.sky_error));
             let fit = SkyFit {
                 nodes: nodes_u.to_vec(),
                 nodes_v: nodes_v.to_vec(),
@@ -873,7 +906,20 @@ impl Prepared {
         })
     }
 
-    /// Evaluates one material over the field of view.
+    /// [`Prepared::evaluate`] for each of `materials`, in parallel; the results in the order
+    /// of `materials`, the first error in that order if any. The results are the same, to the
+    /// bit, as one at a time: every sum runs in a fixed order.
+    pub fn evaluate_all(
+        &self,
+        materials: &[SceneMaterial],
+    ) -> Result<Vec<MaterialResult>, ModelError> {
+        let results: Vec<Result<MaterialResult, ModelError>> =
+            materials.par_iter().map(|m| self.evaluate(m)).collect();
+        results.into_iter().collect()
+    }
+
+    /// Evaluates one material over the field of view. Its independent ray integrals run in
+    /// parallel (rayon's pool: `RAYON_NUM_THREADS` threads, by default one per core).
     pub fn evaluate(&self, material: &SceneMaterial) -> Result<MaterialResult, ModelError> {
         let tol = self.tol;
         let surface = &material.surface;
@@ -1040,8 +1086,9 @@ impl Prepared {
             };
             let mut spread = 0.0f64;
             probed.push(((0.0, 0.0), c0));
-            for ((u, v), t) in &corner_tiles {
-                let p = self.point(surface, f00, t, probe)?;
+            let tiles: Vec<Tile> = corner_tiles.iter().map(|c| c.1).collect();
+            let points = self.points(surface, f00, &tiles, probe)?;
+            for (((u, v), _), p) in corner_tiles.iter().zip(points) {
                 evaluations += p.evaluations;
                 let diff = (p.total - c0.total).norm() + p.sky_error + c0.sky_error;
                 spread = spread.max(diff / s0_direct);
@@ -1117,39 +1164,39 @@ impl Prepared {
                 let mut values = Vec::with_capacity(n * n);
                 let mut worst_prediction = 0.0f64;
                 let mut worst_sky_error = 0.0f64;
-                for (i, &(u, wu)) in gl.iter().enumerate() {
-                    for (j, &(v, wv)) in gl.iter().enumerate() {
-                        let t = self.field.ray(u, v, (i, j))?;
-                        let integrate_sky = skylight && !fit_final;
-                        let mut p = self.point(
-                            surface,
-                            f00,
-                            &t,
-                            Include {
-                                skylight: integrate_sky,
-                                ..per_ray
-                            },
-                        )?;
-                        evaluations += p.evaluations;
-                        if integrate_sky {
-                            values.push(p.sky);
-                            worst_sky_error = worst_sky_error.max(p.sky_error);
-                            if let Some(f) = &fit {
-                                let d = (f.at(u, v) - p.sky).norm() - p.sky_error - f.error;
-                                worst_prediction = worst_prediction.max(d);
-                            }
-                        } else if let Some(f) = &fit {
-                            let sky = f.at(u, v);
-                            p.total += sky;
-                            p.surface += sky;
-                            p.sky_error = fit_quadrature_error;
-                        }
-                        let w = wu * wv / 4.0;
-                        mean += p.total * w;
-                        second += p.total * p.total.transpose() * w;
-                        surf += p.surface * w;
-                        sky_error += p.sky_error * w;
+                let integrate_sky = skylight && !fit_final;
+                let mut tiles = Vec::with_capacity(n * n);
+                for (i, &(u, _)) in gl.iter().enumerate() {
+                    for (j, &(v, _)) in gl.iter().enumerate() {
+                        tiles.push(self.field.ray(u, v, (i, j))?);
                     }
+                }
+                let ray_inc = Include {
+                    skylight: integrate_sky,
+                    ..per_ray
+                };
+                let points = self.points(surface, f00, &tiles, ray_inc)?;
+                let nodes = gl.iter().flat_map(|&a| gl.iter().map(move |&b| (a, b)));
+                for (((u, wu), (v, wv)), mut p) in nodes.zip(points) {
+                    evaluations += p.evaluations;
+                    if integrate_sky {
+                        values.push(p.sky);
+                        worst_sky_error = worst_sky_error.max(p.sky_error);
+                        if let Some(f) = &fit {
+                            let d = (f.at(u, v) - p.sky).norm() - p.sky_error - f.error;
+                            worst_prediction = worst_prediction.max(d);
+                        }
+                    } else if let Some(f) = &fit {
+                        let sky = f.at(u, v);
+                        p.total += sky;
+                        p.surface += sky;
+                        p.sky_error = fit_quadrature_error;
+                    }
+                    let w = wu * wv / 4.0;
+                    mean += p.total * w;
+                    second += p.total * p.total.transpose() * w;
+                    surf += p.surface * w;
+                    sky_error += p.sky_error * w;
                 }
                 if skylight && !fit_final {
                     let predicted = fit.is_some() && worst_prediction < tol / 8.0 * s0_direct;
@@ -1215,27 +1262,20 @@ impl Prepared {
         // table, the change halved (the least a convergent interpolant gains from halving).
         let table_error = match (&self.sky, skylight) {
             (Sky::Table(t), true) if t.coarse.is_some() => {
-                let half = self.point(
-                    surface,
-                    f00,
-                    &centre,
-                    Include {
-                        coarse_table: true,
-                        tol_abs: tol / 8.0 * s0_direct,
-                        ..inc
-                    },
-                )?;
-                evaluations += half.evaluations;
-                let full = self.point(
-                    surface,
-                    f00,
-                    &centre,
-                    Include {
-                        tol_abs: tol / 8.0 * s0_direct,
-                        ..inc
-                    },
-                )?;
-                evaluations += full.evaluations;
+                let full = Include {
+                    tol_abs: tol / 8.0 * s0_direct,
+                    ..inc
+                };
+                let half = Include {
+                    coarse_table: true,
+                    ..full
+                };
+                let (half, full) = rayon::join(
+                    || self.point(surface, f00, &centre, half),
+                    || self.point(surface, f00, &centre, full),
+                );
+                let (half, full) = (half?, full?);
+                evaluations += half.evaluations + full.evaluations;
                 ((half.sky - full.sky).norm() + half.sky_error + full.sky_error) / 2.0 / s0
             }
             _ => 0.0,
@@ -1285,8 +1325,7 @@ pub fn evaluate(
     materials: &[SceneMaterial],
     tol: f64,
 ) -> Result<Vec<MaterialResult>, ModelError> {
-    let prepared = Prepared::new(spec, tol)?;
-    materials.iter().map(|m| prepared.evaluate(m)).collect()
+    Prepared::new(spec, tol)?.evaluate_all(materials)
 }
 
 #[cfg(test)]
@@ -1398,6 +1437,26 @@ mod tests {
         assert!(!t.geometry.evaluated, "{:?}", t.geometry);
         assert!(t.skylight.evaluated);
         assert_eq!(t.field_order, 1);
+    }
+
+    /// The parallel evaluation is deterministic: on one thread and on four, the results of a
+    /// scene whose field is sampled (8 deg at 60 deg off nadir, so the skylight's field
+    /// interpolant and the field rays run in parallel) are equal to the bit, because every
+    /// sum runs in a fixed order whatever thread computed its terms.
+    #[test]
+    fn parallel_evaluation_equals_one_thread() {
+        let s = spec(30.0, 60.0, 300.0, 8.0);
+        let materials = [glass(0.1), asphalt(), glass(0.4)];
+        let run = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| evaluate(&s, &materials, 1e-4).unwrap())
+        };
+        let one = run(1);
+        assert!(one.iter().all(|r| r.terms.field_order > 1), "{one:?}");
+        assert_eq!(one, run(4));
     }
 
     /// From 10 km, path radiance is a large part of the signal.
