@@ -320,6 +320,9 @@ struct Include {
     tol_abs: f64,
     /// Tabulated sky only: light the point with the half-resolution table.
     coarse_table: bool,
+    /// A neighbouring ray's accepted product-rule level and the absolute tolerance it was
+    /// accepted at: where this ray's skylight starts ([`Prepared::point`]).
+    hint: Option<(usize, f64)>,
 }
 
 /// One field point's radiance in the camera frame.
@@ -331,6 +334,8 @@ struct Point {
     sky: Vector3<f64>,
     sky_error: f64,
     evaluations: usize,
+    /// The skylight's accepted product-rule level, if any.
+    level: Option<usize>,
 }
 
 /// The reflected skylight over the field as a tensor Lagrange polynomial through Gauss-Legendre
@@ -375,6 +380,8 @@ impl SkyFit {
 struct LobattoSky {
     fit: Option<(SkyFit, f64)>,
     evaluations: usize,
+    /// The lowest product-rule level its own rays were accepted at.
+    level: Option<usize>,
 }
 
 /// The sky, resolved.
@@ -716,6 +723,7 @@ impl Prepared {
         let mut sky_error = 0.0;
         let mut sky_part = Vector3::zeros();
         let mut evaluations = 0;
+        let mut level = None;
         if inc.skylight {
             let sky = self.band_sky(&up, inc.coarse_table);
             if inc.coarse_table {
@@ -723,6 +731,16 @@ impl Prepared {
                     e_sky *= t.e_coarse / t.e_full.max(1e-300);
                 }
             }
+            // Two levels below the neighbour's (`ladder`: the error test is unchanged), and
+            // one more for each factor 4 by which this tolerance is looser than its: a level
+            // too high costs about twice the levels below it, one too low a small part.
+            let start_level = inc.hint.map_or(0, |(level, tol_abs)| {
+                let looser = (inc.tol_abs / tol_abs.max(1e-300))
+                    .max(1.0)
+                    .log(4.0)
+                    .floor();
+                level.saturating_sub(2 + looser.min(8.0) as usize)
+            });
             let r = reflected_skylight(
                 surface,
                 f00_diffuse,
@@ -730,8 +748,10 @@ impl Prepared {
                 &sky,
                 &view,
                 Tolerance::absolute(inc.tol_abs),
+                start_level,
             )?;
             evaluations += r.evaluations;
+            level = r.level;
             sky_error = r.error;
             sky_part = r.stokes.0;
             surface_part += r.stokes.0;
@@ -744,6 +764,7 @@ impl Prepared {
             sky: rot * sky_part,
             sky_error,
             evaluations,
+            level,
         })
     }
 
@@ -763,6 +784,7 @@ impl Prepared {
             path: true,
             tol_abs: 0.0,
             coarse_table: false,
+            hint: None,
         };
         let no_sky = self.point(surface, diffuse.f00, &centre, base)?;
         let white = self.white_radiance();
@@ -816,7 +838,8 @@ impl Prepared {
         };
         // The rays at `coords`: those not integrated yet are, in parallel.
         let mut fetch = |coords: &[(f64, f64)],
-                         rays: &mut Vec<((f64, f64), Point)>|
+                         rays: &mut Vec<((f64, f64), Point)>,
+                         inc: Include|
          -> Result<Vec<Point>, ModelError> {
             let mut out = Vec::with_capacity(coords.len());
             let mut missing = Vec::new();
@@ -848,7 +871,14 @@ impl Prepared {
         // The check rays and the 3 x 3 rays in one parallel batch.
         let mut first: Vec<(f64, f64)> = check_coords.to_vec();
         first.extend(grid(three, three));
-        let points = fetch(&first, &mut rays)?;
+        let points = fetch(&first, &mut rays, inc)?;
+        // The later levels' rays start two product-rule levels below the lowest level of these
+        // neighbours, integrated to the same tolerance (`reflected_skylight`).
+        let level = points.iter().filter_map(|p| p.level).min();
+        let later = Include {
+            hint: level.map(|l| (l, inc.tol_abs)),
+            ..inc
+        };
         let checks: Vec<((f64, f64), Point)> = check_coords.into_iter().zip(points).collect();
         // 5 x 3 and 3 x 5 are subsets of 5 x 5: trying them first costs no ray the 5 x 5
         // would not need. The direction whose part of the 3 x 3's misses (odd in it) is the
@@ -861,7 +891,7 @@ impl Prepared {
         ];
         for k in 0..levels.len() {
             let (nodes_u, nodes_v, factor) = levels[k];
-            let points = fetch(&grid(nodes_u, nodes_v), &mut rays)?;
+            let points = fetch(&grid(nodes_u, nodes_v), &mut rays, later)?;
             let values: Vec<Vector3<f64>> = points.iter().map(|p| p.sky).collect();
             let error = points.iter().fold(0.0f64, |m, p| m.max(p.sky_error));
             let fit = SkyFit {
@@ -897,12 +927,14 @@ impl Prepared {
                 return Ok(LobattoSky {
                     fit: Some((fit, interpolation_error)),
                     evaluations,
+                    level,
                 });
             }
         }
         Ok(LobattoSky {
             fit: None,
             evaluations,
+            level,
         })
     }
 
@@ -947,6 +979,7 @@ impl Prepared {
             path: false,
             tol_abs: 0.0,
             coarse_table: false,
+            hint: None,
         };
         // Scale of every decision: the centre's direct term, floored by the band's TOA
         // irradiance times 1e-15 (the sun at the horizon gives no direct light at all).
@@ -1036,6 +1069,7 @@ impl Prepared {
             path,
             tol_abs: tol / 4.0 * s0_direct,
             coarse_table: false,
+            hint: None,
         };
 
         // Geometry: the field's corners decide whether one ray is enough: the field's mean then
@@ -1078,6 +1112,7 @@ impl Prepared {
                     sky: coarse.sky,
                     sky_error: coarse.sky_error,
                     evaluations: 0,
+                    level: coarse.level,
                 }
             } else {
                 let c0 = self.point(surface, f00, &centre, probe)?;
@@ -1109,6 +1144,9 @@ impl Prepared {
         // The sky over the field as an interpolant through Chebyshev-Lobatto rays (the probe's
         // reused), checked at rays it was not built from; `None` when it does not predict them
         // to tol/8 and every field ray integrates its own skylight (below).
+        // The lowest product-rule level of the field rays integrated so far at tol/8 of S0:
+        // where the next ones start (`reflected_skylight`).
+        let mut ray_level = None;
         let lobatto = if skylight && spread >= tol / 4.0 {
             let per_ray = Include {
                 tol_abs: tol / 8.0 * s0_direct,
@@ -1116,6 +1154,7 @@ impl Prepared {
             };
             let l = self.lobatto_sky(surface, f00, per_ray, &probed, tol / 8.0 * s0_direct)?;
             evaluations += l.evaluations;
+            ray_level = l.level;
             l.fit
         } else {
             None
@@ -1173,9 +1212,11 @@ impl Prepared {
                 }
                 let ray_inc = Include {
                     skylight: integrate_sky,
+                    hint: ray_level.map(|l| (l, per_ray.tol_abs)),
                     ..per_ray
                 };
                 let points = self.points(surface, f00, &tiles, ray_inc)?;
+                ray_level = points.iter().filter_map(|p| p.level).chain(ray_level).min();
                 let nodes = gl.iter().flat_map(|&a| gl.iter().map(move |&b| (a, b)));
                 for (((u, wu), (v, wv)), mut p) in nodes.zip(points) {
                     evaluations += p.evaluations;
@@ -1731,6 +1772,7 @@ mod tests {
                 path: false,
                 tol_abs: 0.0,
                 coarse_table: false,
+                hint: None,
             };
             let s0 = p
                 .point(

@@ -94,6 +94,10 @@ pub struct StokesIntegral {
     pub evaluations: usize,
     /// Whether the tolerance was met.
     pub converged: bool,
+    /// The product rule's accepted level (an index into its levels, from 0), `None` when an
+    /// adaptive rule gave the answer: where a ray next to this one may start
+    /// ([`reflected_skylight`]'s `start_level`).
+    pub level: Option<usize>,
 }
 
 /// Sky irradiance on a horizontal surface, `int S0 cos theta dOmega` (only `S0` is meaningful:
@@ -115,6 +119,7 @@ pub fn sky_irradiance<S: SkyRadiance + ?Sized>(sky: &S, tol: Tolerance) -> Stoke
         error: r.error,
         evaluations: r.evaluations,
         converged: r.converged,
+        level: None,
     }
 }
 
@@ -409,6 +414,18 @@ pub fn specular_skylight<S: SkyRadiance + ?Sized>(
     omega_view: &Vector3<f64>,
     tol: Tolerance,
 ) -> Result<StokesIntegral, ModelError> {
+    specular_skylight_from(eps, sigma, sky, omega_view, tol, 0)
+}
+
+/// [`specular_skylight`] with the product rule's levels from `start_level` (`ladder`).
+fn specular_skylight_from<S: SkyRadiance + ?Sized>(
+    eps: num_complex::Complex64,
+    sigma: f64,
+    sky: &S,
+    omega_view: &Vector3<f64>,
+    tol: Tolerance,
+    start_level: usize,
+) -> Result<StokesIntegral, ModelError> {
     check_view(omega_view)?;
     let integrand = SlopeIntegrand::new(eps, sigma, sky, omega_view);
     let truncation = 2.0 * (-SLOPE_T * SLOPE_T).exp() * sky.stokes_from(&Vector3::z()).0[0].abs();
@@ -418,24 +435,32 @@ pub fn specular_skylight<S: SkyRadiance + ?Sized>(
         || integrand.adaptive(tol),
         tol,
         truncation,
+        start_level,
     ))
 }
 
-/// Runs a product rule `rule(n, q)` (value, evaluations) at each of [`GAUSS_LEVELS`] in turn
-/// until one is accepted; `floor` is an error every result carries (a truncation). When none
-/// is (an integrand not smooth enough on the rule's pieces: a sharp feature of the sky inside
-/// the lobe, say), `fallback` (an adaptive rule) is run, and the better of its answer and the
-/// last level's is returned.
+/// Runs a product rule `rule(n, q)` (value, evaluations) at each of [`GAUSS_LEVELS`] in turn,
+/// from `start` (at most the third last: a level's error needs the two before it), until one is
+/// accepted; `floor` is an error every result carries (a truncation). When none is (an
+/// integrand not smooth enough on the rule's pieces: a sharp feature of the sky inside the
+/// lobe, say), `fallback` (an adaptive rule) is run, and the better of its answer and the last
+/// level's is returned.
+///
+/// A later `start` skips levels, never the test: the accepted level passed it against the same
+/// two levels below it as from 0, and is at least the level a start from 0 would accept unless
+/// that one lies below `start + 2` (then the answer is a finer level's).
 fn ladder(
     mut rule: impl FnMut(usize, usize) -> ([f64; 3], usize),
     fallback: impl FnOnce() -> IntegralN<3>,
     tol: Tolerance,
     floor: f64,
+    start: usize,
 ) -> StokesIntegral {
-    let (mut previous, mut evaluations) = rule(GAUSS_LEVELS[0].0, GAUSS_LEVELS[0].1);
+    let start = start.min(GAUSS_LEVELS.len() - 3);
+    let (mut previous, mut evaluations) = rule(GAUSS_LEVELS[start].0, GAUSS_LEVELS[start].1);
     let mut last_change = f64::INFINITY;
     let mut best = (previous, f64::INFINITY);
-    for &(n, q) in &GAUSS_LEVELS[1..] {
+    for (level, &(n, q)) in GAUSS_LEVELS.iter().enumerate().skip(start + 1) {
         let (value, e) = rule(n, q);
         evaluations += e;
         let change = max_abs::<3>(&std::array::from_fn(|i| value[i] - previous[i]));
@@ -447,12 +472,15 @@ fn ladder(
             best = (value, error);
         }
         if error <= tol.target(max_abs(&value)) {
-            return StokesIntegral::from(IntegralN {
-                value,
-                error,
-                evaluations,
-                converged: true,
-            });
+            return StokesIntegral {
+                level: Some(level),
+                ..StokesIntegral::from(IntegralN {
+                    value,
+                    error,
+                    evaluations,
+                    converged: true,
+                })
+            };
         }
         previous = value;
         last_change = change;
@@ -497,6 +525,7 @@ impl From<IntegralN<3>> for StokesIntegral {
             error: r.error,
             evaluations: r.evaluations,
             converged: r.converged,
+            level: None,
         }
     }
 }
@@ -577,6 +606,10 @@ const GAUSS_LEVELS: [(usize, usize); 9] = [
 
 /// The whole of Eq. 3.22 for a surface: specular (slope space or, for vegetation, direct) plus
 /// `f00_d` times the sky irradiance `e_sky` (from [`sky_irradiance`]).
+///
+/// `start_level` is the product rule's first level (0: from the coarsest). Rays next to one
+/// whose [`StokesIntegral::level`] is `L`, at the same tolerance, need about the same level;
+/// starting them at `L - 2` skips the coarse levels without weakening the error test.
 pub fn reflected_skylight<S: SkyRadiance + ?Sized>(
     surface: &Surface,
     f00_diffuse: f64,
@@ -584,16 +617,20 @@ pub fn reflected_skylight<S: SkyRadiance + ?Sized>(
     sky: &S,
     omega_view: &Vector3<f64>,
     tol: Tolerance,
+    start_level: usize,
 ) -> Result<StokesIntegral, ModelError> {
     let mut r = match surface {
-        Surface::Microfacet { lobe, .. } => specular_skylight(
+        Surface::Microfacet { lobe, .. } => specular_skylight_from(
             lobe.index().permittivity(),
             lobe.sigma(),
             sky,
             omega_view,
             tol,
+            start_level,
         )?,
-        Surface::Vegetation { .. } => direct_skylight(surface, sky, omega_view, tol)?,
+        Surface::Vegetation { .. } => {
+            direct_skylight_from(surface, sky, omega_view, tol, start_level)?
+        }
     };
     r.stokes.0[0] += f00_diffuse * e_sky;
     Ok(r)
@@ -628,6 +665,17 @@ pub fn direct_skylight<S: SkyRadiance + ?Sized>(
     omega_view: &Vector3<f64>,
     tol: Tolerance,
 ) -> Result<StokesIntegral, ModelError> {
+    direct_skylight_from(surface, sky, omega_view, tol, 0)
+}
+
+/// [`direct_skylight`] with the product rule's levels from `start_level` (`ladder`).
+fn direct_skylight_from<S: SkyRadiance + ?Sized>(
+    surface: &Surface,
+    sky: &S,
+    omega_view: &Vector3<f64>,
+    tol: Tolerance,
+    start_level: usize,
+) -> Result<StokesIntegral, ModelError> {
     check_view(omega_view)?;
     let f = hemisphere_integrand(surface, sky, omega_view);
     // The integrand is smooth but at two points: light from the sensor's own direction (the
@@ -648,6 +696,7 @@ pub fn direct_skylight<S: SkyRadiance + ?Sized>(
         adaptive,
         tol,
         0.0,
+        start_level,
     ))
 }
 
@@ -714,6 +763,7 @@ mod tests {
                 &UniformSky { radiance: 2.0 },
                 &view,
                 Tolerance::absolute(1e-10),
+                0,
             )
             .unwrap();
             let a = s
@@ -966,6 +1016,51 @@ mod tests {
                 m.max((product.stokes.0[i] - adaptive.value[i]).abs())
             });
             assert!(d <= product.error + adaptive.error, "sigma {sigma}: {d:e}");
+        }
+    }
+
+    /// A later start level skips levels, not the error test: for neighbouring rays of the
+    /// rooftop's paint and glass (views 56-64 deg, the aureole in the lobe, 1e-5 of S0), every
+    /// start from 0 to 6 gives an answer within its reported error of the reference (the same
+    /// rule far past convergence, 1e-9 of S0 from the adaptive rule), at a level no lower than
+    /// a start from 0 accepts; and a start two below a neighbour's accepted level costs fewer
+    /// evaluations than a start from 0 (measured: 3768 against 4448 for sigma 0.1, 7154
+    /// against 8506 for sigma 0.3, at the same accepted level).
+    #[test]
+    fn later_start_level_stays_honest_and_is_cheaper() {
+        let eps = RefractiveIndex::new(1.5, 0.0).unwrap().permittivity();
+        let sky = aureole(33.6, 115.0);
+        for sigma in [0.1, 0.3] {
+            let neighbour = direction_from_deg(60.0, 300.0);
+            let integrand = SlopeIntegrand::new(eps, sigma, &sky, &neighbour);
+            let s0 = integrand.gauss(64, 24, &mut Vec::new()).0[0];
+            let tol = Tolerance::absolute(1e-5 * s0);
+            let hint = specular_skylight(eps, sigma, &sky, &neighbour, tol)
+                .unwrap()
+                .level
+                .unwrap();
+            for view in [
+                direction_from_deg(56.0, 296.0),
+                direction_from_deg(64.0, 304.0),
+            ] {
+                let integrand = SlopeIntegrand::new(eps, sigma, &sky, &view);
+                let reference = integrand.gauss(160, 64, &mut Vec::new()).0;
+                let from_0 = specular_skylight_from(eps, sigma, &sky, &view, tol, 0).unwrap();
+                for start in 0..=6 {
+                    let r = specular_skylight_from(eps, sigma, &sky, &view, tol, start).unwrap();
+                    let case = format!("sigma {sigma} view {view:?} start {start}");
+                    assert_honest(&r, &reference, 1e-9 * s0, &case);
+                    assert!(r.level >= from_0.level, "{case}: {r:?} vs {from_0:?}");
+                }
+                let hinted =
+                    specular_skylight_from(eps, sigma, &sky, &view, tol, hint - 2).unwrap();
+                assert!(
+                    hinted.evaluations < from_0.evaluations,
+                    "sigma {sigma}: {} vs {}",
+                    hinted.evaluations,
+                    from_0.evaluations
+                );
+            }
         }
     }
 
