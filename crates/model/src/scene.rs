@@ -24,11 +24,16 @@
 //!   1-degree field of view: `Sigma_g` skipped); when the cheap terms (direct, path) alone vary
 //!   by `tol / 4` it does not integrate the skylight.
 //! * **Skylight over the field**: a tensor polynomial through Chebyshev-Lobatto rays (3 x 3, then
-//!   5 points in one direction, the other, both; the probe's rays reused), accepted once it
-//!   predicts the four order-2 Gauss-Legendre rays to `tol / 8`, replaces the hemisphere
-//!   integral at every field ray; its miss and its rays' quadrature errors are reported
-//!   (`Prepared::lobatto_sky`). If it never does, every field ray integrates its own skylight
-//!   as before.
+//!   5 points in one direction, the other, both; the probe's rays reused) replaces the
+//!   hemisphere integral at every field ray once the four order-2 Gauss-Legendre rays show
+//!   that the field mean and spread it gives are within `tol / 8` (to leading order, with a
+//!   margin of 1.7-3.9; `fit_moment_errors`) and that it predicts them within `tol / 2`;
+//!   the mean's error and its rays' quadrature errors are reported (`Prepared::lobatto_sky`).
+//!   If it never does, every field ray integrates its own skylight as before.
+//! * **Parallel**: the materials, and each material's independent ray integrals, run on
+//!   rayon's pool (`RAYON_NUM_THREADS`, by default one thread per core); every sum runs in a
+//!   fixed order, so the results do not depend on the thread count. A ray's product rule
+//!   starts two levels below the lowest its neighbours at the same tolerance needed.
 //!
 //! # Fidelity
 //!
@@ -372,6 +377,55 @@ impl SkyFit {
             }
         }
         out
+    }
+}
+
+/// The leading-order errors of an interpolant's field moments (absolute).
+struct MomentErrors {
+    /// Of the field mean, `|E[delta]|`, `delta` the interpolant's error.
+    mean: f64,
+    /// Of the field spread `sqrt(|Cov|_F)` (what [`Prepared::evaluate`]'s field orders test).
+    spread: f64,
+}
+
+/// Estimates the errors of the field moments of `fit` from its residuals `r_i` at the 2 x 2
+/// Gauss-Legendre rays `checks` (their skylight integrated, `total` their whole radiance),
+/// less `noise`, the quadrature error in each residual.
+///
+/// The interpolant's error `delta` is 0 at its nodes, and the 2 x 2 rule over the checks
+/// estimates its field mean. To leading order, in a direction with 3 nodes,
+/// `delta = c x (x^2 - 1) + e x^2 (x^2 - 1)`: its mean over `[-1, 1]` is `-2e/15`, the rule's
+/// `-2e/9`; with 5 nodes, `e x^2 (x^2 - 1) (x^2 - 1/2)` has mean `e/105` and the rule `e/27`.
+/// So the rule over-states the mean error by 1.67 and 3.9 times. The covariance changes by
+/// `E[delta d^T] + E[d delta^T]` (`d` the radiance's deviation from its mean;
+/// `E[delta delta^T]` is of second order), and the rule over the checks, `mean_i r_i d_i^T`,
+/// over-states that by the same factors for the terms odd in a direction against a linear `d`
+/// (`c x (x^2 - 1) x` has mean `-2c/15`, the rule `-2c/9`); the spread moves by at most
+/// `|dCov|_F / (2 spread)`, and never by more than `sqrt(|dCov|_F)`.
+fn fit_moment_errors(fit: &SkyFit, checks: &[((f64, f64), Point)], noise: f64) -> MomentErrors {
+    let n = checks.len().max(1) as f64;
+    let mean_total = checks.iter().map(|c| c.1.total).sum::<Vector3<f64>>() / n;
+    let mut mean = Vector3::zeros();
+    let mut cross = Matrix3::zeros();
+    let mut cov = Matrix3::zeros();
+    let mut d_mean = 0.0;
+    for ((u, v), p) in checks {
+        let r = fit.at(*u, *v) - p.sky;
+        let d = p.total - mean_total;
+        mean += r / n;
+        cross += r * d.transpose() / n;
+        cov += d * d.transpose() / n;
+        d_mean += d.norm() / n;
+    }
+    let d_cov = ((cross + cross.transpose()).norm() - 2.0 * noise * d_mean).max(0.0);
+    let spread = cov.norm().sqrt();
+    MomentErrors {
+        mean: (mean.norm() - noise).max(0.0),
+        spread: if spread > 0.0 {
+            (d_cov / (2.0 * spread)).min(d_cov.sqrt())
+        } else {
+            d_cov.sqrt()
+        },
     }
 }
 
@@ -809,18 +863,20 @@ impl Prepared {
     /// The reflected skylight over the field as a tensor polynomial through Chebyshev-Lobatto
     /// rays, 3 x 3 (`{-1, 0, 1}^2`: the centre and corners may come from `probed`; the others
     /// are integrated with `inc`), checked at the four rays `(+-1/sqrt 3, +-1/sqrt 3)`; when it
-    /// misses them by `target` or more, the same with 5 points (`{-1, -1/sqrt 2, 0, 1/sqrt 2,
-    /// 1}`) in `u`, then in `v`, then in both, each level reusing the rays before.
+    /// fails the check, the same with 5 points (`{-1, -1/sqrt 2, 0, 1/sqrt 2, 1}`) in `u`, then
+    /// in `v`, then in both, each level reusing the rays before.
     ///
-    /// The check rays are where a 3-point interpolant's leading error term,
-    /// `f''' / 6 x (x^2 - 1)` in each direction, is largest, and the four signs combine the two
-    /// directions' terms in every way, so the largest miss there is the interpolant's largest
-    /// error to leading order. For 5 points, `x (x^2 - 1) (x^2 - 1/2)` is 1.81 times larger at
-    /// its extremum (`x = 0.36`) than at `1/sqrt 3`, so a miss of a level with 5 points in a
-    /// direction is doubled. As for the field orders' fit in [`Prepared::evaluate`], the misses
-    /// are net of the quadrature errors of the rays involved; those (the fitted rays' and the
-    /// check rays') are reported as the fit's `error`, so that the two together are at least
-    /// the raw miss. Returns the interpolant and its interpolation error (absolute), or `None`.
+    /// The interpolant serves the field's mean and covariance, so it is checked on their
+    /// errors ([`fit_moment_errors`]): both below `target`. It must also predict the check rays
+    /// pointwise to `4 target`. The check rays are where a 3-point interpolant's leading error
+    /// term, `f''' / 6 x (x^2 - 1)` in each direction, is largest, and the four signs combine
+    /// the two directions' terms in every way, so the largest miss there is the interpolant's
+    /// largest error to leading order. For 5 points, `x (x^2 - 1) (x^2 - 1/2)` is 1.81 times
+    /// larger at its extremum (`x = 0.36`) than at `1/sqrt 3`, so a pointwise miss of a level
+    /// with 5 points in a direction is doubled. The misses are net of the quadrature errors of
+    /// the rays involved; those (the fitted rays' and the check rays') are reported as the fit's
+    /// `error`. Returns the interpolant and the estimated error of the field mean it gives
+    /// (absolute), or `None`.
     fn lobatto_sky(
         &self,
         surface: &Surface,
@@ -900,12 +956,15 @@ impl Prepared {
                 values,
                 error,
             };
+            let check_error = checks.iter().fold(0.0f64, |m, c| m.max(c.1.sky_error));
+            let noise = fit.error + check_error;
             let mut miss = 0.0f64;
             for ((u, v), p) in &checks {
                 let d = (fit.at(*u, *v) - p.sky).norm() - p.sky_error - fit.error;
                 miss = miss.max(d);
             }
-            let interpolation_error = factor * miss.max(0.0);
+            let pointwise = factor * miss.max(0.0);
+            let moments = fit_moment_errors(&fit, &checks, noise);
             if k == 0 {
                 let (mut odd_u, mut odd_v) = (Vector3::zeros(), Vector3::zeros());
                 for ((u, v), p) in &checks {
@@ -917,15 +976,13 @@ impl Prepared {
                     levels.swap(1, 2);
                 }
             }
-            if interpolation_error < target {
+            if moments.mean.max(moments.spread) < target && pointwise < 4.0 * target {
                 let fit = SkyFit {
-                    error: fit
-                        .error
-                        .max(checks.iter().fold(0.0f64, |m, c| m.max(c.1.sky_error))),
+                    error: fit.error.max(check_error),
                     ..fit
                 };
                 return Ok(LobattoSky {
-                    fit: Some((fit, interpolation_error)),
+                    fit: Some((fit, moments.mean)),
                     evaluations,
                     level,
                 });
@@ -1751,25 +1808,36 @@ mod tests {
         );
     }
 
-    /// The sky's field interpolant through Chebyshev-Lobatto rays, in the rooftop's geometry
-    /// (60 deg off nadir, looking away from the sun, an 8-degree field), predicts the skylight
-    /// of rays it was not built from, each integrated to 1e-9 of S0, within its reported
-    /// interpolation error plus the quadrature errors involved, and within tol/4 of S0.
+    /// The sky's field interpolant through Chebyshev-Lobatto rays, for every material of the
+    /// rooftop example (60 deg off nadir, an 8 x 6 deg field; the panel's is accepted at 5 x 3
+    /// on its moments while its pointwise miss is twice `target`), gives the field's mean
+    /// within its reported error, and its spread `sqrt(|Cov|_F)` within `target` (tol/8 of
+    /// S0), against 8 x 8 Gauss-Legendre rays each integrated to 1e-9 of S0 (exact for the
+    /// interpolant, and far past the 5-point interpolant's error for the sky); each plus the
+    /// quadrature errors involved. Pointwise, it predicts every one of those rays within
+    /// tol/2 of S0, its check's bound. (Measured: the panel's spread is off by 1.6e-6 against
+    /// a target of 8.9e-6; its 3 x 3 interpolant, had it been accepted, by 1.7e-4.)
     #[test]
-    fn lobatto_sky_predicts_other_rays_within_its_error() {
+    fn lobatto_sky_moments_are_within_their_error() {
         let tol = 1e-4;
-        let s = spec(30.0, 60.0, 300.0, 8.0);
-        let p = Prepared::new(&s, tol).unwrap();
-        for m in [glass(0.1), asphalt()] {
+        let scene =
+            crate::scene_file::Scene::from_toml_str(include_str!("../../../examples/rooftop.toml"))
+                .unwrap();
+        let p = Prepared::new(&scene.spec, tol).unwrap();
+        let gl = gauss_legendre_table(8);
+        for m in &scene.materials {
             let f00 = m
                 .surface
-                .diffuse(s.sun_zenith_deg.to_radians(), Tolerance::absolute(1e-10))
+                .diffuse(
+                    scene.spec.sun_zenith_deg.to_radians(),
+                    Tolerance::absolute(1e-10),
+                )
                 .unwrap()
                 .f00;
             let centre = p.field.ray(0.0, 0.0, (0, 0)).unwrap();
             let inc = Include {
                 skylight: true,
-                path: false,
+                path: true,
                 tol_abs: 0.0,
                 coarse_table: false,
                 hint: None,
@@ -1786,47 +1854,72 @@ mod tests {
                 )
                 .unwrap()
                 .total[0];
+            let target = tol / 8.0 * s0;
             let per_ray = Include {
-                tol_abs: tol / 8.0 * s0,
+                tol_abs: target,
                 ..inc
             };
             let l = p
-                .lobatto_sky(&m.surface, f00, per_ray, &[], tol / 8.0 * s0)
+                .lobatto_sky(&m.surface, f00, per_ray, &[], target)
                 .unwrap();
-            let (fit, interpolation_error) = l.fit.expect("the interpolant predicts its checks");
-            for (u, v) in [
-                (0.3, -0.8),
-                (-0.9, 0.45),
-                (0.7, 0.7),
-                (-0.2, 0.1),
-                (1.0, 0.5),
-            ] {
-                let t = p.field.ray(u, v, (0, 0)).unwrap();
-                let exact = p
-                    .point(
-                        &m.surface,
-                        f00,
-                        &t,
-                        Include {
-                            tol_abs: 1e-9 * s0,
-                            ..inc
-                        },
-                    )
-                    .unwrap();
-                let d = (fit.at(u, v) - exact.sky).norm();
-                assert!(
-                    d <= interpolation_error + fit.error + exact.sky_error,
-                    "{} at ({u}, {v}): {d:e} vs {interpolation_error:e} + {:e}",
-                    m.name,
-                    fit.error
-                );
-                assert!(
-                    d <= tol / 4.0 * s0,
-                    "{} at ({u}, {v}): {:e} of S0",
-                    m.name,
-                    d / s0
-                );
-            }
+            let (fit, mean_error) = l.fit.expect("the interpolant passes its check");
+            let tiles: Vec<Tile> = gl
+                .iter()
+                .flat_map(|&(u, _)| gl.iter().map(move |&(v, _)| (u, v)))
+                .map(|(u, v)| p.field.ray(u, v, (0, 0)).unwrap())
+                .collect();
+            let exact = p
+                .points(
+                    &m.surface,
+                    f00,
+                    &tiles,
+                    Include {
+                        tol_abs: 1e-9 * s0,
+                        ..inc
+                    },
+                )
+                .unwrap();
+            let moments = |values: &[Vector3<f64>]| {
+                let mut mean = Vector3::zeros();
+                let mut second = Matrix3::zeros();
+                let nodes = gl.iter().flat_map(|&a| gl.iter().map(move |&b| (a, b)));
+                for (((_, wu), (_, wv)), x) in nodes.zip(values) {
+                    mean += x * (wu * wv / 4.0);
+                    second += x * x.transpose() * (wu * wv / 4.0);
+                }
+                (mean, (second - mean * mean.transpose()).norm().sqrt())
+            };
+            let nodes = gl.iter().flat_map(|&a| gl.iter().map(move |&b| (a, b)));
+            let mut worst = 0.0f64;
+            let mut quadrature = fit.error;
+            let fitted: Vec<Vector3<f64>> = nodes
+                .zip(&exact)
+                .map(|(((u, _), (v, _)), e)| {
+                    let sky = fit.at(u, v);
+                    worst = worst.max((sky - e.sky).norm());
+                    quadrature = quadrature.max(e.sky_error);
+                    e.total - e.sky + sky
+                })
+                .collect();
+            let totals: Vec<Vector3<f64>> = exact.iter().map(|e| e.total).collect();
+            let (mean_fit, spread_fit) = moments(&fitted);
+            let (mean_true, spread_true) = moments(&totals);
+            let name = &m.name;
+            let d_mean = (mean_fit - mean_true).norm();
+            let d_spread = (spread_fit - spread_true).abs();
+            assert!(
+                d_mean <= mean_error + quadrature,
+                "{name}: mean off by {d_mean:e}, reported {mean_error:e} + {quadrature:e}"
+            );
+            assert!(
+                d_spread <= target + quadrature,
+                "{name}: spread off by {d_spread:e}, target {target:e} + {quadrature:e}"
+            );
+            assert!(
+                worst <= tol / 2.0 * s0 + quadrature,
+                "{name}: pointwise {:e} of S0",
+                worst / s0
+            );
         }
     }
 
