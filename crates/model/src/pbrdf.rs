@@ -322,6 +322,45 @@ impl FacetGeometry {
         FacetGeometry::from_frames(&oi, &or, &s_i, &s_r)
     }
 
+    /// [`FacetGeometry::from_world`] for an integrand that already has the unit half vector
+    /// `h` and `cos_beta = omega_r . h`: the frames' horizontal vectors are left unnormalised
+    /// (`s_i ∝ (-omega_i.y, omega_i.x, 0)`, `s_r ∝ (omega_r.y, -omega_r.x, 0)`, the facet's
+    /// `∝ omega_r × omega_i`), since [`cos_sin_2eta`] is invariant to their scale. That saves
+    /// `from_world`'s three square roots and their divisions; the result equals it up to
+    /// rounding (for `z >= COS_FLOOR`; tested).
+    pub(crate) fn from_half_vector(
+        omega_i: &Vector3<f64>,
+        omega_r: &Vector3<f64>,
+        h: &Vector3<f64>,
+        cos_beta: f64,
+    ) -> Self {
+        let s_i = if omega_i.x != 0.0 || omega_i.y != 0.0 {
+            Vector3::new(-omega_i.y, omega_i.x, 0.0)
+        } else {
+            Vector3::new(0.0, 1.0, 0.0)
+        };
+        let s_r = if omega_r.x != 0.0 || omega_r.y != 0.0 {
+            Vector3::new(omega_r.y, -omega_r.x, 0.0)
+        } else {
+            // `from_world` at the zenith: from the incident frame's azimuth.
+            -s_i
+        };
+        let cross = omega_r.cross(omega_i);
+        // Tiny but non-zero, its squares would underflow in `cos_sin_2eta`.
+        let s_f = if cross.norm_squared() > 1e-200 {
+            cross
+        } else {
+            s_i
+        };
+        FacetGeometry {
+            cos_beta: cos_beta.min(1.0),
+            cos_alpha: h.z,
+            tan2_alpha: (h.x * h.x + h.y * h.y) / (h.z * h.z),
+            rot_i: cos_sin_2eta(&s_i, &s_f, &-omega_i),
+            rot_r: cos_sin_2eta(&s_r, &s_f, omega_r),
+        }
+    }
+
     /// `R(-eta_r) M(beta) R(eta_i)` (Eq. 3.7) for the facet Mueller matrix of Eq. 3.5 with
     /// permittivity `eps`, expressed in the incident and reflected surface frames.
     pub fn rotated_fresnel(&self, eps: Complex64) -> Matrix3<f64> {

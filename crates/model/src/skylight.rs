@@ -235,9 +235,9 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
         let g_cb_over_cv = (cos_beta / cv)
             .min(2.0 * cos_alpha)
             .min(2.0 * cos_alpha * cos_d / cv);
-        // omega_d is unit and above the horizon, omega_view checked: the world-frame facet
-        // geometry, without the detour through the incident plane's frame.
-        let m = FacetGeometry::from_world(&omega_d.normalize(), &self.omega_view)
+        // omega_d is unit (to rounding) and above the horizon, omega_view checked, h and
+        // cos beta known: the world-frame facet geometry without normalising its frames.
+        let m = FacetGeometry::from_half_vector(&omega_d, &self.omega_view, &h, cos_beta)
             .rotated_fresnel(self.eps);
         let s = self.sky.stokes_from(&omega_d);
         let w = 2.0 * t * (-t * t).exp() * g_cb_over_cv / (2.0 * PI);
@@ -872,8 +872,9 @@ mod tests {
         );
     }
 
-    /// The world-frame facet geometry used by the slope-space integrand equals the one built
-    /// through [`Geometry::from_directions`] (1e-12: rounding only) over a grid of directions
+    /// The world-frame facet geometry, and its form from the half vector that the slope-space
+    /// integrand uses, equal the one built through [`Geometry::from_directions`] (1e-12:
+    /// rounding only) over a grid of directions
     /// that includes the zenith (both frames' defaults), the horizon's COS_FLOOR clamp and the
     /// specular direction. Exact retro-reflection (`omega_i = omega_r`) is left out: there the
     /// facet frame is `0/0` and the plane-frame path picks it from rounding noise in
@@ -888,22 +889,28 @@ mod tests {
         }
         for oi in &dirs {
             for or in dirs.iter().filter(|d| *d != oi) {
-                let a = FacetGeometry::from_world(oi, or);
                 let b = FacetGeometry::new(&Geometry::from_directions(oi, or).unwrap());
-                let pairs = [
-                    (a.cos_beta, b.cos_beta),
-                    (a.cos_alpha, b.cos_alpha),
-                    (a.tan2_alpha, b.tan2_alpha),
-                    (a.rot_i.0, b.rot_i.0),
-                    (a.rot_i.1, b.rot_i.1),
-                    (a.rot_r.0, b.rot_r.0),
-                    (a.rot_r.1, b.rot_r.1),
-                ];
-                for (x, y) in pairs {
-                    assert!(
-                        (x - y).abs() <= 1e-12 * (1.0 + y.abs()),
-                        "{oi:?} {or:?}: {x} vs {y}"
-                    );
+                let sum = oi + or;
+                let h = sum / sum.norm();
+                for a in [
+                    FacetGeometry::from_world(oi, or),
+                    FacetGeometry::from_half_vector(oi, or, &h, or.dot(&h)),
+                ] {
+                    let pairs = [
+                        (a.cos_beta, b.cos_beta),
+                        (a.cos_alpha, b.cos_alpha),
+                        (a.tan2_alpha, b.tan2_alpha),
+                        (a.rot_i.0, b.rot_i.0),
+                        (a.rot_i.1, b.rot_i.1),
+                        (a.rot_r.0, b.rot_r.0),
+                        (a.rot_r.1, b.rot_r.1),
+                    ];
+                    for (x, y) in pairs {
+                        assert!(
+                            (x - y).abs() <= 1e-12 * (1.0 + y.abs()),
+                            "{oi:?} {or:?}: {x} vs {y}"
+                        );
+                    }
                 }
             }
         }
