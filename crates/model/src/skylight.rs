@@ -15,10 +15,11 @@
 //! line, a circle and a cubic that `rho = tan x` turns into `tan 3x = cos theta_v / k`), and
 //! the azimuths where `k = cos psi sin theta_v` is `0` or `-cos theta_v` (where the switches
 //! enter a line or meet). A product Gauss-Legendre rule on the smooth pieces converges
-//! geometrically; the sky's peak (the sun's aureole) is one more split in both directions. On
-//! the rooftop scene at 1e-4 the scene takes 0.45 million evaluations where it took 0.72 million
-//! with the adaptive rule alone (0.83 million at 1e-5 against 2.4), and the adaptive rule
-//! remains the fallback (docs/BENCHMARKS.md, "Scene evaluation").
+//! geometrically; the sky's peak (the sun's aureole) is one more split in both directions. It
+//! took the rooftop scene at 1e-4 from 0.72 million evaluations with the adaptive rule alone to
+//! 0.45 million (0.83 million at 1e-5 against 2.4), and the adaptive rule remains the fallback
+//! (docs/BENCHMARKS.md, "Scene evaluation"). The rule's levels may start above the first
+//! ([`reflected_skylight`]'s `start_level`), for rays next to one whose level is known.
 //!
 //! The Lambertian part is `f00_d` times the sky irradiance, and the vegetation lobe, which is
 //! broad, is integrated over the hemisphere directly, by the same kind of product rule. Every
