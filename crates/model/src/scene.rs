@@ -335,9 +335,10 @@ struct Include {
     tol_abs: f64,
     /// Tabulated sky only: light the point with the half-resolution table.
     coarse_table: bool,
-    /// A neighbouring ray's accepted product-rule level and the absolute tolerance it was
-    /// accepted at: where this ray's skylight starts ([`Prepared::point`]).
-    hint: Option<(usize, f64)>,
+    /// The lowest product-rule level that neighbouring rays, integrated to the same
+    /// tolerance, were accepted at: this ray's skylight starts two levels below it (`ladder`:
+    /// the error test is unchanged).
+    hint: Option<usize>,
 }
 
 /// One field point's radiance in the camera frame.
@@ -795,16 +796,7 @@ impl Prepared {
                     e_sky *= t.e_coarse / t.e_full.max(1e-300);
                 }
             }
-            // Two levels below the neighbour's (`ladder`: the error test is unchanged), and
-            // one more for each factor 4 by which this tolerance is looser than its: a level
-            // too high costs about twice the levels below it, one too low a small part.
-            let start_level = inc.hint.map_or(0, |(level, tol_abs)| {
-                let looser = (inc.tol_abs / tol_abs.max(1e-300))
-                    .max(1.0)
-                    .log(4.0)
-                    .floor();
-                level.saturating_sub(2 + looser.min(8.0) as usize)
-            });
+            let start_level = inc.hint.map_or(0, |level| level.saturating_sub(2));
             let r = reflected_skylight(
                 surface,
                 f00_diffuse,
@@ -941,10 +933,7 @@ impl Prepared {
         // The later levels' rays start two product-rule levels below the lowest level of these
         // neighbours, integrated to the same tolerance (`reflected_skylight`).
         let level = points.iter().filter_map(|p| p.level).min();
-        let later = Include {
-            hint: level.map(|l| (l, inc.tol_abs)),
-            ..inc
-        };
+        let later = Include { hint: level, ..inc };
         let checks: Vec<((f64, f64), Point)> = check_coords.into_iter().zip(points).collect();
         // 5 x 3 and 3 x 5 are subsets of 5 x 5: trying them first costs no ray the 5 x 5
         // would not need. The direction whose part of the 3 x 3's misses (odd in it) is the
@@ -1279,7 +1268,7 @@ impl Prepared {
                 }
                 let ray_inc = Include {
                     skylight: integrate_sky,
-                    hint: ray_level.map(|l| (l, per_ray.tol_abs)),
+                    hint: ray_level,
                     ..per_ray
                 };
                 let points = self.points(surface, f00, &tiles, ray_inc)?;
