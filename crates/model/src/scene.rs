@@ -371,7 +371,8 @@ struct PointBase {
 }
 
 /// The largest angle of a ray from the field's centre for [`Prepared::points_paired`]: the
-/// validation (`field_pair_study`) spanned +-6 deg in view zenith and azimuth.
+/// validation (`field_pair_study`) spanned +-6 deg in view zenith and azimuth, rays up to 8.2
+/// deg from the centre (6 deg for views near the normal, where azimuth moves a ray less).
 const PAIR_FIELD_DEG: f64 = 8.0;
 
 /// The reflected skylight over the field as a tensor Lagrange polynomial through Gauss-Legendre
