@@ -67,8 +67,8 @@ use crate::quadrature::{gauss_legendre_table, integrate, Tolerance};
 use crate::sky::{downward_path, e_vector_in_frame, BerrySky, RayleighSky, AIR_DEPOLARIZATION};
 use crate::sky_table::SkyTable;
 use crate::skylight::{
-    reflected_skylight, reflected_skylight_after, sky_irradiance, specular_level_pair,
-    specular_next_pair, LevelPair, SkyRadiance, StokesIntegral, DIRECT_PRODUCT_MIN_COS_VIEW,
+    reflected_skylight, reflected_skylight_at, sky_irradiance, specular_level_pair,
+    specular_next_pair, LevelPair, SkyRadiance, Start, StokesIntegral, DIRECT_PRODUCT_MIN_COS_VIEW,
     PAIR_MIN_HINT,
 };
 use crate::tiles::{Field, Pointing, Tile};
@@ -813,7 +813,7 @@ impl Prepared {
     /// the batch meets the tolerance at every ray, each takes its upper level with that change
     /// as its error (and no level of its own, so that it hints no later batch). When it does
     /// not, the batch tries once more one level up (`specular_next_pair`); then each ray
-    /// resumes its own ladder from its last pair (`reflected_skylight_after`), nothing
+    /// resumes its own ladder from its last pair (`reflected_skylight_at`), nothing
     /// recomputed.
     #[allow(clippy::too_many_arguments)]
     fn points_paired(
@@ -874,14 +874,14 @@ impl Prepared {
                     Some(error) => pair.accept(error, f00_diffuse, base.e_sky),
                     None => {
                         let sky = self.band_sky(&base.up, inc.coarse_table);
-                        reflected_skylight_after(
+                        reflected_skylight_at(
                             surface,
                             f00_diffuse,
                             base.e_sky,
                             &sky,
                             &tile.omega_view,
                             tol,
-                            &pair,
+                            Start::After(&pair),
                         )?
                     }
                 };

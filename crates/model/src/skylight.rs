@@ -460,7 +460,7 @@ pub(crate) enum Start<'p> {
 /// One ray's specular skylight at two adjacent product-rule levels, not yet accepted: a
 /// batch of neighbouring rays is accepted together on the largest of their changes
 /// ([`specular_level_pair`]), or each ray resumes its own ladder from here
-/// ([`reflected_skylight_after`]).
+/// ([`reflected_skylight_at`]).
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct LevelPair {
     /// The lower level (an index of `GAUSS_LEVELS`); the upper is the next.
@@ -565,29 +565,6 @@ pub(crate) fn specular_next_pair<S: SkyRadiance + ?Sized>(
         floor: pair.floor,
         evaluations: pair.evaluations + e,
     }))
-}
-
-/// [`reflected_skylight`] for a ray whose batch was not accepted on its pairs: its own
-/// ladder resumed after `pair` (computed by [`specular_level_pair`] for the same surface, sky
-/// and view), with the usual error test.
-pub(crate) fn reflected_skylight_after<S: SkyRadiance + ?Sized>(
-    surface: &Surface,
-    f00_diffuse: f64,
-    e_sky: f64,
-    sky: &S,
-    omega_view: &Vector3<f64>,
-    tol: Tolerance,
-    pair: &LevelPair,
-) -> Result<StokesIntegral, ModelError> {
-    reflected_skylight_at(
-        surface,
-        f00_diffuse,
-        e_sky,
-        sky,
-        omega_view,
-        tol,
-        Start::After(pair),
-    )
 }
 
 /// Runs a product rule `rule(n, q)` (value, evaluations) at each of [`GAUSS_LEVELS`] in turn,
@@ -792,8 +769,10 @@ pub fn reflected_skylight<S: SkyRadiance + ?Sized>(
     )
 }
 
-/// [`reflected_skylight`] from any [`Start`].
-fn reflected_skylight_at<S: SkyRadiance + ?Sized>(
+/// [`reflected_skylight`] from any [`Start`]: `Start::After(pair)` resumes the ladder of a ray
+/// whose batch was not accepted on its pairs (`pair` from [`specular_level_pair`] or
+/// [`specular_next_pair`] for the same surface, sky and view), with the usual error test.
+pub(crate) fn reflected_skylight_at<S: SkyRadiance + ?Sized>(
     surface: &Surface,
     f00_diffuse: f64,
     e_sky: f64,
@@ -1261,7 +1240,8 @@ mod tests {
                             pair.accept(error, 0.0, 0.0)
                         } else {
                             let s = Surface::Microfacet { lobe, dhr: 0.5 };
-                            reflected_skylight_after(&s, 0.0, 0.0, &sky, v, tol, pair).unwrap()
+                            reflected_skylight_at(&s, 0.0, 0.0, &sky, v, tol, Start::After(pair))
+                                .unwrap()
                         };
                         pair_cost += r.evaluations;
                         assert_honest(&r, &truth, 1e-13 * truth[0], &case);
@@ -1459,206 +1439,185 @@ mod tests {
         let e = sky_irradiance(&UniformSky { radiance: 3.0 }, Tolerance::absolute(1e-12));
         assert!((e.stokes.0[0] - 3.0 * PI).abs() < 1e-11);
     }
-}
-/// Slow validation studies, run on demand:
-/// `cargo test --release -p polar-model --lib studies -- --ignored --nocapture`.
-#[cfg(test)]
-mod studies {
-    use super::*;
-    use crate::fresnel::RefractiveIndex;
-    use crate::sky::{direction_from_deg, RayleighSky};
 
-    /// A Rayleigh sky plus the aerosol aureole (Henyey-Greenstein, g = 0.7, in S0).
-    struct AureoleSky(SunlitRayleigh);
+    /// Slow validation studies, run on demand:
+    /// `cargo test --release -p polar-model --lib studies -- --ignored --nocapture`.
+    mod studies {
+        use super::*;
 
-    impl SkyRadiance for AureoleSky {
-        fn stokes_from(&self, towards: &Vector3<f64>) -> Stokes {
-            let mut s = self.0.stokes_from(towards);
-            let g: f64 = 0.7;
-            let c = self.0.sun.dot(towards);
-            s.0[0] += 0.2 * (1.0 - g * g) / (1.0 + g * g - 2.0 * g * c).powf(1.5);
-            s
+        /// One ray: the product rule far past convergence, and its value and cost at each level.
+        struct Ray {
+            truth: [f64; 3],
+            levels: Vec<([f64; 3], usize)>,
         }
 
-        fn peak(&self) -> Option<Vector3<f64>> {
-            Some(self.0.sun)
-        }
-    }
-
-    /// One ray: the product rule far past convergence, and its value and cost at each level.
-    struct Ray {
-        truth: [f64; 3],
-        levels: Vec<([f64; 3], usize)>,
-    }
-
-    impl Ray {
-        fn change(&self, level: usize) -> f64 {
-            let (a, b) = (&self.levels[level].0, &self.levels[level - 1].0);
-            (0..3).fold(0.0f64, |m, i| m.max((a[i] - b[i]).abs()))
-        }
-
-        fn error(&self, level: usize) -> f64 {
-            let a = &self.levels[level].0;
-            (0..3).fold(0.0f64, |m, i| m.max((a[i] - self.truth[i]).abs()))
-        }
-
-        /// The level a ladder from `start` accepts at `tol`, and its cost.
-        fn ladder(&self, start: usize, tol: f64) -> (Option<usize>, usize) {
-            let mut cost = self.levels[start].1;
-            for l in start + 1..self.levels.len() {
-                cost += self.levels[l].1;
-                if l >= start + 2 && self.change(l).max(self.change(l - 1)) <= tol {
-                    return (Some(l), cost);
-                }
+        impl Ray {
+            fn change(&self, level: usize) -> f64 {
+                let (a, b) = (&self.levels[level].0, &self.levels[level - 1].0);
+                (0..3).fold(0.0f64, |m, i| m.max((a[i] - b[i]).abs()))
             }
-            (None, cost)
-        }
-    }
 
-    /// The validation of [`specular_level_pair`] and [`specular_next_pair`]: fields of +-4 and
-    /// +-6 deg (in view zenith and azimuth) around views 8-68 deg from the normal; 5 suns with
-    /// an aureole; a dielectric (n 1.5) and a metal (copper); sigma 0.02-1; tolerances 1e-2 to
-    /// 1e-8 of the centre's S0. Two ways to hint a batch: the centre's ladder hints the other
-    /// 12 rays (the 3 x 3 Lobatto rays and the four checks), or the centre and corners hint the
-    /// edges and checks (their lowest level). A batch with `hint >= PAIR_MIN_HINT` is accepted
-    /// at its pairs, or its next pairs, when the largest change over it meets the tolerance;
-    /// every ray of an accepted batch must be within that change of the truth.
-    #[test]
-    #[ignore = "a study: about 10 minutes"]
-    fn field_pair_study() {
-        let suns = [
-            (33.6, 115.0),
-            (70.0, 300.0),
-            (10.0, 0.0),
-            (25.0, 130.0),
-            (85.0, 200.0),
-        ];
-        let eps = [
-            RefractiveIndex::new(1.5, 0.0).unwrap().permittivity(),
-            RefractiveIndex::new(1.02, 2.58).unwrap().permittivity(),
-        ];
-        let mut failures = 0;
-        for half in [4.0f64, 6.0] {
-            let g = half / 3f64.sqrt();
-            let corners = [(-half, -half), (-half, half), (half, -half), (half, half)];
-            let edges = [(-half, 0.0), (0.0, -half), (0.0, half), (half, 0.0)];
-            let checks = [(-g, -g), (-g, g), (g, -g), (g, g)];
-            let centre_only: Vec<(f64, f64)> = vec![(0.0, 0.0)];
-            let with_corners: Vec<(f64, f64)> =
-                std::iter::once((0.0, 0.0)).chain(corners).collect();
-            let rest: Vec<(f64, f64)> = corners
-                .iter()
-                .chain(&edges)
-                .chain(&checks)
-                .copied()
-                .collect();
-            let edges_checks: Vec<(f64, f64)> = edges.iter().chain(&checks).copied().collect();
-            for (scenario, hinting, batch) in [
-                ("the centre hints the rest", &centre_only, &rest),
-                (
-                    "centre and corners hint edges and checks",
-                    &with_corners,
-                    &edges_checks,
-                ),
-            ] {
-                let (mut batches, mut first, mut next, mut worst) = (0, 0, 0, 0.0f64);
-                let (mut cost_ladders, mut cost_pairs) = (0usize, 0usize);
-                for (sz, sa) in suns {
-                    let sky = AureoleSky(SunlitRayleigh {
-                        sky: RayleighSky::at_wavelength(550.0).unwrap(),
-                        sun: direction_from_deg(sz, sa),
-                    });
-                    for eps in eps {
-                        for sigma in [0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0] {
-                            for (tv, av) in [8.0, 25.0, 45.0, 60.0, 68.0]
-                                .iter()
-                                .flat_map(|&t| [(t, 30.0), (t, 200.0)])
-                            {
-                                let rays = |at: &[(f64, f64)]| -> Vec<Ray> {
-                                    at.iter()
-                                        .map(|&(du, dv)| {
-                                            let view = direction_from_deg(tv + du, av + dv);
-                                            let f = SlopeIntegrand::new(eps, sigma, &sky, &view);
-                                            let mut pieces = Vec::new();
-                                            Ray {
-                                                truth: f.gauss(160, 64, &mut pieces).0,
-                                                levels: GAUSS_LEVELS
-                                                    .iter()
-                                                    .map(|&(n, q)| f.gauss(n, q, &mut pieces))
-                                                    .collect(),
-                                            }
-                                        })
-                                        .collect()
-                                };
-                                let (hinting, batch) = (rays(hinting), rays(batch));
-                                for rel in [1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8] {
-                                    let tol = rel * hinting[0].truth[0];
-                                    let levels: Option<Vec<usize>> =
-                                        hinting.iter().map(|r| r.ladder(0, tol).0).collect();
-                                    let Some(hint) = levels.and_then(|l| l.into_iter().min())
-                                    else {
-                                        continue;
+            fn error(&self, level: usize) -> f64 {
+                let a = &self.levels[level].0;
+                (0..3).fold(0.0f64, |m, i| m.max((a[i] - self.truth[i]).abs()))
+            }
+
+            /// The level a ladder from `start` accepts at `tol`, and its cost.
+            fn ladder(&self, start: usize, tol: f64) -> (Option<usize>, usize) {
+                let mut cost = self.levels[start].1;
+                for l in start + 1..self.levels.len() {
+                    cost += self.levels[l].1;
+                    if l >= start + 2 && self.change(l).max(self.change(l - 1)) <= tol {
+                        return (Some(l), cost);
+                    }
+                }
+                (None, cost)
+            }
+        }
+
+        /// The validation of [`specular_level_pair`] and [`specular_next_pair`]: fields of +-4 and
+        /// +-6 deg (in view zenith and azimuth) around views 8-68 deg from the normal; 5 suns with
+        /// an aureole; a dielectric (n 1.5) and a metal (copper); sigma 0.02-1; tolerances 1e-2 to
+        /// 1e-8 of the centre's S0. Two ways to hint a batch: the centre's ladder hints the other
+        /// 12 rays (the 3 x 3 Lobatto rays and the four checks), or the centre and corners hint the
+        /// edges and checks (their lowest level). A batch with `hint >= PAIR_MIN_HINT` is accepted
+        /// at its pairs, or its next pairs, when the largest change over it meets the tolerance;
+        /// every ray of an accepted batch must be within that change of the truth.
+        #[test]
+        #[ignore = "a study: about 10 minutes"]
+        fn field_pair_study() {
+            let suns = [
+                (33.6, 115.0),
+                (70.0, 300.0),
+                (10.0, 0.0),
+                (25.0, 130.0),
+                (85.0, 200.0),
+            ];
+            let eps = [
+                RefractiveIndex::new(1.5, 0.0).unwrap().permittivity(),
+                RefractiveIndex::new(1.02, 2.58).unwrap().permittivity(),
+            ];
+            let mut failures = 0;
+            for half in [4.0f64, 6.0] {
+                let g = half / 3f64.sqrt();
+                let corners = [(-half, -half), (-half, half), (half, -half), (half, half)];
+                let edges = [(-half, 0.0), (0.0, -half), (0.0, half), (half, 0.0)];
+                let checks = [(-g, -g), (-g, g), (g, -g), (g, g)];
+                let centre_only: Vec<(f64, f64)> = vec![(0.0, 0.0)];
+                let with_corners: Vec<(f64, f64)> =
+                    std::iter::once((0.0, 0.0)).chain(corners).collect();
+                let rest: Vec<(f64, f64)> = corners
+                    .iter()
+                    .chain(&edges)
+                    .chain(&checks)
+                    .copied()
+                    .collect();
+                let edges_checks: Vec<(f64, f64)> = edges.iter().chain(&checks).copied().collect();
+                for (scenario, hinting, batch) in [
+                    ("the centre hints the rest", &centre_only, &rest),
+                    (
+                        "centre and corners hint edges and checks",
+                        &with_corners,
+                        &edges_checks,
+                    ),
+                ] {
+                    let (mut batches, mut first, mut next, mut worst) = (0, 0, 0, 0.0f64);
+                    let (mut cost_ladders, mut cost_pairs) = (0usize, 0usize);
+                    for (sz, sa) in suns {
+                        let sky = aureole(sz, sa);
+                        for eps in eps {
+                            for sigma in [0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0] {
+                                for (tv, av) in [8.0, 25.0, 45.0, 60.0, 68.0]
+                                    .iter()
+                                    .flat_map(|&t| [(t, 30.0), (t, 200.0)])
+                                {
+                                    let rays = |at: &[(f64, f64)]| -> Vec<Ray> {
+                                        at.iter()
+                                            .map(|&(du, dv)| {
+                                                let view = direction_from_deg(tv + du, av + dv);
+                                                let f =
+                                                    SlopeIntegrand::new(eps, sigma, &sky, &view);
+                                                let mut pieces = Vec::new();
+                                                Ray {
+                                                    truth: f.gauss(160, 64, &mut pieces).0,
+                                                    levels: GAUSS_LEVELS
+                                                        .iter()
+                                                        .map(|&(n, q)| f.gauss(n, q, &mut pieces))
+                                                        .collect(),
+                                                }
+                                            })
+                                            .collect()
                                     };
-                                    if hint < PAIR_MIN_HINT {
-                                        continue;
-                                    }
-                                    batches += 1;
-                                    cost_ladders += batch
-                                        .iter()
-                                        .map(|r| r.ladder(hint - 2, tol).1)
-                                        .sum::<usize>();
-                                    let mut accepted = None;
-                                    for upper in [hint - 1, hint] {
-                                        if upper + 2 > GAUSS_LEVELS.len() {
-                                            break;
+                                    let (hinting, batch) = (rays(hinting), rays(batch));
+                                    for rel in [1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8] {
+                                        let tol = rel * hinting[0].truth[0];
+                                        let levels: Option<Vec<usize>> =
+                                            hinting.iter().map(|r| r.ladder(0, tol).0).collect();
+                                        let Some(hint) = levels.and_then(|l| l.into_iter().min())
+                                        else {
+                                            continue;
+                                        };
+                                        if hint < PAIR_MIN_HINT {
+                                            continue;
                                         }
-                                        let e = batch
-                                            .iter()
-                                            .fold(0.0f64, |m, r| m.max(r.change(upper)));
-                                        if e <= tol {
-                                            accepted = Some((upper, e));
-                                            break;
-                                        }
-                                    }
-                                    let Some((upper, e)) = accepted else {
-                                        // Each ray resumes its ladder: the hinted ladder's cost.
-                                        cost_pairs += batch
+                                        batches += 1;
+                                        cost_ladders += batch
                                             .iter()
                                             .map(|r| r.ladder(hint - 2, tol).1)
                                             .sum::<usize>();
-                                        continue;
-                                    };
-                                    if upper == hint - 1 {
-                                        first += 1;
-                                    } else {
-                                        next += 1;
-                                    }
-                                    for r in &batch {
-                                        cost_pairs += (hint - 2..=upper)
-                                            .map(|l| r.levels[l].1)
-                                            .sum::<usize>();
-                                        worst = worst.max(r.error(upper) / e);
-                                        if r.error(upper) > e + 1e-13 * r.truth[0] {
-                                            failures += 1;
-                                            println!(
-                                                "short: half {half} sun {sz}/{sa} sigma {sigma} \
-                                                 view {tv}/{av} rel {rel} hint {hint}: {:.2}x",
-                                                r.error(upper) / e
-                                            );
+                                        let mut accepted = None;
+                                        for upper in [hint - 1, hint] {
+                                            if upper + 2 > GAUSS_LEVELS.len() {
+                                                break;
+                                            }
+                                            let e = batch
+                                                .iter()
+                                                .fold(0.0f64, |m, r| m.max(r.change(upper)));
+                                            if e <= tol {
+                                                accepted = Some((upper, e));
+                                                break;
+                                            }
+                                        }
+                                        let Some((upper, e)) = accepted else {
+                                            // Each ray resumes its ladder: the hinted ladder's cost.
+                                            cost_pairs += batch
+                                                .iter()
+                                                .map(|r| r.ladder(hint - 2, tol).1)
+                                                .sum::<usize>();
+                                            continue;
+                                        };
+                                        if upper == hint - 1 {
+                                            first += 1;
+                                        } else {
+                                            next += 1;
+                                        }
+                                        for r in &batch {
+                                            cost_pairs += (hint - 2..=upper)
+                                                .map(|l| r.levels[l].1)
+                                                .sum::<usize>();
+                                            worst = worst.max(r.error(upper) / e);
+                                            if r.error(upper) > e + 1e-13 * r.truth[0] {
+                                                failures += 1;
+                                                println!(
+                                                    "short: half {half} sun {sz}/{sa} sigma {sigma} \
+                                                     view {tv}/{av} rel {rel} hint {hint}: {:.2}x",
+                                                    r.error(upper) / e
+                                                );
+                                            }
                                         }
                                     }
                                 }
                             }
                         }
                     }
+                    println!(
+                        "+-{half} deg, {scenario}: {batches} batches, {first} accepted at their \
+                         pairs and {next} at the next, worst error {worst:.3} of the batch's change; \
+                         {cost_pairs} evaluations against {cost_ladders} for hinted ladders"
+                    );
                 }
-                println!(
-                    "+-{half} deg, {scenario}: {batches} batches, {first} accepted at their \
-                     pairs and {next} at the next, worst error {worst:.3} of the batch's change; \
-                     {cost_pairs} evaluations against {cost_ladders} for hinted ladders"
-                );
             }
+            assert_eq!(failures, 0);
         }
-        assert_eq!(failures, 0);
     }
 }
