@@ -825,25 +825,24 @@ impl Prepared {
         inc: Include,
         hint: usize,
     ) -> Result<Vec<Point>, ModelError> {
-        let collect = |r: Vec<Result<(PointBase, LevelPair), ModelError>>| {
-            r.into_iter().collect::<Result<Vec<_>, _>>()
-        };
-        let mut parts = collect(
-            tiles
-                .par_iter()
-                .map(|t| {
-                    let base = self.point_base(surface, f00_diffuse, t, inc)?;
-                    let sky = self.band_sky(&base.up, inc.coarse_table);
-                    let pair = specular_level_pair(lobe, &sky, &t.omega_view, hint)?;
-                    Ok((base, pair))
-                })
-                .collect(),
-        )?;
+        // Each ray's terms, band sky and first pair, in parallel (the first error in the order
+        // of `tiles`, as in `points`).
+        let parts: Vec<Result<(PointBase, BandSky<'_>, LevelPair), ModelError>> = tiles
+            .par_iter()
+            .map(|t| {
+                let base = self.point_base(surface, f00_diffuse, t, inc)?;
+                let sky = self.band_sky(&base.up, inc.coarse_table);
+                let pair = specular_level_pair(lobe, &sky, &t.omega_view, hint)?;
+                Ok((base, sky, pair))
+            })
+            .collect();
+        let mut parts: Vec<(PointBase, BandSky<'_>, LevelPair)> =
+            parts.into_iter().collect::<Result<_, _>>()?;
         let tol = Tolerance::absolute(inc.tol_abs);
         let mut accepted = None;
         for step in 0..2 {
-            let error = parts.iter().fold(0.0f64, |m, (_, p)| m.max(p.change()));
-            if parts.iter().all(|(_, p)| error <= tol.target(p.scale())) {
+            let error = parts.iter().fold(0.0f64, |m, (_, _, p)| m.max(p.error()));
+            if parts.iter().all(|(_, _, p)| error <= tol.target(p.scale())) {
                 accepted = Some(error);
                 break;
             }
@@ -853,37 +852,31 @@ impl Prepared {
             let next: Vec<Result<Option<LevelPair>, ModelError>> = parts
                 .par_iter()
                 .zip(tiles)
-                .map(|((base, pair), t)| {
-                    let sky = self.band_sky(&base.up, inc.coarse_table);
-                    specular_next_pair(lobe, &sky, &t.omega_view, pair)
-                })
+                .map(|((_, sky, pair), t)| specular_next_pair(lobe, sky, &t.omega_view, pair))
                 .collect();
             let next: Vec<Option<LevelPair>> = next.into_iter().collect::<Result<_, _>>()?;
             if next.iter().any(Option::is_none) {
                 break;
             }
-            for ((_, pair), n) in parts.iter_mut().zip(next.into_iter().flatten()) {
+            for ((_, _, pair), n) in parts.iter_mut().zip(next.into_iter().flatten()) {
                 *pair = n;
             }
         }
         let results: Vec<Result<Point, ModelError>> = parts
             .into_par_iter()
             .zip(tiles)
-            .map(|((base, pair), tile)| {
+            .map(|((base, sky, pair), tile)| {
                 let r = match accepted {
                     Some(error) => pair.accept(error, f00_diffuse, base.e_sky),
-                    None => {
-                        let sky = self.band_sky(&base.up, inc.coarse_table);
-                        reflected_skylight_at(
-                            surface,
-                            f00_diffuse,
-                            base.e_sky,
-                            &sky,
-                            &tile.omega_view,
-                            tol,
-                            Start::After(&pair),
-                        )?
-                    }
+                    None => reflected_skylight_at(
+                        surface,
+                        f00_diffuse,
+                        base.e_sky,
+                        &sky,
+                        &tile.omega_view,
+                        tol,
+                        Start::After(&pair),
+                    )?,
                 };
                 Ok(self.finish(tile, base, Some(&r)))
             })

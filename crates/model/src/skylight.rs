@@ -473,10 +473,15 @@ pub(crate) struct LevelPair {
 }
 
 impl LevelPair {
-    /// The change between the two levels (largest component) plus the truncation: the upper
-    /// level's error, as the largest over a batch ([`specular_level_pair`]).
-    pub(crate) fn change(&self) -> f64 {
-        max_abs::<3>(&std::array::from_fn(|i| self.upper[i] - self.lower[i])) + self.floor
+    /// The change between the two levels (largest component).
+    fn step(&self) -> f64 {
+        max_abs::<3>(&std::array::from_fn(|i| self.upper[i] - self.lower[i]))
+    }
+
+    /// [`LevelPair::step`] plus the truncation: the upper level's error, as the largest over a
+    /// batch ([`specular_level_pair`]).
+    pub(crate) fn error(&self) -> f64 {
+        self.step() + self.floor
     }
 
     /// The largest component of the upper level's value.
@@ -525,14 +530,9 @@ pub(crate) fn specular_level_pair<S: SkyRadiance + ?Sized>(
     omega_view: &Vector3<f64>,
     hint: usize,
 ) -> Result<LevelPair, ModelError> {
-    check_view(omega_view)?;
-    let integrand = SlopeIntegrand::new(lobe.index().permittivity(), lobe.sigma(), sky, omega_view);
     let level = hint.clamp(2, GAUSS_LEVELS.len() - 1) - 2;
-    let mut pieces = Vec::with_capacity(8);
-    let (n, q) = GAUSS_LEVELS[level];
-    let (lower, e0) = integrand.gauss(n, q, &mut pieces);
-    let (n, q) = GAUSS_LEVELS[level + 1];
-    let (upper, e1) = integrand.gauss(n, q, &mut pieces);
+    let (lower, e0) = slope_level(lobe, sky, omega_view, level)?;
+    let (upper, e1) = slope_level(lobe, sky, omega_view, level + 1)?;
     Ok(LevelPair {
         level,
         lower,
@@ -556,10 +556,7 @@ pub(crate) fn specular_next_pair<S: SkyRadiance + ?Sized>(
     if level + 2 >= GAUSS_LEVELS.len() {
         return Ok(None);
     }
-    check_view(omega_view)?;
-    let integrand = SlopeIntegrand::new(lobe.index().permittivity(), lobe.sigma(), sky, omega_view);
-    let (n, q) = GAUSS_LEVELS[level + 1];
-    let (upper, e) = integrand.gauss(n, q, &mut Vec::with_capacity(8));
+    let (upper, e) = slope_level(lobe, sky, omega_view, level + 1)?;
     Ok(Some(LevelPair {
         level,
         lower: pair.upper,
@@ -567,6 +564,20 @@ pub(crate) fn specular_next_pair<S: SkyRadiance + ?Sized>(
         floor: pair.floor,
         evaluations: pair.evaluations + e,
     }))
+}
+
+/// The specular skylight of a microfacet `lobe` by the product rule at `GAUSS_LEVELS[level]`:
+/// (value, evaluations).
+fn slope_level<S: SkyRadiance + ?Sized>(
+    lobe: &Microfacet,
+    sky: &S,
+    omega_view: &Vector3<f64>,
+    level: usize,
+) -> Result<([f64; 3], usize), ModelError> {
+    check_view(omega_view)?;
+    let integrand = SlopeIntegrand::new(lobe.index().permittivity(), lobe.sigma(), sky, omega_view);
+    let (n, q) = GAUSS_LEVELS[level];
+    Ok(integrand.gauss(n, q, &mut Vec::with_capacity(8)))
 }
 
 /// Runs a product rule `rule(n, q)` (value, evaluations) at each of [`GAUSS_LEVELS`] in turn,
@@ -593,12 +604,7 @@ fn ladder(
             let (value, e) = rule(n, q);
             (level, value, e, f64::INFINITY)
         }
-        Start::After(pair) => (
-            pair.level + 1,
-            pair.upper,
-            pair.evaluations,
-            pair.change() - pair.floor,
-        ),
+        Start::After(pair) => (pair.level + 1, pair.upper, pair.evaluations, pair.step()),
     };
     let mut best = (previous, f64::INFINITY);
     for (level, &(n, q)) in GAUSS_LEVELS.iter().enumerate().skip(first + 1) {
@@ -1208,7 +1214,7 @@ mod tests {
                         .collect();
                     let (mut error, mut ok, mut stepped) = (0.0, false, false);
                     for step in 0..2 {
-                        error = pairs.iter().fold(0.0f64, |m, p| m.max(p.change()));
+                        error = pairs.iter().fold(0.0f64, |m, p| m.max(p.error()));
                         ok = pairs.iter().all(|p| error <= tol.target(p.scale()));
                         if ok || step == 1 {
                             break;
