@@ -13,7 +13,8 @@
 //!   functions of the view zenith cosine `mu` only. So the band-integrated sky of a field point is
 //!   `P11_R(gamma) A(mu) + HG(gamma) B(mu)` with `A` and `B` sums over the spectral nodes,
 //!   tabulated once on 257 points of `mu` (4x more while its error exceeds tol/8) and
-//!   interpolated with 4-point Lagrange cubics; the
+//!   interpolated with 4-point Lagrange cubics (each ray's band sky holds them as one cubic per
+//!   interval, `cubic_pieces`); the
 //!   table's error is measured against a half-resolution table and reported. The sky
 //!   irradiance integrates the azimuth in closed form (Rayleigh: a polynomial; Henyey-Greenstein:
 //!   a complete elliptic integral of the second kind by the AGM) and `mu` adaptively.
@@ -213,15 +214,6 @@ fn lagrange4(values: &[f64], x: f64) -> f64 {
     stencil_dot(&w, &values[j - 1..j + 3])
 }
 
-/// [`lagrange4`] of two tables of the same length at the same `x`, sharing the stencil.
-fn lagrange4_pair(a: &[f64], b: &[f64], x: f64) -> (f64, f64) {
-    let (j, w) = lagrange4_stencil(a.len(), x);
-    (
-        stencil_dot(&w, &a[j - 1..j + 3]),
-        stencil_dot(&w, &b[j - 1..j + 3]),
-    )
-}
-
 /// `w . v` for the four values of a stencil (one bounds check for the slice, not four).
 #[inline]
 fn stencil_dot(w: &[f64; 4], v: &[f64]) -> f64 {
@@ -245,6 +237,58 @@ fn lagrange4_stencil(len: usize, x: f64) -> (usize, [f64; 4]) {
             -(s + 1.0) * s * (s - 2.0) / 2.0,
             (s + 1.0) * s * (s - 1.0) / 6.0,
         ],
+    )
+}
+
+/// [`lagrange4`] of two tables `a` and `b` of the same length (`m >= 3` intervals over
+/// `[0, 1]`) as one cubic per interval `i`, `c0 + s (c1 + s (c2 + s c3))` in `s = t - i`
+/// (`t = x m`), the same cubic as the stencil there (its points `j - 1 ..= j + 2`,
+/// `j = clamp(i, 1, m - 2)`), `a`'s four coefficients then `b`'s: the hot path's
+/// interpolation as three multiply-adds instead of the stencil's weights. With `v0..v3` at
+/// `u = -1, 0, 1, 2` the cubic is `v1 + d1 u + d2 u^2 + d3 u^3`, `d1 = -v0/3 - v1/2 + v2 -
+/// v3/6`, `d2 = (v0 + v2)/2 - v1`, `d3 = (v3 - v0)/6 + (v1 - v2)/2`, re-centred at `u = i - j`.
+fn cubic_pieces(a: &[f64], b: &[f64]) -> Vec<[f64; 8]> {
+    const THIRD: f64 = 1.0 / 3.0;
+    const SIXTH: f64 = 1.0 / 6.0;
+    #[inline]
+    fn piece(v: &[f64], o: f64) -> [f64; 4] {
+        let d1 = v[2] - THIRD * v[0] - 0.5 * v[1] - SIXTH * v[3];
+        let d2 = 0.5 * (v[0] + v[2]) - v[1];
+        let d3 = SIXTH * (v[3] - v[0]) + 0.5 * (v[1] - v[2]);
+        if o == 0.0 {
+            return [v[1], d1, d2, d3];
+        }
+        [
+            v[1] + o * (d1 + o * (d2 + o * d3)),
+            d1 + o * (2.0 * d2 + 3.0 * o * d3),
+            d2 + 3.0 * o * d3,
+            d3,
+        ]
+    }
+    let m = a.len().min(b.len()) - 1;
+    let last = m.saturating_sub(2).max(1);
+    (0..m)
+        .map(|i| {
+            let j = i.clamp(1, last);
+            let o = i as f64 - j as f64;
+            let (pa, pb) = (piece(&a[j - 1..j + 3], o), piece(&b[j - 1..j + 3], o));
+            [pa[0], pa[1], pa[2], pa[3], pb[0], pb[1], pb[2], pb[3]]
+        })
+        .collect()
+}
+
+/// The two tables of [`cubic_pieces`] at the same `x` in `[0, 1]`: `(a(x), b(x))`.
+#[inline]
+fn cubic_pieces_pair(pieces: &[[f64; 8]], x: f64) -> (f64, f64) {
+    let m = pieces.len();
+    let t = x.clamp(0.0, 1.0) * m as f64;
+    // t >= 0: the truncating cast is the floor (NaN gives 0), as in `lagrange4_stencil`.
+    let i = (t as usize).min(m - 1);
+    let s = t - i as f64;
+    let c = &pieces[i];
+    (
+        c[0] + s * (c[1] + s * (c[2] + s * c[3])),
+        c[4] + s * (c[5] + s * (c[6] + s * c[7])),
     )
 }
 
@@ -289,8 +333,8 @@ fn hg_azimuthal(g: f64, mu: f64, mu0: f64) -> f64 {
 /// The band-integrated single-scattering sky of one field point (module docs).
 struct BandSky<'a> {
     prepared: &'a Prepared,
-    a: Vec<f64>,
-    b: Vec<f64>,
+    /// `A(mu)` and `B(mu)` (module docs) as [`cubic_pieces`].
+    ab: Vec<[f64; 8]>,
     /// Tabulated sky only: the band-mean transmittance `sum c_k / sum w_k`.
     table_scale: f64,
     /// Tabulated sky only: use the half-resolution table (the interpolation-error probe).
@@ -304,9 +348,12 @@ impl BandSky<'_> {
     fn single_scattering(&self, towards: &Vector3<f64>) -> Option<(f64, f64)> {
         let p = self.prepared;
         let mu = towards.z.max(0.0);
-        let (a, b) = lagrange4_pair(&self.a, &self.b, mu);
+        let (a, b) = cubic_pieces_pair(&self.ab, mu);
         let c = p.sun.dot(towards).clamp(-1.0, 1.0);
-        let (p11, p12) = p.rayleigh.phase(c);
+        // `RayleighSky::phase` with its depolarisation factor taken once.
+        let [k0, k1] = p.rayleigh_phase;
+        let c2 = c * c;
+        let (p11, p12) = (k0 * (1.0 + c2) + k1, k0 * (1.0 - c2));
         let intensity = p11 * a + ClearSky::henyey_greenstein(p.atmosphere.aerosol_g, c) * b;
         (intensity > 0.0).then_some((intensity, p12 * a))
     }
@@ -526,7 +573,9 @@ pub struct Prepared {
     spec: SceneSpec,
     sky: Sky,
     atmosphere: Atmosphere,
-    rayleigh: RayleighSky,
+    /// `(k0, k1)` of the Rayleigh phase `P11 = k0 (1 + c^2) + k1`, `-P12 = k0 (1 - c^2)`
+    /// ([`RayleighSky::phase`]: `k0 = 3 Delta / 4`, `k1 = 1 - Delta`).
+    rayleigh_phase: [f64; 2],
     sun: Vector3<f64>,
     field: Field,
     nodes: Vec<Node>,
@@ -728,7 +777,10 @@ impl Prepared {
             spec: spec.clone(),
             sky,
             atmosphere: atm,
-            rayleigh,
+            rayleigh_phase: {
+                let (p11, p12) = rayleigh.phase(0.0);
+                [p12, p11 - p12]
+            },
             sun,
             field,
             nodes,
@@ -773,10 +825,6 @@ impl Prepared {
     fn band_sky(&self, coefficients: &[f64], coarse_table: bool) -> BandSky<'_> {
         let table_sky = matches!(self.sky, Sky::Table(_));
         let combine = |tables: &[Vec<f64>]| -> Vec<f64> {
-            if table_sky {
-                // A tabulated sky replaces the single-scattering tables.
-                return Vec::new();
-            }
             let mut out = vec![0.0; tables[0].len()];
             for (t, c) in tables.iter().zip(coefficients) {
                 for (o, v) in out.iter_mut().zip(t) {
@@ -786,10 +834,15 @@ impl Prepared {
             out
         };
         let w: f64 = self.nodes.iter().map(|n| n.weight).sum();
+        // A tabulated sky replaces the single-scattering tables.
+        let ab = if table_sky {
+            Vec::new()
+        } else {
+            cubic_pieces(&combine(&self.table_a), &combine(&self.table_b))
+        };
         BandSky {
             prepared: self,
-            a: combine(&self.table_a),
-            b: combine(&self.table_b),
+            ab,
             table_scale: coefficients.iter().sum::<f64>() / w,
             coarse_table,
         }
@@ -1716,6 +1769,36 @@ mod tests {
         assert!((e - e_exact).abs() < 1e-6 * e_exact, "{e} vs {e_exact}");
     }
 
+    /// The per-interval cubics of the hot path are the 4-point Lagrange interpolant they
+    /// replace, to rounding (1e-14 of the table's scale), in the first and last intervals (whose
+    /// stencils are off-centre), at the ends and at the nodes, on a steep table like the sky's
+    /// `A(mu)` near the horizon; a slip in a coefficient or in the re-centring would show as an
+    /// O(h) error.
+    #[test]
+    fn cubic_pieces_equal_the_lagrange_stencil() {
+        let m = 64;
+        let f = |x: f64| (3.0 * x).exp() * (7.0 * x).sin() + 1.0 / (x + 0.05);
+        let a: Vec<f64> = (0..=m).map(|i| f(i as f64 / m as f64)).collect();
+        let b: Vec<f64> = a.iter().map(|v| v * v - 2.0).collect();
+        let pieces = cubic_pieces(&a, &b);
+        assert_eq!(pieces.len(), m);
+        let scale = a.iter().chain(&b).fold(0.0f64, |s, v| s.max(v.abs()));
+        for k in 0..=4000 {
+            let x = k as f64 / 4000.0;
+            let (pa, pb) = cubic_pieces_pair(&pieces, x);
+            assert!(
+                (pa - lagrange4(&a, x)).abs() <= 1e-14 * scale
+                    && (pb - lagrange4(&b, x)).abs() <= 1e-14 * scale,
+                "x = {x}: {pa} vs {}, {pb} vs {}",
+                lagrange4(&a, x),
+                lagrange4(&b, x)
+            );
+        }
+        // At a node the cubic is the table's value.
+        let (pa, _) = cubic_pieces_pair(&pieces, 0.5);
+        assert!((pa - a[m / 2]).abs() <= 1e-14 * scale);
+    }
+
     /// The band sky's E-vector taken in any transverse frame (`stokes_in_frame`, what the
     /// facet-slope integrand asks for) equals its surface-frame Stokes vector rotated into that
     /// frame (the trait's default), to rounding (1e-14 of S0), for the sun at 40 deg and rays
@@ -1936,7 +2019,11 @@ mod tests {
         let sky = p.ground_sky();
         for (z, az) in [(10.0, 0.0), (50.0, 90.0), (80.0, 270.0), (40.0, 180.0)] {
             let d = crate::sky::direction_from_deg(z, az);
-            let want = p.rayleigh.dolp(p.sun.dot(&d));
+            let air = RayleighSky {
+                optical_depth: 0.0,
+                depolarization: AIR_DEPOLARIZATION,
+            };
+            let want = air.dolp(p.sun.dot(&d));
             let got = sky.stokes_from(&d).dolp().unwrap_or(0.0);
             assert!((got - want).abs() < 1e-9, "{z},{az}: {got} vs {want}");
         }
