@@ -13,8 +13,7 @@
 //!   functions of the view zenith cosine `mu` only. So the band-integrated sky of a field point is
 //!   `P11_R(gamma) A(mu) + HG(gamma) B(mu)` with `A` and `B` sums over the spectral nodes,
 //!   tabulated once on 257 points of `mu` (4x more while its error exceeds tol/8) and
-//!   interpolated with 4-point Lagrange cubics (each ray's band sky holds them as one cubic per
-//!   interval, `cubic_pieces`); the
+//!   interpolated with 4-point Lagrange cubics; the
 //!   table's error is measured against a half-resolution table and reported. The sky
 //!   irradiance integrates the azimuth in closed form (Rayleigh: a polynomial; Henyey-Greenstein:
 //!   a complete elliptic integral of the second kind by the AGM) and `mu` adaptively.
@@ -240,55 +239,12 @@ fn lagrange4_stencil(len: usize, x: f64) -> (usize, [f64; 4]) {
     )
 }
 
-/// [`lagrange4`] of two tables `a` and `b` of the same length (`m >= 3` intervals over
-/// `[0, 1]`) as one cubic per interval `i`, `c0 + s (c1 + s (c2 + s c3))` in `s = t - i`
-/// (`t = x m`), the same cubic as the stencil there (its points `j - 1 ..= j + 2`,
-/// `j = clamp(i, 1, m - 2)`), `a`'s four coefficients then `b`'s: the hot path's
-/// interpolation as three multiply-adds instead of the stencil's weights. With `v0..v3` at
-/// `u = -1, 0, 1, 2` the cubic is `v1 + d1 u + d2 u^2 + d3 u^3`, `d1 = -v0/3 - v1/2 + v2 -
-/// v3/6`, `d2 = (v0 + v2)/2 - v1`, `d3 = (v3 - v0)/6 + (v1 - v2)/2`, re-centred at `u = i - j`.
-fn cubic_pieces(a: &[f64], b: &[f64]) -> Vec<[f64; 8]> {
-    const THIRD: f64 = 1.0 / 3.0;
-    const SIXTH: f64 = 1.0 / 6.0;
-    #[inline]
-    fn piece(v: &[f64], o: f64) -> [f64; 4] {
-        let d1 = v[2] - THIRD * v[0] - 0.5 * v[1] - SIXTH * v[3];
-        let d2 = 0.5 * (v[0] + v[2]) - v[1];
-        let d3 = SIXTH * (v[3] - v[0]) + 0.5 * (v[1] - v[2]);
-        if o == 0.0 {
-            return [v[1], d1, d2, d3];
-        }
-        [
-            v[1] + o * (d1 + o * (d2 + o * d3)),
-            d1 + o * (2.0 * d2 + 3.0 * o * d3),
-            d2 + 3.0 * o * d3,
-            d3,
-        ]
-    }
-    let m = a.len().min(b.len()) - 1;
-    let last = m.saturating_sub(2).max(1);
-    (0..m)
-        .map(|i| {
-            let j = i.clamp(1, last);
-            let o = i as f64 - j as f64;
-            let (pa, pb) = (piece(&a[j - 1..j + 3], o), piece(&b[j - 1..j + 3], o));
-            [pa[0], pa[1], pa[2], pa[3], pb[0], pb[1], pb[2], pb[3]]
-        })
-        .collect()
-}
-
-/// The two tables of [`cubic_pieces`] at the same `x` in `[0, 1]`: `(a(x), b(x))`.
-#[inline]
-fn cubic_pieces_pair(pieces: &[[f64; 8]], x: f64) -> (f64, f64) {
-    let m = pieces.len();
-    let t = x.clamp(0.0, 1.0) * m as f64;
-    // t >= 0: the truncating cast is the floor (NaN gives 0), as in `lagrange4_stencil`.
-    let i = (t as usize).min(m - 1);
-    let s = t - i as f64;
-    let c = &pieces[i];
+/// [`lagrange4`] of two tables of the same length at the same `x`, sharing the stencil.
+fn lagrange4_pair(a: &[f64], b: &[f64], x: f64) -> (f64, f64) {
+    let (j, w) = lagrange4_stencil(a.len(), x);
     (
-        c[0] + s * (c[1] + s * (c[2] + s * c[3])),
-        c[4] + s * (c[5] + s * (c[6] + s * c[7])),
+        stencil_dot(&w, &a[j - 1..j + 3]),
+        stencil_dot(&w, &b[j - 1..j + 3]),
     )
 }
 
@@ -333,8 +289,9 @@ fn hg_azimuthal(g: f64, mu: f64, mu0: f64) -> f64 {
 /// The band-integrated single-scattering sky of one field point (module docs).
 struct BandSky<'a> {
     prepared: &'a Prepared,
-    /// `A(mu)` and `B(mu)` (module docs) as [`cubic_pieces`].
-    ab: Vec<[f64; 8]>,
+    /// `A(mu)` and `B(mu)` (module docs) on the `mu` table's points.
+    a: Vec<f64>,
+    b: Vec<f64>,
     /// Tabulated sky only: the band-mean transmittance `sum c_k / sum w_k`.
     table_scale: f64,
     /// Tabulated sky only: use the half-resolution table (the interpolation-error probe).
@@ -348,7 +305,7 @@ impl BandSky<'_> {
     fn single_scattering(&self, towards: &Vector3<f64>) -> Option<(f64, f64)> {
         let p = self.prepared;
         let mu = towards.z.max(0.0);
-        let (a, b) = cubic_pieces_pair(&self.ab, mu);
+        let (a, b) = lagrange4_pair(&self.a, &self.b, mu);
         let c = p.sun.dot(towards).clamp(-1.0, 1.0);
         // `RayleighSky::phase` with its depolarisation factor taken once.
         let [k0, k1] = p.rayleigh_phase;
@@ -400,11 +357,8 @@ impl SkyRadiance for BandSky<'_> {
             // Towards or away from the sun: no scattering plane, and no polarisation.
             return Stokes::new(intensity, pol, 0.0);
         }
-        Stokes::new(
-            intensity,
-            pol * (c * c - s * s) / n2,
-            pol * 2.0 * c * s / n2,
-        )
+        let pol = pol / n2;
+        Stokes::new(intensity, pol * (c * c - s * s), pol * 2.0 * c * s)
     }
 
     fn peak(&self) -> Option<Vector3<f64>> {
@@ -835,14 +789,15 @@ impl Prepared {
         };
         let w: f64 = self.nodes.iter().map(|n| n.weight).sum();
         // A tabulated sky replaces the single-scattering tables.
-        let ab = if table_sky {
-            Vec::new()
+        let (a, b) = if table_sky {
+            (Vec::new(), Vec::new())
         } else {
-            cubic_pieces(&combine(&self.table_a), &combine(&self.table_b))
+            (combine(&self.table_a), combine(&self.table_b))
         };
         BandSky {
             prepared: self,
-            ab,
+            a,
+            b,
             table_scale: coefficients.iter().sum::<f64>() / w,
             coarse_table,
         }
@@ -1767,36 +1722,6 @@ mod tests {
         let e_exact = sky_irradiance(&band, Tolerance::absolute(1e-9)).stokes.0[0];
         let e: f64 = p.nodes.iter().map(|n| n.weight * n.e_sky).sum();
         assert!((e - e_exact).abs() < 1e-6 * e_exact, "{e} vs {e_exact}");
-    }
-
-    /// The per-interval cubics of the hot path are the 4-point Lagrange interpolant they
-    /// replace, to rounding (1e-14 of the table's scale), in the first and last intervals (whose
-    /// stencils are off-centre), at the ends and at the nodes, on a steep table like the sky's
-    /// `A(mu)` near the horizon; a slip in a coefficient or in the re-centring would show as an
-    /// O(h) error.
-    #[test]
-    fn cubic_pieces_equal_the_lagrange_stencil() {
-        let m = 64;
-        let f = |x: f64| (3.0 * x).exp() * (7.0 * x).sin() + 1.0 / (x + 0.05);
-        let a: Vec<f64> = (0..=m).map(|i| f(i as f64 / m as f64)).collect();
-        let b: Vec<f64> = a.iter().map(|v| v * v - 2.0).collect();
-        let pieces = cubic_pieces(&a, &b);
-        assert_eq!(pieces.len(), m);
-        let scale = a.iter().chain(&b).fold(0.0f64, |s, v| s.max(v.abs()));
-        for k in 0..=4000 {
-            let x = k as f64 / 4000.0;
-            let (pa, pb) = cubic_pieces_pair(&pieces, x);
-            assert!(
-                (pa - lagrange4(&a, x)).abs() <= 1e-14 * scale
-                    && (pb - lagrange4(&b, x)).abs() <= 1e-14 * scale,
-                "x = {x}: {pa} vs {}, {pb} vs {}",
-                lagrange4(&a, x),
-                lagrange4(&b, x)
-            );
-        }
-        // At a node the cubic is the table's value.
-        let (pa, _) = cubic_pieces_pair(&pieces, 0.5);
-        assert!((pa - a[m / 2]).abs() <= 1e-14 * scale);
     }
 
     /// The band sky's E-vector taken in any transverse frame (`stokes_in_frame`, what the

@@ -175,6 +175,8 @@ struct SlopeIntegrand<'a, S: SkyRadiance + ?Sized> {
     omega_view: Vector3<f64>,
     /// `cos theta_v`, floored at [`COS_FLOOR`].
     cv: f64,
+    /// `1 / cv`.
+    inv_cv: f64,
     /// `sin theta_v`.
     sv: f64,
     /// Unit horizontal vector towards the view's azimuth (x at nadir); `e2 = z x e1`.
@@ -208,8 +210,15 @@ fn facet_reflection(
     let (rs2, rp2) = (r.rs_power(), r.rp_power());
     let (a, b, d) = (0.5 * (rs2 + rp2), 0.5 * (rs2 - rp2), r.re_rs_rp_conj());
     let (y0, y1, y2) = (a * s[0] + b * s[1], b * s[0] + a * s[1], d * s[2]);
-    let (cr, sr) = cos_sin_2eta(s_r, s_f_x, omega_r);
-    [y0 * w, (cr * y1 - sr * y2) * w, (sr * y1 + cr * y2) * w]
+    // `cos_sin_2eta(s_r, s_f_x, omega_r)` with one division, its scale folded into `w`'s.
+    let (c, sn) = (s_r.dot(s_f_x), s_r.cross(s_f_x).dot(omega_r));
+    let scale = w / (c * c + sn * sn);
+    let (cr, sr) = (c * c - sn * sn, 2.0 * c * sn);
+    [
+        y0 * w,
+        (cr * y1 - sr * y2) * scale,
+        (sr * y1 + cr * y2) * scale,
+    ]
 }
 
 /// Fixed splits of every line in `t`, so that no piece spans more than the Gaussian weight's
@@ -251,6 +260,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
             sky,
             omega_view: *omega_view,
             cv,
+            inv_cv: 1.0 / cv,
             sv,
             e1,
             e2,
@@ -278,7 +288,9 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
     fn value_along(&self, along: &Vector3<f64>, t: f64) -> [f64; 3] {
         let rho = self.sigma * std::f64::consts::SQRT_2 * t;
         let hv = Vector3::z() - along * rho;
-        let h = hv / hv.norm();
+        // One division for the three components (as for every reciprocal below: a division
+        // costs several multiplications' time).
+        let h = hv * (1.0 / hv.norm());
         let cos_beta = self.omega_view.dot(&h);
         if cos_beta <= 0.0 {
             return [0.0; 3];
@@ -288,12 +300,13 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
         if cos_d <= 0.0 {
             return [0.0; 3];
         }
-        let cv = self.cv;
+        let inv_cv = self.inv_cv;
         let cos_alpha = h.z;
-        let g_cb_over_cv = (cos_beta / cv)
+        let g_cb_over_cv = (cos_beta * inv_cv)
             .min(2.0 * cos_alpha)
-            .min(2.0 * cos_alpha * cos_d / cv);
-        let w = 2.0 * t * (-t * t).exp() * g_cb_over_cv / (2.0 * PI);
+            .min(2.0 * cos_alpha * cos_d * inv_cv);
+        // The slope weight `2 t exp(-t^2) / (2 pi)`.
+        let w = t * (-t * t).exp() * g_cb_over_cv * std::f64::consts::FRAC_1_PI;
         // The facet frame's x, `omega_r × omega_i` as in `FacetGeometry::from_half_vector`.
         let s_f = self.omega_view.cross(&omega_d);
         if let (Some(s_r), true) = (&self.s_r, s_f.norm_squared() > 1e-200) {
