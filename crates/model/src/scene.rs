@@ -62,13 +62,13 @@
 use crate::atmosphere::{air_mass, slant_mu0, Atmosphere, Band, ClearSky};
 use crate::error::ModelError;
 use crate::pbrdf::{Microfacet, Surface};
-use crate::polarization::{cos_sin_2eta, rotation_from_cos_sin_2eta, Stokes};
+use crate::polarization::{rotation_from_cos_sin_2eta, Stokes};
 use crate::quadrature::{gauss_legendre_table, integrate, Tolerance};
 use crate::sky::{downward_path, e_vector_in_frame, BerrySky, RayleighSky, AIR_DEPOLARIZATION};
 use crate::sky_table::SkyTable;
 use crate::skylight::{
     reflected_skylight, reflected_skylight_at, sky_irradiance, specular_level_pair,
-    specular_next_pair, surface_frame_x, LevelPair, SkyRadiance, Start, StokesIntegral,
+    specular_next_pair, surface_to_frame, LevelPair, SkyRadiance, Start, StokesIntegral,
     DIRECT_PRODUCT_MIN_COS_VIEW, PAIR_MIN_HINT,
 };
 use crate::tiles::{Field, Pointing, Tile};
@@ -213,6 +213,15 @@ fn lagrange4(values: &[f64], x: f64) -> f64 {
     stencil_dot(&w, &values[j - 1..j + 3])
 }
 
+/// [`lagrange4`] of two tables of the same length at the same `x`, sharing the stencil.
+fn lagrange4_pair(a: &[f64], b: &[f64], x: f64) -> (f64, f64) {
+    let (j, w) = lagrange4_stencil(a.len(), x);
+    (
+        stencil_dot(&w, &a[j - 1..j + 3]),
+        stencil_dot(&w, &b[j - 1..j + 3]),
+    )
+}
+
 /// `w . v` for the four values of a stencil (one bounds check for the slice, not four).
 #[inline]
 fn stencil_dot(w: &[f64; 4], v: &[f64]) -> f64 {
@@ -236,15 +245,6 @@ fn lagrange4_stencil(len: usize, x: f64) -> (usize, [f64; 4]) {
             -(s + 1.0) * s * (s - 2.0) / 2.0,
             (s + 1.0) * s * (s - 1.0) / 6.0,
         ],
-    )
-}
-
-/// [`lagrange4`] of two tables of the same length at the same `x`, sharing the stencil.
-fn lagrange4_pair(a: &[f64], b: &[f64], x: f64) -> (f64, f64) {
-    let (j, w) = lagrange4_stencil(a.len(), x);
-    (
-        stencil_dot(&w, &a[j - 1..j + 3]),
-        stencil_dot(&w, &b[j - 1..j + 3]),
     )
 }
 
@@ -342,9 +342,7 @@ impl SkyRadiance for BandSky<'_> {
     /// `frame_x` directly: one division instead of the surface frame's and the rotation's.
     fn stokes_in_frame(&self, towards: &Vector3<f64>, frame_x: &Vector3<f64>) -> Stokes {
         if !matches!(self.prepared.sky, Sky::SingleScattering) {
-            let s = self.stokes_from(towards);
-            let (c, sn) = cos_sin_2eta(&surface_frame_x(towards), frame_x, &-towards);
-            return Stokes::new(s.0[0], c * s.0[1] + sn * s.0[2], c * s.0[2] - sn * s.0[1]);
+            return surface_to_frame(self.stokes_from(towards), towards, frame_x);
         }
         let Some((intensity, pol)) = self.single_scattering(towards) else {
             return Stokes::new(0.0, 0.0, 0.0);
@@ -1753,7 +1751,11 @@ mod tests {
                 let x = (u * a.cos() + v * a.sin()) * (1.0 + i as f64);
                 let fast = band.stokes_in_frame(&d, &x).0;
                 let surface = band.stokes_from(&d).0;
-                let (c, sn) = cos_sin_2eta(&surface_frame_x(&d), &x, &k);
+                let (c, sn) = crate::polarization::cos_sin_2eta(
+                    &crate::skylight::surface_frame_x(&d),
+                    &x,
+                    &k,
+                );
                 let slow = Vector3::new(
                     surface[0],
                     c * surface[1] + sn * surface[2],

@@ -59,10 +59,21 @@ pub trait SkyRadiance {
     /// knows its E-vector may compute the angle in `frame_x` directly, which is what the
     /// facet-slope integrand asks for.
     fn stokes_in_frame(&self, towards: &Vector3<f64>, frame_x: &Vector3<f64>) -> Stokes {
-        let s = self.stokes_from(towards);
-        let (c, sn) = cos_sin_2eta(&surface_frame_x(towards), frame_x, &-towards);
-        Stokes::new(s.0[0], c * s.0[1] + sn * s.0[2], c * s.0[2] - sn * s.0[1])
+        surface_to_frame(self.stokes_from(towards), towards, frame_x)
     }
+}
+
+/// A Stokes vector of a ray arriving from `towards`, given in its surface frame
+/// ([`surface_frame_x`]), in the transverse frame `frame_x` instead (the rotation
+/// [`FacetGeometry`] applies into a facet frame).
+#[inline]
+pub(crate) fn surface_to_frame(
+    s: Stokes,
+    towards: &Vector3<f64>,
+    frame_x: &Vector3<f64>,
+) -> Stokes {
+    let (c, sn) = cos_sin_2eta(&surface_frame_x(towards), frame_x, &-towards);
+    Stokes::new(s.0[0], c * s.0[1] + sn * s.0[2], c * s.0[2] - sn * s.0[1])
 }
 
 /// The (unnormalised) `x` axis of the surface frame of a ray arriving from `towards`: `k × z`
