@@ -76,10 +76,18 @@ pub(crate) fn surface_to_frame(
     Stokes::new(s.0[0], c * s.0[1] + sn * s.0[2], c * s.0[2] - sn * s.0[1])
 }
 
+/// The (unnormalised) `x` axis of the reflected surface frame of a view `omega_view`,
+/// `(omega_v.y, -omega_v.x, 0)`; `None` at the zenith, where that frame follows each incident
+/// ray (as in [`FacetGeometry::from_half_vector`]) and the integrands take the general path.
+fn reflected_frame_x(omega_view: &Vector3<f64>) -> Option<Vector3<f64>> {
+    (omega_view.x != 0.0 || omega_view.y != 0.0)
+        .then(|| Vector3::new(omega_view.y, -omega_view.x, 0.0))
+}
+
 /// The (unnormalised) `x` axis of the surface frame of a ray arriving from `towards`: `k × z`
 /// for `k = -towards`, world `+y` when the ray is vertical (as [`FacetGeometry`] takes it).
 #[inline]
-pub(crate) fn surface_frame_x(towards: &Vector3<f64>) -> Vector3<f64> {
+fn surface_frame_x(towards: &Vector3<f64>) -> Vector3<f64> {
     if towards.x != 0.0 || towards.y != 0.0 {
         Vector3::new(-towards.y, towards.x, 0.0)
     } else {
@@ -195,9 +203,7 @@ struct SlopeIntegrand<'a, S: SkyRadiance + ?Sized> {
     e2: Vector3<f64>,
     /// The facet slope that reflects the sky's peak into the view, as `(psi, t)`.
     peak: Option<(f64, f64)>,
-    /// The reflected surface frame's (unnormalised) `x`, `(omega_v.y, -omega_v.x, 0)`, when the
-    /// view is not at the zenith (at the zenith the frame follows each incident ray, as in
-    /// [`FacetGeometry::from_half_vector`], and the general path is taken).
+    /// [`reflected_frame_x`] of the view.
     s_r: Option<Vector3<f64>>,
 }
 
@@ -276,8 +282,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
             e1,
             e2,
             peak,
-            s_r: (omega_view.x != 0.0 || omega_view.y != 0.0)
-                .then(|| Vector3::new(omega_view.y, -omega_view.x, 0.0)),
+            s_r: reflected_frame_x(omega_view),
         }
     }
 
@@ -921,8 +926,7 @@ fn direction_integrand<'a, S: SkyRadiance + ?Sized>(
     sky: &'a S,
     omega_view: &'a Vector3<f64>,
 ) -> impl Fn(&Vector3<f64>) -> [f64; 3] + Copy + 'a {
-    let s_r = (omega_view.x != 0.0 || omega_view.y != 0.0)
-        .then(|| Vector3::new(omega_view.y, -omega_view.x, 0.0));
+    let s_r = reflected_frame_x(omega_view);
     let cos_tr = omega_view.z.clamp(COS_FLOOR, 1.0);
     let leaf_eps = match surface {
         Surface::Vegetation { lobe, .. } => Some(lobe.index().permittivity()),
