@@ -42,13 +42,14 @@ impl Stokes {
 
     /// Degree of linear polarisation `sqrt(S1^2 + S2^2) / S0` (seed Eq. 2.14).
     ///
-    /// `None` when `S0 <= 0` or a component is not finite (a dark pixel has no DoLP). The value
-    /// is not clamped to `[0, 1]`: a noisy reconstruction may exceed 1 and callers that estimate
-    /// statistics need the raw estimator.
+    /// `None` when `S0` is not positive and normal (below `f64::MIN_POSITIVE` a subnormal
+    /// `S0` has lost its relative precision: effectively dark) or a component is not finite (a
+    /// dark pixel has no DoLP). The value is not clamped to `[0, 1]`: a noisy reconstruction
+    /// may exceed 1 and callers that estimate statistics need the raw estimator.
     pub fn dolp(&self) -> Option<f64> {
         let s0 = self.s0();
         let p = self.polarized_intensity();
-        (s0 > 0.0 && s0.is_finite() && p.is_finite()).then(|| p / s0)
+        (s0 >= f64::MIN_POSITIVE && s0.is_finite() && p.is_finite()).then(|| p / s0)
     }
 
     /// Angle of linear polarisation `0.5 atan2(S2, S1)` in `(-pi/2, pi/2]` (seed Eq. 2.15).

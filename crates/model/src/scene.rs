@@ -1584,6 +1584,7 @@ impl Prepared {
                 fit_final = true;
             }
             let mut previous: Option<(Vector3<f64>, f64)> = None;
+            let mut last_change = f64::INFINITY;
             let orders = [2, 3, 4, 6, 8, 12];
             let mut k = 0;
             loop {
@@ -1654,9 +1655,16 @@ impl Prepared {
                 let change = previous.map_or(f64::INFINITY, |(pm, ps)| {
                     ((mean - pm).norm() / scale).max((spread_now - ps).abs() / scale)
                 });
-                if change < tol / 4.0 || k + 1 == orders.len() {
-                    break (mean, cov, surf, change, sky_error, n);
+                // The larger of the last two changes, as in the hemisphere rule's ladder: across
+                // a kink of the direct term over the field (the shadowing function's branches)
+                // the orders converge algebraically, their errors change sign, and one change
+                // alone fell short of the error by up to 3.8x
+                // (`error_estimate_covers_the_truth_on_kinked_fields`).
+                let error = change.max(last_change);
+                if error < tol / 4.0 || k + 1 == orders.len() {
+                    break (mean, cov, surf, error, sky_error, n);
                 }
+                last_change = change;
                 previous = Some((mean, spread_now));
                 k += 1;
             }
@@ -1670,7 +1678,7 @@ impl Prepared {
                 spread
             },
             reason: if order > 1 {
-                format!("{order}x{order} Gauss-Legendre rays over the field; the last refinement changed the result by {field_change:.2e} of S0")
+                format!("{order}x{order} Gauss-Legendre rays over the field; the last two refinements changed the result by at most {field_change:.2e} of S0")
             } else {
                 format!("corner probe: the field varies by {spread:.2e} of the direct term, below tol/4; one ray")
             },
@@ -2006,6 +2014,38 @@ mod tests {
                 r.error_estimate
             );
             assert!(actual <= tol, "tol {tol}: actual {actual:e}");
+        }
+    }
+
+    /// The error estimate covers the difference from a reference at 1e-8 where the direct
+    /// term has a kink over the field (the shadowing function's branch switch: the field's
+    /// Gauss-Legendre means then converge algebraically, and one change between orders can be
+    /// small by a coincidence of two orders' errors). Three fields found by a sweep of 40
+    /// random scenes and five materials, where the estimate had fallen short by up to 1.5x
+    /// while the field's orders were accepted on one change; they are now accepted on the larger
+    /// of the last two, as the hemisphere rule's levels are.
+    #[test]
+    fn error_estimate_covers_the_truth_on_kinked_fields() {
+        let cases = [
+            // (altitude, off nadir, look, fov, sun zenith, sun azimuth, tolerance)
+            (30.0, 57.1, 68.0, (19.8, 19.7), 21.3, 297.0, 1e-3),
+            (2.0, 42.8, 342.0, (14.1, 4.8), 59.1, 73.0, 1e-4),
+            (2.0, 59.6, 180.0, (2.1, 13.6), 57.0, 347.0, 1e-4),
+        ];
+        for (altitude, off, look, fov, sun_zenith, sun_azimuth, tol) in cases {
+            let mut s = spec(altitude, off, look, 1.0);
+            s.pointing.fov_deg = fov;
+            s.sun_zenith_deg = sun_zenith;
+            s.sun_azimuth_deg = sun_azimuth;
+            let m = [asphalt()];
+            let reference = evaluate(&s, &m, 1e-8).unwrap();
+            let r = evaluate(&s, &m, tol).unwrap();
+            let actual = (r[0].mean.0 - reference[0].mean.0).norm() / reference[0].mean.0[0];
+            assert!(
+                actual <= r[0].error_estimate,
+                "{s:?} at {tol}: actual {actual:e} > estimate {:e}",
+                r[0].error_estimate
+            );
         }
     }
 
@@ -2360,6 +2400,82 @@ mod tests {
         let fit = SkyFit::sparse(sets[2], q, 0.0);
         let d = (fit.at(0.5, 0.5) - q(0.5, 0.5)).norm();
         assert!(d > 0.01, "u^3 v reproduced without (2, 1): {d:e}");
+    }
+
+    /// Studies: slow, run on demand
+    /// (`cargo test --release -p polar-model --lib scene::tests::studies -- --ignored --nocapture`).
+    mod studies {
+        use super::*;
+
+        /// The error estimate against a reference at 1e-8 over 40 random scenes (a fixed seed:
+        /// altitude 2 m, 30 m or 1 km, 0-70 deg off nadir, any look azimuth, fields of 2-20
+        /// deg each way, sun zenith 10-80 deg at any azimuth) and five materials (glass,
+        /// paint, asphalt, aluminium, vegetation), at 1e-3 and 1e-4: the mean's actual error
+        /// never exceeds its estimate. Prints the largest ratio of actual error to estimate,
+        /// for the mean and for the spread `sqrt |Cov|_F` (not part of the estimate's
+        /// contract; reported for a later change), and the evaluations per tolerance.
+        /// Measured (session 13, about 80 s): mean 0.84 at worst, spread 1.06 (one glass
+        /// field at 1 km); before the field's orders took the larger of two changes, mean 1.48.
+        #[test]
+        #[ignore]
+        fn estimate_sweep() {
+            let mut seed: u64 = 12345;
+            let mut rnd = || {
+                seed = seed
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (seed >> 11) as f64 / (1u64 << 53) as f64
+            };
+            let surfaces = [
+                Surface::microfacet(RefractiveIndex::new(1.52, 0.0).unwrap(), 0.1, 0.1),
+                Surface::microfacet(RefractiveIndex::new(1.49, 0.0).unwrap(), 0.3, 0.04),
+                Surface::microfacet(RefractiveIndex::new(1.6, 0.0).unwrap(), 0.5, 0.08),
+                Surface::microfacet(RefractiveIndex::new(1.02, 6.6).unwrap(), 0.1, 0.93),
+                Surface::vegetation(RefractiveIndex::new(1.5, 0.0).unwrap(), 0.0127),
+            ];
+            let materials: Vec<SceneMaterial> = surfaces
+                .into_iter()
+                .zip(["glass", "paint", "asphalt", "aluminium", "vegetation"])
+                .map(|(s, name)| SceneMaterial {
+                    name: name.into(),
+                    surface: s.unwrap(),
+                    texture: Texture::None,
+                })
+                .collect();
+            let (mut worst, mut worst_spread) = (0.0f64, 0.0f64);
+            let mut evaluations = [0usize; 2];
+            for case in 0..40 {
+                let altitude = [2.0, 30.0, 1000.0][(rnd() * 3.0) as usize];
+                let mut s = spec(altitude, rnd() * 70.0, rnd() * 360.0, 1.0);
+                s.pointing.fov_deg = (2.0 + rnd() * 18.0, 2.0 + rnd() * 18.0);
+                s.sun_zenith_deg = 10.0 + rnd() * 70.0;
+                s.sun_azimuth_deg = rnd() * 360.0;
+                let Ok(reference) = evaluate(&s, &materials, 1e-8) else {
+                    continue;
+                };
+                for (k, tol) in [1e-3, 1e-4].into_iter().enumerate() {
+                    let r = evaluate(&s, &materials, tol).unwrap();
+                    for (a, b) in r.iter().zip(&reference) {
+                        evaluations[k] += a.evaluations;
+                        let s0 = b.mean.0[0];
+                        let actual = (a.mean.0 - b.mean.0).norm() / s0;
+                        let spread = (a.cov.norm().sqrt() - b.cov.norm().sqrt()).abs() / s0;
+                        worst = worst.max(actual / a.error_estimate);
+                        worst_spread = worst_spread.max(spread / a.error_estimate);
+                        assert!(
+                            actual <= a.error_estimate,
+                            "case {case}, {} at {tol}: actual {actual:e} > estimate {:e}: {s:?}",
+                            a.name,
+                            a.error_estimate
+                        );
+                    }
+                }
+            }
+            println!(
+                "actual / estimate at worst: mean {worst:.3}, spread {worst_spread:.3}; \
+                 evaluations at 1e-3 and 1e-4: {evaluations:?}"
+            );
+        }
     }
 
     #[test]
