@@ -74,8 +74,9 @@ use crate::skylight::{
 use crate::tiles::{Field, Pointing, Tile};
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
+use std::collections::HashMap;
 use std::f64::consts::PI;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, OnceLock};
 
 /// The sky of a scene.
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -286,16 +287,38 @@ fn hg_azimuthal(g: f64, mu: f64, mu0: f64) -> f64 {
     (1.0 - g * g) * 4.0 * elliptic_e(2.0 * b / (a + b)) / ((a - b) * (a + b).sqrt())
 }
 
+/// The band sky's `A(mu)` and `B(mu)` (module docs) on the `mu` table's points, for one set of
+/// per-node coefficients (empty for a tabulated sky).
+struct BandTables {
+    a: Vec<f64>,
+    b: Vec<f64>,
+}
+
 /// The band-integrated single-scattering sky of one field point (module docs).
 struct BandSky<'a> {
     prepared: &'a Prepared,
-    /// `A(mu)` and `B(mu)` (module docs) on the `mu` table's points.
-    a: Vec<f64>,
-    b: Vec<f64>,
+    /// The `A` and `B` tables, shared by every material's view of the same ray.
+    tables: Arc<BandTables>,
     /// Tabulated sky only: the band-mean transmittance `sum c_k / sum w_k`.
     table_scale: f64,
     /// Tabulated sky only: use the half-resolution table (the interpolation-error probe).
     coarse_table: bool,
+}
+
+/// The material-independent terms of one field ray, computed once per scene and shared by
+/// every material that looks along it ([`Prepared::ray_terms`]).
+struct RayTerms {
+    /// Per spectral node, the node weight times the ground-to-sensor transmittance.
+    up: Vec<f64>,
+    /// The direct irradiance `sum up_k t_sun,k mu0`.
+    e_dir: f64,
+    /// The sky irradiance per unit `f00_diffuse`, transmitted up (the full table's, for a
+    /// tabulated sky).
+    e_sky: f64,
+    /// The path radiance.
+    path: Vector3<f64>,
+    /// The band sky's tables for `up`, built on first use.
+    tables: OnceLock<Arc<BandTables>>,
 }
 
 impl BandSky<'_> {
@@ -305,7 +328,7 @@ impl BandSky<'_> {
     fn single_scattering(&self, towards: &Vector3<f64>) -> Option<(f64, f64)> {
         let p = self.prepared;
         let mu = towards.z.max(0.0);
-        let (a, b) = lagrange4_pair(&self.a, &self.b, mu);
+        let (a, b) = lagrange4_pair(&self.tables.a, &self.tables.b, mu);
         let c = p.sun.dot(towards).clamp(-1.0, 1.0);
         // `RayleighSky::phase` with its depolarisation factor taken once.
         let [k0, k1] = p.rayleigh_phase;
@@ -400,8 +423,8 @@ struct PointBase {
     path: Vector3<f64>,
     /// The sky irradiance per unit `f00_diffuse`, transmitted up.
     e_sky: f64,
-    /// The band sky's per-node coefficients (`Prepared::band_sky`).
-    up: Vec<f64>,
+    /// The ray's material-independent terms (its band sky's coefficients and tables).
+    ray: Arc<RayTerms>,
 }
 
 /// The largest angle of a ray from the field's centre for [`Prepared::points_paired`]: the
@@ -637,6 +660,8 @@ pub struct Prepared {
     table_error: f64,
     tol: f64,
     evaluations: usize,
+    /// [`Prepared::ray_terms`]' rays so far.
+    rays: Mutex<HashMap<[u64; 3], Arc<RayTerms>>>,
 }
 
 impl Prepared {
@@ -841,6 +866,7 @@ impl Prepared {
             table_error,
             tol,
             evaluations,
+            rays: Mutex::new(HashMap::new()),
         })
     }
 
@@ -874,7 +900,46 @@ impl Prepared {
     /// The band sky `sum_k c_k (A_k, B_k)` for per-node coefficients `c_k` (node weight times
     /// the ground-to-sensor transmittance).
     fn band_sky(&self, coefficients: &[f64], coarse_table: bool) -> BandSky<'_> {
-        let table_sky = matches!(self.sky, Sky::Table(_));
+        self.band_sky_with(
+            Arc::new(self.band_tables(coefficients)),
+            coefficients,
+            coarse_table,
+        )
+    }
+
+    /// [`Prepared::band_sky`] of a field ray, its tables built once for every material.
+    fn ray_sky(&self, ray: &RayTerms, coarse_table: bool) -> BandSky<'_> {
+        let tables = Arc::clone(
+            ray.tables
+                .get_or_init(|| Arc::new(self.band_tables(&ray.up))),
+        );
+        self.band_sky_with(tables, &ray.up, coarse_table)
+    }
+
+    fn band_sky_with(
+        &self,
+        tables: Arc<BandTables>,
+        coefficients: &[f64],
+        coarse_table: bool,
+    ) -> BandSky<'_> {
+        let w: f64 = self.nodes.iter().map(|n| n.weight).sum();
+        BandSky {
+            prepared: self,
+            tables,
+            table_scale: coefficients.iter().sum::<f64>() / w,
+            coarse_table,
+        }
+    }
+
+    /// The tables `sum_k c_k A_k` and `sum_k c_k B_k` (none for a tabulated sky, which
+    /// replaces the single-scattering tables).
+    fn band_tables(&self, coefficients: &[f64]) -> BandTables {
+        if matches!(self.sky, Sky::Table(_)) {
+            return BandTables {
+                a: Vec::new(),
+                b: Vec::new(),
+            };
+        }
         let combine = |tables: &[Vec<f64>]| -> Vec<f64> {
             let mut out = vec![0.0; tables[0].len()];
             for (t, c) in tables.iter().zip(coefficients) {
@@ -884,20 +949,47 @@ impl Prepared {
             }
             out
         };
-        let w: f64 = self.nodes.iter().map(|n| n.weight).sum();
-        // A tabulated sky replaces the single-scattering tables.
-        let (a, b) = if table_sky {
-            (Vec::new(), Vec::new())
-        } else {
-            (combine(&self.table_a), combine(&self.table_b))
-        };
-        BandSky {
-            prepared: self,
-            a,
-            b,
-            table_scale: coefficients.iter().sum::<f64>() / w,
-            coarse_table,
+        BandTables {
+            a: combine(&self.table_a),
+            b: combine(&self.table_b),
         }
+    }
+
+    /// The material-independent terms of the ray of `tile`: computed on the first request and
+    /// kept (keyed by the exact view direction, which [`Field::ray`] gives every material
+    /// alike), so that the materials of a scene share each ray's transmittances, path radiance
+    /// and band-sky tables. Errors name the field as [`Atmosphere::path`] does.
+    fn ray_terms(&self, tile: &Tile) -> Result<Arc<RayTerms>, ModelError> {
+        let view = tile.omega_view;
+        let key = [view.x.to_bits(), view.y.to_bits(), view.z.to_bits()];
+        let lock = || self.rays.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(r) = lock().get(&key) {
+            return Ok(Arc::clone(r));
+        }
+        let mu0 = self.sun.z;
+        let altitude = self.spec.pointing.altitude_m;
+        let mut e_dir = 0.0;
+        let mut e_sky = 0.0;
+        let mut path = Vector3::zeros();
+        let mut up = Vec::with_capacity(self.nodes.len());
+        for n in &self.nodes {
+            let p = self.atmosphere.path(n.nm, &self.sun, &view, altitude)?;
+            let t = p.transmittance * n.weight;
+            up.push(t);
+            e_dir += t * n.t_sun * mu0;
+            e_sky += t * n.e_sky;
+            path += p.radiance.0 * n.weight;
+        }
+        let terms = Arc::new(RayTerms {
+            up,
+            e_dir,
+            e_sky,
+            path,
+            tables: OnceLock::new(),
+        });
+        // Another thread may have computed the same ray meanwhile: the first one kept is
+        // everyone's (the two are equal to the bit).
+        Ok(Arc::clone(lock().entry(key).or_insert(terms)))
     }
 
     /// [`Prepared::point`] at each of `tiles`, in parallel (rayon's pool: `RAYON_NUM_THREADS`
@@ -971,7 +1063,7 @@ impl Prepared {
             .par_iter()
             .map(|t| {
                 let base = self.point_base(surface, f00_diffuse, t, inc)?;
-                let sky = self.band_sky(&base.up, inc.coarse_table);
+                let sky = self.ray_sky(&base.ray, inc.coarse_table);
                 let pair = specular_level_pair(lobe, &sky, &t.omega_view, hint)?;
                 Ok((base, sky, pair))
             })
@@ -1032,24 +1124,10 @@ impl Prepared {
         tile: &Tile,
         inc: Include,
     ) -> Result<PointBase, ModelError> {
-        let view = tile.omega_view;
-        let mu0 = self.sun.z;
+        let ray = self.ray_terms(tile)?;
         let f = surface.specular(&tile.geometry);
-        let altitude = self.spec.pointing.altitude_m;
-        let mut e_dir = 0.0;
-        let mut e_sky = 0.0;
-        let mut path = Vector3::zeros();
-        let mut up = Vec::with_capacity(self.nodes.len());
-        for n in &self.nodes {
-            let p = self.atmosphere.path(n.nm, &self.sun, &view, altitude)?;
-            let t = p.transmittance * n.weight;
-            up.push(t);
-            e_dir += t * n.t_sun * mu0;
-            e_sky += t * n.e_sky;
-            if inc.path {
-                path += p.radiance.0 * n.weight;
-            }
-        }
+        let e_dir = ray.e_dir;
+        let mut e_sky = ray.e_sky;
         if inc.coarse_table {
             if let Sky::Table(t) = &self.sky {
                 e_sky *= t.e_coarse / t.e_full.max(1e-300);
@@ -1060,9 +1138,9 @@ impl Prepared {
         surface_part[0] += f00_diffuse * e_dir;
         Ok(PointBase {
             surface: surface_part,
-            path,
+            path: if inc.path { ray.path } else { Vector3::zeros() },
             e_sky,
-            up,
+            ray,
         })
     }
 
@@ -1093,7 +1171,7 @@ impl Prepared {
     ) -> Result<Point, ModelError> {
         let base = self.point_base(surface, f00_diffuse, tile, inc)?;
         let sky = if inc.skylight {
-            let sky = self.band_sky(&base.up, inc.coarse_table);
+            let sky = self.ray_sky(&base.ray, inc.coarse_table);
             let start_level = inc.hint.map_or(0, |level| level.saturating_sub(2));
             Some(reflected_skylight(
                 surface,
@@ -1940,6 +2018,19 @@ mod tests {
         let one = run(1);
         assert!(one.iter().all(|r| r.terms.field_order > 1), "{one:?}");
         assert_eq!(one, run(4));
+    }
+
+    /// Materials evaluated together share each field ray's atmosphere terms and band-sky tables
+    /// (`Prepared::ray_terms`); each one's result is equal to the bit to its result alone.
+    #[test]
+    fn shared_ray_terms_change_nothing() {
+        let s = spec(30.0, 60.0, 300.0, 8.0);
+        let materials = [glass(0.1), asphalt(), glass(0.4)];
+        let together = evaluate(&s, &materials, 1e-4).unwrap();
+        for (m, t) in materials.iter().zip(&together) {
+            let alone = evaluate(&s, std::slice::from_ref(m), 1e-4).unwrap();
+            assert_eq!(&alone[0], t);
+        }
     }
 
     /// From 10 km, path radiance is a large part of the signal.
