@@ -958,7 +958,10 @@ impl Prepared {
     /// The material-independent terms of the ray of `tile`: computed on the first request and
     /// kept (keyed by the exact view direction, which [`Field::ray`] gives every material
     /// alike), so that the materials of a scene share each ray's transmittances, path radiance
-    /// and band-sky tables. Errors name the field as [`Atmosphere::path`] does.
+    /// and band-sky tables. A scene has at most a few hundred distinct rays (the field's
+    /// Gauss-Legendre orders up to 12 x 12, the interpolant's and the probes'), each with two
+    /// tables of at most 4097 values when its skylight is integrated: a few MB at the most,
+    /// freed with the `Prepared`. Errors name the field as [`Atmosphere::path`] does.
     fn ray_terms(&self, tile: &Tile) -> Result<Arc<RayTerms>, ModelError> {
         let view = tile.omega_view;
         let key = [view.x.to_bits(), view.y.to_bits(), view.z.to_bits()];
