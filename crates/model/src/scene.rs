@@ -492,9 +492,8 @@ impl SkyFit {
             .into_iter()
             .map(|((i, j), c)| {
                 let (nodes_u, nodes_v) = (LOBATTO_LEVELS[i], LOBATTO_LEVELS[j]);
-                let values = nodes_u
-                    .iter()
-                    .flat_map(|&u| nodes_v.iter().map(move |&v| (u, v)))
+                let values = grid(nodes_u, nodes_v)
+                    .into_iter()
                     .map(|(u, v)| value_at(u, v))
                     .collect();
                 let t = TensorFit {
@@ -539,6 +538,15 @@ const LOBATTO_LEVELS: [&[f64]; 3] = [
         1.0,
     ],
 ];
+
+/// The rays `(u, v)` of the grid `nodes_u x nodes_v`, `v` fastest (the order of
+/// [`TensorFit::values`]).
+fn grid(nodes_u: &[f64], nodes_v: &[f64]) -> Vec<(f64, f64)> {
+    nodes_u
+        .iter()
+        .flat_map(|&u| nodes_v.iter().map(move |&v| (u, v)))
+        .collect()
+}
 
 /// The largest level in direction `axis` (0: `u`, 1: `v`) of a set's pairs on that axis.
 fn set_max(set: &[(usize, usize)], axis: usize) -> usize {
@@ -1294,12 +1302,6 @@ impl Prepared {
         };
         let g = 1.0 / 3f64.sqrt();
         let check_coords = [(-g, -g), (g, -g), (-g, g), (g, g)];
-        let grid = |nodes_u: &[f64], nodes_v: &[f64]| -> Vec<(f64, f64)> {
-            nodes_u
-                .iter()
-                .flat_map(|&u| nodes_v.iter().map(move |&v| (u, v)))
-                .collect()
-        };
         // The rays of a set of level pairs, each once, in the order of the set.
         let set_rays = |set: &[(usize, usize)]| -> Vec<(f64, f64)> {
             let mut out: Vec<(f64, f64)> = Vec::new();

@@ -1618,19 +1618,14 @@ mod tests {
         assert!(r.converged, "{r:?}");
     }
 
-    /// The vegetation lobe's product rule over the hemisphere: its reported error covers its
-    /// actual error against the same rule far past convergence (64 points per arc and piece,
-    /// itself within 2e-8 of S0 of the adaptive rule), views from nadir to 75 deg (beyond, the
-    /// adaptive rule is used: see [`direct_skylight`]), the sun in front and behind, at 1e-3
-    /// and 1e-6 of S0.
     /// At a view exactly at the zenith the reflected skylight is in the frame the field's tiles
     /// give that view (`tiles::reflected_frame_x`: as if seen from the sun's azimuth), one frame
     /// for every incident ray: equal, to 2e-5 of S0, to a view tilted 1e-4 deg towards the
     /// sun's azimuth (the integral moves by its slope, up to about 2 S0 per radian here, times
     /// 1.7e-6 rad: 3.8e-6 of S0 measured; both integrals to 1e-9, 4e-8 of S0 or less), for a
-    /// microfacet and a vegetation lobe; with the
-    /// sun at the zenith too, unpolarised to 1e-8 (symmetry). Summed in a frame that follows
-    /// each incident ray, the glass at nadir under the zenith sun had a DoLP of 4.7 %.
+    /// microfacet and a vegetation lobe; with the sun at the zenith too, unpolarised to 1e-8
+    /// (symmetry). Summed in a frame that follows each incident ray, the glass at nadir under
+    /// the zenith sun had a DoLP of 4.7 %.
     #[test]
     fn zenith_view_takes_the_tiles_frame() {
         let leaf = Surface::vegetation(RefractiveIndex::new(1.5, 0.0).unwrap(), 0.01).unwrap();
@@ -1660,6 +1655,11 @@ mod tests {
         }
     }
 
+    /// The vegetation lobe's product rule over the hemisphere: its reported error covers its
+    /// actual error against the same rule far past convergence (64 points per arc and piece,
+    /// itself within 2e-8 of S0 of the adaptive rule), views from nadir to 75 deg (beyond, the
+    /// adaptive rule is used: see [`direct_skylight`]), the sun in front and behind, at 1e-3
+    /// and 1e-6 of S0.
     #[test]
     fn hemisphere_product_rule_error_covers_the_actual_error() {
         let leaf = Surface::vegetation(RefractiveIndex::new(1.5, 0.0).unwrap(), 0.01).unwrap();
