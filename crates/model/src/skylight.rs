@@ -21,8 +21,9 @@
 //! (docs/BENCHMARKS.md, "Scene evaluation"). The rule's levels may start above the first
 //! ([`reflected_skylight`]'s `start_level`), for rays next to one whose level is known; and a
 //! batch of such rays, on a microfacet, may be accepted on two levels each, with the largest
-//! change over the batch as every ray's error (`specular_level_pair`, validated by
-//! `field_pair_study`), which halves the cost of the scene's field rays.
+//! change over the batch as every ray's error (`level_pair`, validated by
+//! `field_pair_study`), which halves the cost of the scene's field rays; vegetation's batches
+//! likewise, on twice that change (`vegetation_pair_study`).
 //!
 //! The Lambertian part is `f00_d` times the sky irradiance, and the vegetation lobe, which is
 //! broad, is integrated over the hemisphere directly, by the same kind of product rule. Every
@@ -560,7 +561,7 @@ pub(crate) enum Start<'p> {
 
 /// One ray's specular skylight at two adjacent product-rule levels, not yet accepted: a
 /// batch of neighbouring rays is accepted together on the largest of their changes
-/// ([`specular_level_pair`]), or each ray resumes its own ladder from here
+/// ([`level_pair`]), or each ray resumes its own ladder from here
 /// ([`reflected_skylight_at`]).
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct LevelPair {
@@ -570,6 +571,12 @@ pub(crate) struct LevelPair {
     upper: [f64; 3],
     /// The truncation error every result carries.
     floor: f64,
+    /// The factor on the batch's largest change ([`PairRule::safety`]).
+    safety: f64,
+    /// The change into `lower` from the level below it (a [`next_pair`]'s: the first pair's
+    /// step), infinite for a first pair: with [`LevelPair::step`], the two changes the
+    /// [`ladder`]'s own test takes.
+    lower_change: f64,
     evaluations: usize,
 }
 
@@ -579,10 +586,10 @@ impl LevelPair {
         max_abs::<3>(&std::array::from_fn(|i| self.upper[i] - self.lower[i]))
     }
 
-    /// [`LevelPair::step`] plus the truncation: the upper level's error, as the largest over a
-    /// batch ([`specular_level_pair`]).
+    /// [`LevelPair::step`] times the rule's safety factor, plus the truncation: the upper
+    /// level's error, as the largest over a batch ([`level_pair`]).
     pub(crate) fn error(&self) -> f64 {
-        self.step() + self.floor
+        self.safety * self.step() + self.floor
     }
 
     /// The largest component of the upper level's value.
@@ -604,51 +611,91 @@ impl LevelPair {
     }
 }
 
-/// The lowest level a batch's [`ladder`]s must have been accepted at (`hint`) before its
-/// neighbours may be accepted on one change (`specular_level_pair`).
+/// When a batch of a surface's rays may be accepted on level pairs ([`level_pair`]): the
+/// lowest and highest level the neighbours' [`ladder`]s must have been accepted at (`hint`),
+/// and the factor on the batch's largest change that is then every ray's error.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct PairRule {
+    /// The lowest admissible hint.
+    pub(crate) min_hint: usize,
+    /// The highest admissible hint.
+    pub(crate) max_hint: usize,
+    /// The factor on the batch's largest change.
+    pub(crate) safety: f64,
+}
+
+/// The [`PairRule`] of `surface`, each validated by a study over fields of +-4 and +-6 deg
+/// (5 skies with an aureole, views 8-68 deg from the normal, tolerances 1e-2 to 1e-8 of S0):
+///
+/// - A microfacet (`field_pair_study`: a dielectric and a metal, sigma 0.02-1): hints from
+///   [`PAIR_MIN_HINT`] on, the largest change as it is. None of 132 624 rays in accepted
+///   batches was further from the truth than that change (the worst at 0.89 of it); below
+///   that hint rays were, by up to 81x.
+/// - Vegetation's hemisphere rule (`vegetation_pair_study`: leaf indices 1.4-1.6): hints 2-7,
+///   twice the largest change. With the change as it is, rays were short of it by up to 1.28x
+///   at hints 5-6; twice it, none of 18 132 rays in admitted batches was, the worst at 0.67 of
+///   the claim. At hint 8 (the top level) rays were short by up to 28x even so (one sun, views
+///   8-25 deg: level 7's change into level 8 far below its error), so such batches keep their
+///   ladders.
+pub(crate) fn pair_rule(surface: &Surface) -> PairRule {
+    match surface {
+        Surface::Microfacet { .. } => PairRule {
+            min_hint: PAIR_MIN_HINT,
+            max_hint: GAUSS_LEVELS.len() - 1,
+            safety: 1.0,
+        },
+        Surface::Vegetation { .. } => PairRule {
+            min_hint: 2,
+            max_hint: GAUSS_LEVELS.len() - 2,
+            safety: 2.0,
+        },
+    }
+}
+
+/// The lowest level a batch's microfacet [`ladder`]s must have been accepted at (`hint`)
+/// before its neighbours may be accepted on one change ([`pair_rule`]).
 pub(crate) const PAIR_MIN_HINT: usize = 4;
 
-/// The specular skylight of a microfacet `lobe` (not vegetation: its hemisphere rule failed
-/// the same study, rays short of their batch's change by up to 1.3x at hints 5-6 and 56x at
-/// the top levels)
-/// at product-rule levels `hint - 2` and `hint - 1`, for a batch of rays near rays whose ladders
-/// were accepted at level `hint` (at least [`PAIR_MIN_HINT`]) to the batch's tolerance.
+/// The skylight of `surface`'s polarising lobe (without the Lambertian term) at product-rule
+/// levels `hint - 2` and `hint - 1`, for a batch of rays near rays whose ladders were accepted
+/// at level `hint` (admitted by [`pair_rule`]) to the batch's tolerance.
 ///
 /// One change alone is not an honest error (`ladder`: it fell short in 6-8 % of single rays,
-/// by up to 11x). For a batch it is taken as the largest change over the batch, once the
-/// neighbours' ladders showed that levels from `hint - 2` on converge: a change small by a
-/// coincidence of two levels' errors at one ray is not small at all of its neighbours, whose
-/// errors vary smoothly with the view (the rule's pieces move continuously with it). Measured
-/// (`field_pair_study`: 5 skies with an aureole, a dielectric and a metal, sigma 0.02-1,
-/// views 8-68 deg from the normal, fields of +-4 and +-6 deg, tolerances 1e-2 to 1e-8 of S0):
-/// with `hint >= 4`, none of 132 624 rays in accepted batches was further from the truth than
-/// the batch's largest change (the worst at 0.89 of it). Without those limits it was, by up
-/// to 81x for hints below 4 and 7x for views 78-88 deg from the normal, so such batches keep
-/// their own ladders.
-pub(crate) fn specular_level_pair<S: SkyRadiance + ?Sized>(
-    lobe: &Microfacet,
+/// by up to 11x). For a batch it is taken as the largest change over the batch (times the
+/// rule's safety factor), once the neighbours' ladders showed that levels from `hint - 2` on
+/// converge: a change small by a coincidence of two levels' errors at one ray is not small at
+/// all of its neighbours, whose errors vary smoothly with the view (the rule's pieces move
+/// continuously with it). The validation is [`pair_rule`]'s.
+pub(crate) fn level_pair<S: SkyRadiance + ?Sized>(
+    surface: &Surface,
     sky: &S,
     omega_view: &Vector3<f64>,
     hint: usize,
 ) -> Result<LevelPair, ModelError> {
     let level = hint.clamp(2, GAUSS_LEVELS.len() - 1) - 2;
-    let (lower, e0) = slope_level(lobe, sky, omega_view, level)?;
-    let (upper, e1) = slope_level(lobe, sky, omega_view, level + 1)?;
+    let (lower, e0) = rule_level(surface, sky, omega_view, level)?;
+    let (upper, e1) = rule_level(surface, sky, omega_view, level + 1)?;
     Ok(LevelPair {
         level,
         lower,
         upper,
-        floor: slope_truncation(sky),
+        floor: match surface {
+            Surface::Microfacet { .. } => slope_truncation(sky),
+            Surface::Vegetation { .. } => 0.0,
+        },
+        safety: pair_rule(surface).safety,
+        lower_change: f64::INFINITY,
         evaluations: e0 + e1,
     })
 }
 
 /// The batch's next pair for one ray: `pair`'s upper level and the level above it (same
-/// lobe, sky and view as `pair`), when a batch's first pairs fell short of its tolerance;
+/// surface, sky and view as `pair`), when a batch's first pairs fell short of its tolerance;
 /// `None` when no level is left above (or none after it for a ladder to resume on).
-/// Validated as the first pairs are (`field_pair_study`: one such step).
-pub(crate) fn specular_next_pair<S: SkyRadiance + ?Sized>(
-    lobe: &Microfacet,
+/// Validated as the first pairs are (`field_pair_study`, `vegetation_pair_study`: one such
+/// step).
+pub(crate) fn next_pair<S: SkyRadiance + ?Sized>(
+    surface: &Surface,
     sky: &S,
     omega_view: &Vector3<f64>,
     pair: &LevelPair,
@@ -657,14 +704,37 @@ pub(crate) fn specular_next_pair<S: SkyRadiance + ?Sized>(
     if level + 2 >= GAUSS_LEVELS.len() {
         return Ok(None);
     }
-    let (upper, e) = slope_level(lobe, sky, omega_view, level + 1)?;
+    let (upper, e) = rule_level(surface, sky, omega_view, level + 1)?;
     Ok(Some(LevelPair {
         level,
         lower: pair.upper,
         upper,
-        floor: pair.floor,
+        lower_change: pair.step(),
         evaluations: pair.evaluations + e,
+        ..*pair
     }))
+}
+
+/// The skylight of `surface`'s polarising lobe by the product rule at `GAUSS_LEVELS[level]`:
+/// in facet-slope space for a microfacet ([`slope_level`]), over the hemisphere for
+/// vegetation ([`direct_skylight`]'s rule; the adaptive rule it takes at views within 15 deg
+/// of the horizon is not a level, and [`pair_rule`]'s validation stopped at 68 deg).
+fn rule_level<S: SkyRadiance + ?Sized>(
+    surface: &Surface,
+    sky: &S,
+    omega_view: &Vector3<f64>,
+    level: usize,
+) -> Result<([f64; 3], usize), ModelError> {
+    match surface {
+        Surface::Microfacet { lobe, .. } => slope_level(lobe, sky, omega_view, level),
+        Surface::Vegetation { .. } => {
+            check_view(omega_view)?;
+            let g = direction_integrand(surface, sky, omega_view);
+            let (phi_splits, mu_splits) = hemisphere_splits(sky, omega_view);
+            let (n, q) = GAUSS_LEVELS[level];
+            Ok(hemisphere_gauss(&g, n, q, &phi_splits, &mu_splits))
+        }
+    }
 }
 
 /// The specular skylight of a microfacet `lobe` by the product rule at `GAUSS_LEVELS[level]`:
@@ -705,7 +775,25 @@ fn ladder(
             let (value, e) = rule(n, q);
             (level, value, e, f64::INFINITY)
         }
-        Start::After(pair) => (pair.level + 1, pair.upper, pair.evaluations, pair.step()),
+        Start::After(pair) => {
+            // The pair's upper level passes the ladder's own test when the two changes it
+            // already has (into each of the pair's levels) are within the tolerance: a batch
+            // that failed on its largest change (or its safety factor) takes no level more than
+            // a ladder would at such a ray.
+            let error = pair.step().max(pair.lower_change) + floor;
+            if error <= tol.target(max_abs(&pair.upper)) {
+                return StokesIntegral {
+                    level: Some(pair.level + 1),
+                    ..StokesIntegral::from(IntegralN {
+                        value: pair.upper,
+                        error,
+                        evaluations: pair.evaluations,
+                        converged: true,
+                    })
+                };
+            }
+            (pair.level + 1, pair.upper, pair.evaluations, pair.step())
+        }
     };
     let mut best = (previous, f64::INFINITY);
     for (level, &(n, q)) in GAUSS_LEVELS.iter().enumerate().skip(first + 1) {
@@ -880,8 +968,8 @@ pub fn reflected_skylight<S: SkyRadiance + ?Sized>(
 }
 
 /// [`reflected_skylight`] from any [`Start`]: `Start::After(pair)` resumes the ladder of a ray
-/// whose batch was not accepted on its pairs (`pair` from [`specular_level_pair`] or
-/// [`specular_next_pair`] for the same surface, sky and view), with the usual error test.
+/// whose batch was not accepted on its pairs (`pair` from [`level_pair`] or [`next_pair`]
+/// for the same surface, sky and view), with the usual error test.
 pub(crate) fn reflected_skylight_at<S: SkyRadiance + ?Sized>(
     surface: &Surface,
     f00_diffuse: f64,
@@ -985,15 +1073,7 @@ fn direct_skylight_from<S: SkyRadiance + ?Sized>(
     check_view(omega_view)?;
     let f = hemisphere_integrand(surface, sky, omega_view);
     let g = direction_integrand(surface, sky, omega_view);
-    // The integrand is smooth but at two points: light from the sensor's own direction (the
-    // facet frame is 0/0 there) and the sky's peak; the product rule's lines pass through both.
-    let azimuth = |d: &Vector3<f64>| d.y.atan2(d.x);
-    let mut phi_splits = vec![azimuth(omega_view)];
-    let mut mu_splits = vec![omega_view.z];
-    if let Some(p) = sky.peak().filter(|p| p.z > 0.0) {
-        phi_splits.push(azimuth(&p));
-        mu_splits.push(p.z);
-    }
+    let (phi_splits, mu_splits) = hemisphere_splits(sky, omega_view);
     let adaptive = || integrate_periodic_split_n(f, (0.0, 2.0 * PI), (0.0, 1.0), |_, _| {}, tol);
     if omega_view.z < DIRECT_PRODUCT_MIN_COS_VIEW {
         return Ok(adaptive().into());
@@ -1005,6 +1085,23 @@ fn direct_skylight_from<S: SkyRadiance + ?Sized>(
         0.0,
         start,
     ))
+}
+
+/// The azimuths and `mu` at which [`hemisphere_gauss`] splits for `omega_view`: the
+/// integrand is smooth but at two points, light from the sensor's own direction (the facet
+/// frame is 0/0 there) and the sky's peak, and the product rule's lines pass through both.
+fn hemisphere_splits<S: SkyRadiance + ?Sized>(
+    sky: &S,
+    omega_view: &Vector3<f64>,
+) -> (Vec<f64>, Vec<f64>) {
+    let azimuth = |d: &Vector3<f64>| d.y.atan2(d.x);
+    let mut phi_splits = vec![azimuth(omega_view)];
+    let mut mu_splits = vec![omega_view.z];
+    if let Some(p) = sky.peak().filter(|p| p.z > 0.0) {
+        phi_splits.push(azimuth(&p));
+        mu_splits.push(p.z);
+    }
+    (phi_splits, mu_splits)
 }
 
 /// `cos 75 deg`: views closer to the horizon than this integrate the vegetation lobe with the
@@ -1392,10 +1489,10 @@ mod tests {
         assert_eq!(cases, 80);
     }
 
-    /// A batch of level pairs (`specular_level_pair`) over a field of +-4 deg around the
+    /// A batch of level pairs (`level_pair`) over a field of +-4 deg around the
     /// rooftop's view (60 deg off the normal), hinted by the centre ray's ladder: when the
     /// batch is accepted on its largest change (first pairs, or the next pairs after one
-    /// `specular_next_pair`), every ray's upper level is within that change of the ray far
+    /// `next_pair`), every ray's upper level is within that change of the ray far
     /// past convergence; when it is not, each resumed ladder meets the usual test. Paint,
     /// asphalt and glass lobes and a metal, the sun's aureole in and out of the lobe, at 1e-4
     /// and 1e-5 of S0. Most batches are accepted, and they cost less than hinted ladders would
@@ -1414,6 +1511,7 @@ mod tests {
             for (n, k, sigma) in lobes {
                 let lobe = Microfacet::new(RefractiveIndex::new(n, k).unwrap(), sigma).unwrap();
                 let eps = lobe.index().permittivity();
+                let surface = Surface::Microfacet { lobe, dhr: 0.1 };
                 let view = |du: f64, dv: f64| direction_from_deg(60.0 + du, 300.0 + dv);
                 let centre = view(0.0, 0.0);
                 let reference = SlopeIntegrand::new(eps, sigma, &sky, &centre)
@@ -1437,7 +1535,7 @@ mod tests {
                     batches += 1;
                     let mut pairs: Vec<LevelPair> = others
                         .iter()
-                        .map(|v| specular_level_pair(&lobe, &sky, v, hint).unwrap())
+                        .map(|v| level_pair(&surface, &sky, v, hint).unwrap())
                         .collect();
                     let (mut error, mut ok, mut stepped) = (0.0, false, false);
                     for step in 0..2 {
@@ -1449,7 +1547,7 @@ mod tests {
                         let next: Option<Vec<LevelPair>> = pairs
                             .iter()
                             .zip(&others)
-                            .map(|(p, v)| specular_next_pair(&lobe, &sky, v, p).unwrap())
+                            .map(|(p, v)| next_pair(&surface, &sky, v, p).unwrap())
                             .collect();
                         match next {
                             Some(next) => (pairs, stepped) = (next, true),
@@ -1501,6 +1599,167 @@ mod tests {
             "{accepted} of {batches} batches accepted ({escalated} after a step up); \
              {pair_cost} evaluations against {ladder_cost}"
         );
+    }
+
+    /// Vegetation's batches of level pairs (`level_pair` on its hemisphere rule) over a field
+    /// of +-4 deg around the rooftop's view (60 deg off the normal), hinted by the centre ray's
+    /// ladder, as [`pair_rule`] admits them: an accepted batch's rays are within their claim
+    /// (twice the batch's largest change) of the rule far past convergence (128 x 64, itself
+    /// within 2e-11 of S0 of 96 x 48 in `vegetation_pair_study`), and a batch that is not
+    /// accepted resumes each ray's ladder, which is then exactly the ladder a hint would have
+    /// run (same value, error and evaluations: the pair's upper level is tested as the ladder
+    /// tests it). Leaf indices 1.4 and 1.5, two suns, at 1e-4 and 1e-5 of S0.
+    #[test]
+    fn vegetation_level_pairs_are_within_their_batch_error() {
+        let (mut batches, mut accepted) = (0, 0);
+        let (mut pair_cost, mut ladder_cost) = (0, 0);
+        for sky in [aureole(25.0, 130.0), aureole(60.0, 300.0)] {
+            for n in [1.4, 1.5] {
+                let surface =
+                    Surface::vegetation(RefractiveIndex::new(n, 0.0).unwrap(), 0.01).unwrap();
+                let rule = pair_rule(&surface);
+                let view = |du: f64, dv: f64| direction_from_deg(60.0 + du, 300.0 + dv);
+                let truth = |v: &Vector3<f64>| {
+                    let (phis, mus) = hemisphere_splits(&sky, v);
+                    let f = direction_integrand(&surface, &sky, v);
+                    hemisphere_gauss(&f, 128, 64, &phis, &mus).0
+                };
+                let centre = view(0.0, 0.0);
+                let s0 = truth(&centre)[0];
+                let others: Vec<Vector3<f64>> = [-4.0, 0.0, 4.0]
+                    .iter()
+                    .flat_map(|&du| [-4.0, 0.0, 4.0].map(|dv| (du, dv)))
+                    .filter(|&(du, dv)| du != 0.0 || dv != 0.0)
+                    .map(|(du, dv)| view(du, dv))
+                    .collect();
+                for rel in [1e-4, 1e-5] {
+                    let tol = Tolerance::absolute(rel * s0);
+                    let hint = direct_skylight(&surface, &sky, &centre, tol)
+                        .unwrap()
+                        .level
+                        .unwrap();
+                    if !(rule.min_hint..=rule.max_hint).contains(&hint) {
+                        continue;
+                    }
+                    batches += 1;
+                    let mut pairs: Vec<LevelPair> = others
+                        .iter()
+                        .map(|v| level_pair(&surface, &sky, v, hint).unwrap())
+                        .collect();
+                    let (mut error, mut ok) = (0.0, false);
+                    for step in 0..2 {
+                        error = pairs.iter().fold(0.0f64, |m, p| m.max(p.error()));
+                        ok = pairs.iter().all(|p| error <= tol.target(p.scale()));
+                        if ok || step == 1 {
+                            break;
+                        }
+                        let next: Option<Vec<LevelPair>> = pairs
+                            .iter()
+                            .zip(&others)
+                            .map(|(p, v)| next_pair(&surface, &sky, v, p).unwrap())
+                            .collect();
+                        match next {
+                            Some(next) => pairs = next,
+                            None => break,
+                        }
+                    }
+                    for (v, pair) in others.iter().zip(&pairs) {
+                        let case = format!("n {n} view {v:?} rel {rel} hint {hint}");
+                        let hinted =
+                            direct_skylight_from(&surface, &sky, v, tol, Start::Level(hint - 2))
+                                .unwrap();
+                        ladder_cost += hinted.evaluations;
+                        let r = if ok {
+                            pair.accept(error, 0.0, 0.0)
+                        } else {
+                            let r = reflected_skylight_at(
+                                &surface,
+                                0.0,
+                                0.0,
+                                &sky,
+                                v,
+                                tol,
+                                Start::After(pair),
+                            )
+                            .unwrap();
+                            assert_eq!(r.stokes.0, hinted.stokes.0, "{case}");
+                            assert_eq!(r.error, hinted.error, "{case}");
+                            assert_eq!(r.evaluations, hinted.evaluations, "{case}");
+                            r
+                        };
+                        pair_cost += r.evaluations;
+                        assert_honest(&r, &truth(v), 1e-13 * s0, &case);
+                    }
+                    accepted += usize::from(ok);
+                }
+            }
+        }
+        assert!(batches >= 6, "{batches} batches");
+        assert!(2 * accepted >= batches, "{accepted} of {batches} accepted");
+        assert!(pair_cost < ladder_cost, "{pair_cost} against {ladder_cost}");
+        println!("{accepted} of {batches} batches accepted; {pair_cost} evaluations against {ladder_cost}");
+    }
+
+    /// A ray whose batch was not accepted resumes its ladder after its first pair or after its
+    /// next pair, and either way gets exactly what the ladder from the first pair's lower level
+    /// gets (value, error, level and evaluations): the next pair's upper level is tested with
+    /// the two changes the ladder would test it with, so a failed batch costs no level more than
+    /// a hinted ladder. Before this test, a ray resumed after its next pair was first tested one
+    /// level up (a vegetation field at 1e-6 cost 194 k evaluations instead of 149 k). A
+    /// microfacet and vegetation, views 25 and 60 deg from the normal, 1e-3 to 1e-7 of S0,
+    /// hints 3-6.
+    #[test]
+    fn resumed_ladders_equal_hinted_ladders() {
+        let sky = aureole(33.6, 115.0);
+        let surfaces = [
+            Surface::microfacet(RefractiveIndex::new(1.5, 0.0).unwrap(), 0.3, 0.1).unwrap(),
+            Surface::vegetation(RefractiveIndex::new(1.5, 0.0).unwrap(), 0.01).unwrap(),
+        ];
+        let mut compared = 0;
+        for surface in &surfaces {
+            for view in [
+                direction_from_deg(25.0, 30.0),
+                direction_from_deg(60.0, 300.0),
+            ] {
+                let s0 = rule_level(surface, &sky, &view, 6).unwrap().0[0];
+                for rel in [1e-3, 1e-5, 1e-7] {
+                    let tol = Tolerance::absolute(rel * s0);
+                    for hint in 3..=6 {
+                        let first = level_pair(surface, &sky, &view, hint).unwrap();
+                        let next = next_pair(surface, &sky, &view, &first).unwrap().unwrap();
+                        let hinted = reflected_skylight_at(
+                            surface,
+                            0.0,
+                            0.0,
+                            &sky,
+                            &view,
+                            tol,
+                            Start::Level(hint - 2),
+                        )
+                        .unwrap();
+                        for pair in [&first, &next] {
+                            let r = reflected_skylight_at(
+                                surface,
+                                0.0,
+                                0.0,
+                                &sky,
+                                &view,
+                                tol,
+                                Start::After(pair),
+                            )
+                            .unwrap();
+                            let case = format!("{surface:?} {view:?} rel {rel} hint {hint}");
+                            assert_eq!(r.stokes.0, hinted.stokes.0, "{case}");
+                            assert_eq!(r.error, hinted.error, "{case}");
+                            assert_eq!(r.level, hinted.level, "{case}");
+                            assert_eq!(r.evaluations, hinted.evaluations, "{case}");
+                            compared += 1;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(compared >= 60, "{compared} compared");
     }
 
     /// The product rule meets the tolerance with fewer than three quarters of the adaptive
@@ -1748,7 +2007,165 @@ mod tests {
             }
         }
 
-        /// The validation of [`specular_level_pair`] and [`specular_next_pair`]: fields of +-4 and
+        /// The validation of [`level_pair`] and [`next_pair`] on vegetation (its hemisphere
+        /// rule): fields of +-4 and +-6 deg around views 8-68 deg from the normal, 5 suns with
+        /// an aureole, leaf indices 1.4-1.6, tolerances 1e-2 to 1e-8 of the centre's S0; the
+        /// centre's ladder hints the other 12 rays (corners, edges and checks). For safety
+        /// factors 1-3 on the batch's largest change, which hints keep every ray within its
+        /// claim; the adopted [`pair_rule`] must keep all of them.
+        #[test]
+        #[ignore = "a study: about 1 minute"]
+        fn vegetation_pair_study() {
+            let suns = [
+                (33.6, 115.0),
+                (70.0, 300.0),
+                (10.0, 0.0),
+                (25.0, 130.0),
+                (85.0, 200.0),
+            ];
+            let fast = std::env::var("FAST").is_ok();
+            let halves: &[f64] = if fast { &[4.0] } else { &[4.0, 6.0] };
+            let safeties = [1.0, 1.5, 2.0, 3.0];
+            let nl = GAUSS_LEVELS.len();
+            // [safety][hint]: (batches accepted, rays short, worst ratio)
+            let mut stats = vec![vec![(0usize, 0usize, 0.0f64); nl]; safeties.len()];
+            let (mut cost_ladders, mut cost_pairs) = (vec![0usize; nl], vec![0usize; nl]);
+            let mut truth_gap = 0.0f64;
+            for &half in halves {
+                let g = half / 3f64.sqrt();
+                let batch_at = [
+                    (-half, -half),
+                    (-half, half),
+                    (half, -half),
+                    (half, half),
+                    (-half, 0.0),
+                    (0.0, -half),
+                    (0.0, half),
+                    (half, 0.0),
+                    (-g, -g),
+                    (-g, g),
+                    (g, -g),
+                    (g, g),
+                ];
+                for (sz, sa) in suns {
+                    let sky = aureole(sz, sa);
+                    for n in [1.4, 1.5, 1.6] {
+                        let surface =
+                            Surface::vegetation(RefractiveIndex::new(n, 0.0).unwrap(), 0.01)
+                                .unwrap();
+                        for (tv, av) in [8.0, 25.0, 45.0, 60.0, 68.0]
+                            .iter()
+                            .flat_map(|&t| [(t, 30.0), (t, 200.0)])
+                        {
+                            let ray = |du: f64, dv: f64| {
+                                let view = direction_from_deg(tv + du, av + dv);
+                                let f = direction_integrand(&surface, &sky, &view);
+                                let (phis, mus) = hemisphere_splits(&sky, &view);
+                                let truth = hemisphere_gauss(&f, 128, 64, &phis, &mus).0;
+                                let check = hemisphere_gauss(&f, 96, 48, &phis, &mus).0;
+                                let gap =
+                                    (0..3).fold(0.0f64, |m, i| m.max((truth[i] - check[i]).abs()));
+                                (
+                                    Ray {
+                                        truth,
+                                        levels: GAUSS_LEVELS
+                                            .iter()
+                                            .map(|&(n, q)| hemisphere_gauss(&f, n, q, &phis, &mus))
+                                            .collect(),
+                                    },
+                                    gap,
+                                )
+                            };
+                            let (centre, gap) = ray(0.0, 0.0);
+                            truth_gap = truth_gap.max(gap / centre.truth[0]);
+                            let batch: Vec<Ray> =
+                                batch_at.iter().map(|&(u, v)| ray(u, v).0).collect();
+                            for rel in [1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8] {
+                                let tol = rel * centre.truth[0];
+                                let (Some(hint), _) = centre.ladder(0, tol) else {
+                                    continue;
+                                };
+                                if hint < 2 {
+                                    continue;
+                                }
+                                let ladders: usize =
+                                    batch.iter().map(|r| r.ladder(hint - 2, tol).1).sum();
+                                cost_ladders[hint] += ladders;
+                                for (si, &safety) in safeties.iter().enumerate() {
+                                    let mut accepted = None;
+                                    for upper in [hint - 1, hint] {
+                                        if upper + 2 > nl {
+                                            break;
+                                        }
+                                        let e = safety
+                                            * batch
+                                                .iter()
+                                                .fold(0.0f64, |m, r| m.max(r.change(upper)));
+                                        if e <= tol {
+                                            accepted = Some((upper, e));
+                                            break;
+                                        }
+                                    }
+                                    let Some((upper, e)) = accepted else {
+                                        if si == 2 {
+                                            cost_pairs[hint] += ladders;
+                                        }
+                                        continue;
+                                    };
+                                    if si == 2 {
+                                        cost_pairs[hint] += batch
+                                            .iter()
+                                            .map(|r| {
+                                                (hint - 2..=upper)
+                                                    .map(|l| r.levels[l].1)
+                                                    .sum::<usize>()
+                                            })
+                                            .sum::<usize>();
+                                    }
+                                    let worst =
+                                        batch.iter().fold(0.0f64, |m, r| m.max(r.error(upper) / e));
+                                    let st = &mut stats[si][hint];
+                                    st.0 += 1;
+                                    st.2 = st.2.max(worst);
+                                    if worst > 1.0 {
+                                        st.1 += 1;
+                                        if si == 2 {
+                                            println!("short x2: half {half} sun {sz}/{sa} n {n} view {tv}/{av} rel {rel} hint {hint} upper {upper}: {worst:.2}x");
+                                        }
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+            for (safety, by_hint) in safeties.iter().zip(&stats) {
+                for (h, &(b, f, w)) in by_hint.iter().enumerate() {
+                    if b > 0 {
+                        println!("safety {safety} hint {h}: {b} batches, {f} short, worst {w:.3}");
+                    }
+                }
+            }
+            for (h, (pairs, ladders)) in cost_pairs.iter().zip(&cost_ladders).enumerate() {
+                if *ladders > 0 {
+                    println!("hint {h}: pairs (x2) {pairs} against ladders {ladders}");
+                }
+            }
+            println!("truth: (128, 64) against (96, 48) differ by at most {truth_gap:.1e} of S0");
+            // The adopted rule: no ray of an admitted batch beyond its claim.
+            let rule = pair_rule(
+                &Surface::vegetation(RefractiveIndex::new(1.5, 0.0).unwrap(), 0.01).unwrap(),
+            );
+            let si = safeties.iter().position(|&f| f == rule.safety).unwrap();
+            for (h, &(_, short, worst)) in stats[si].iter().enumerate() {
+                if (rule.min_hint..=rule.max_hint).contains(&h) {
+                    assert_eq!(short, 0, "hint {h}: worst {worst:.3}");
+                }
+            }
+            assert!(truth_gap < 1e-9);
+        }
+
+        /// The validation of [`level_pair`] and [`next_pair`] on microfacets: fields of +-4 and
         /// +-6 deg (in view zenith and azimuth) around views 8-68 deg from the normal; 5 suns with
         /// an aureole; a dielectric (n 1.5) and a metal (copper); sigma 0.02-1; tolerances 1e-2 to
         /// 1e-8 of the centre's S0. Two ways to hint a batch: the centre's ladder hints the other
