@@ -31,7 +31,7 @@
 
 use crate::error::ModelError;
 use crate::fresnel::amplitudes_eps;
-use crate::pbrdf::{FacetGeometry, Geometry, Microfacet, Surface, COS_FLOOR};
+use crate::pbrdf::{FacetGeometry, Geometry, Surface, COS_FLOOR};
 use crate::polarization::{cos_sin_2eta, Stokes};
 use crate::quadrature::{
     gauss_legendre_table, integrate_2d_split_n, integrate_periodic_split_n, max_abs, IntegralN,
@@ -715,40 +715,33 @@ pub(crate) fn next_pair<S: SkyRadiance + ?Sized>(
     }))
 }
 
-/// The skylight of `surface`'s polarising lobe by the product rule at `GAUSS_LEVELS[level]`:
-/// in facet-slope space for a microfacet ([`slope_level`]), over the hemisphere for
-/// vegetation ([`direct_skylight`]'s rule; the adaptive rule it takes at views within 15 deg
-/// of the horizon is not a level, and [`pair_rule`]'s validation stopped at 68 deg).
+/// The skylight of `surface`'s polarising lobe by the product rule at `GAUSS_LEVELS[level]`,
+/// (value, evaluations): in facet-slope space for a microfacet ([`SlopeIntegrand::gauss`]),
+/// over the hemisphere for vegetation ([`direct_skylight`]'s rule; the adaptive rule it takes
+/// at views within 15 deg of the horizon is not a level, and [`pair_rule`]'s validation
+/// stopped at 68 deg).
 fn rule_level<S: SkyRadiance + ?Sized>(
     surface: &Surface,
     sky: &S,
     omega_view: &Vector3<f64>,
     level: usize,
 ) -> Result<([f64; 3], usize), ModelError> {
-    match surface {
-        Surface::Microfacet { lobe, .. } => slope_level(lobe, sky, omega_view, level),
+    check_view(omega_view)?;
+    let (n, q) = GAUSS_LEVELS[level];
+    Ok(match surface {
+        Surface::Microfacet { lobe, .. } => {
+            SlopeIntegrand::new(lobe.index().permittivity(), lobe.sigma(), sky, omega_view).gauss(
+                n,
+                q,
+                &mut Vec::with_capacity(8),
+            )
+        }
         Surface::Vegetation { .. } => {
-            check_view(omega_view)?;
             let g = direction_integrand(surface, sky, omega_view);
             let (phi_splits, mu_splits) = hemisphere_splits(sky, omega_view);
-            let (n, q) = GAUSS_LEVELS[level];
-            Ok(hemisphere_gauss(&g, n, q, &phi_splits, &mu_splits))
+            hemisphere_gauss(&g, n, q, &phi_splits, &mu_splits)
         }
-    }
-}
-
-/// The specular skylight of a microfacet `lobe` by the product rule at `GAUSS_LEVELS[level]`:
-/// (value, evaluations).
-fn slope_level<S: SkyRadiance + ?Sized>(
-    lobe: &Microfacet,
-    sky: &S,
-    omega_view: &Vector3<f64>,
-    level: usize,
-) -> Result<([f64; 3], usize), ModelError> {
-    check_view(omega_view)?;
-    let integrand = SlopeIntegrand::new(lobe.index().permittivity(), lobe.sigma(), sky, omega_view);
-    let (n, q) = GAUSS_LEVELS[level];
-    Ok(integrand.gauss(n, q, &mut Vec::with_capacity(8)))
+    })
 }
 
 /// Runs a product rule `rule(n, q)` (value, evaluations) at each of [`GAUSS_LEVELS`] in turn,
@@ -1115,6 +1108,7 @@ pub(crate) const DIRECT_PRODUCT_MIN_COS_VIEW: f64 = 0.258_819_045_102_520_7;
 mod tests {
     use super::*;
     use crate::fresnel::{amplitudes_eps, RefractiveIndex};
+    use crate::pbrdf::Microfacet;
     use crate::sky::direction_from_deg;
 
     fn glass(sigma: f64) -> Surface {
@@ -1545,6 +1539,50 @@ mod tests {
         assert_eq!(cases, 80);
     }
 
+    /// The 8 views around `view(0, 0)` at +-4 deg in view zenith and azimuth (the 3 x 3 grid
+    /// but its centre).
+    fn field_ring(view: impl Fn(f64, f64) -> Vector3<f64>) -> Vec<Vector3<f64>> {
+        [-4.0, 0.0, 4.0]
+            .iter()
+            .flat_map(|&du| [-4.0, 0.0, 4.0].map(|dv| (du, dv)))
+            .filter(|&(du, dv)| du != 0.0 || dv != 0.0)
+            .map(|(du, dv)| view(du, dv))
+            .collect()
+    }
+
+    /// A batch as `Prepared::points_paired` runs it: every view's first pair at `hint`, then,
+    /// if the batch's largest error misses the tolerance at some ray, its next pairs once.
+    /// Returns the last pairs, that error, whether it was accepted and whether it stepped up.
+    fn batch_of_pairs<S: SkyRadiance>(
+        surface: &Surface,
+        sky: &S,
+        views: &[Vector3<f64>],
+        hint: usize,
+        tol: Tolerance,
+    ) -> (Vec<LevelPair>, f64, bool, bool) {
+        let mut pairs: Vec<LevelPair> = views
+            .iter()
+            .map(|v| level_pair(surface, sky, v, hint).unwrap())
+            .collect();
+        let mut stepped = false;
+        loop {
+            let error = pairs.iter().fold(0.0f64, |m, p| m.max(p.error()));
+            let ok = pairs.iter().all(|p| error <= tol.target(p.scale()));
+            if ok || stepped {
+                return (pairs, error, ok, stepped);
+            }
+            let next: Option<Vec<LevelPair>> = pairs
+                .iter()
+                .zip(views)
+                .map(|(p, v)| next_pair(surface, sky, v, p).unwrap())
+                .collect();
+            match next {
+                Some(next) => (pairs, stepped) = (next, true),
+                None => return (pairs, error, false, false),
+            }
+        }
+    }
+
     /// A batch of level pairs (`level_pair`) over a field of +-4 deg around the
     /// rooftop's view (60 deg off the normal), hinted by the centre ray's ladder: when the
     /// batch is accepted on its largest change (first pairs, or the next pairs after one
@@ -1573,12 +1611,7 @@ mod tests {
                 let reference = SlopeIntegrand::new(eps, sigma, &sky, &centre)
                     .gauss(160, 64, &mut Vec::new())
                     .0;
-                let others: Vec<Vector3<f64>> = [-4.0, 0.0, 4.0]
-                    .iter()
-                    .flat_map(|&du| [-4.0, 0.0, 4.0].map(|dv| (du, dv)))
-                    .filter(|&(du, dv)| du != 0.0 || dv != 0.0)
-                    .map(|(du, dv)| view(du, dv))
-                    .collect();
+                let others = field_ring(view);
                 for rel in [1e-4, 1e-5] {
                     let tol = Tolerance::absolute(rel * reference[0]);
                     let hint = specular_skylight(eps, sigma, &sky, &centre, tol)
@@ -1589,27 +1622,8 @@ mod tests {
                         continue;
                     }
                     batches += 1;
-                    let mut pairs: Vec<LevelPair> = others
-                        .iter()
-                        .map(|v| level_pair(&surface, &sky, v, hint).unwrap())
-                        .collect();
-                    let (mut error, mut ok, mut stepped) = (0.0, false, false);
-                    for step in 0..2 {
-                        error = pairs.iter().fold(0.0f64, |m, p| m.max(p.error()));
-                        ok = pairs.iter().all(|p| error <= tol.target(p.scale()));
-                        if ok || step == 1 {
-                            break;
-                        }
-                        let next: Option<Vec<LevelPair>> = pairs
-                            .iter()
-                            .zip(&others)
-                            .map(|(p, v)| next_pair(&surface, &sky, v, p).unwrap())
-                            .collect();
-                        match next {
-                            Some(next) => (pairs, stepped) = (next, true),
-                            None => break,
-                        }
-                    }
+                    let (pairs, error, ok, stepped) =
+                        batch_of_pairs(&surface, &sky, &others, hint, tol);
                     for (v, pair) in others.iter().zip(&pairs) {
                         let truth = SlopeIntegrand::new(eps, sigma, &sky, v)
                             .gauss(160, 64, &mut Vec::new())
@@ -1682,12 +1696,7 @@ mod tests {
                 };
                 let centre = view(0.0, 0.0);
                 let s0 = truth(&centre)[0];
-                let others: Vec<Vector3<f64>> = [-4.0, 0.0, 4.0]
-                    .iter()
-                    .flat_map(|&du| [-4.0, 0.0, 4.0].map(|dv| (du, dv)))
-                    .filter(|&(du, dv)| du != 0.0 || dv != 0.0)
-                    .map(|(du, dv)| view(du, dv))
-                    .collect();
+                let others = field_ring(view);
                 for rel in [1e-4, 1e-5] {
                     let tol = Tolerance::absolute(rel * s0);
                     let hint = direct_skylight(&surface, &sky, &centre, tol)
@@ -1698,27 +1707,7 @@ mod tests {
                         continue;
                     }
                     batches += 1;
-                    let mut pairs: Vec<LevelPair> = others
-                        .iter()
-                        .map(|v| level_pair(&surface, &sky, v, hint).unwrap())
-                        .collect();
-                    let (mut error, mut ok) = (0.0, false);
-                    for step in 0..2 {
-                        error = pairs.iter().fold(0.0f64, |m, p| m.max(p.error()));
-                        ok = pairs.iter().all(|p| error <= tol.target(p.scale()));
-                        if ok || step == 1 {
-                            break;
-                        }
-                        let next: Option<Vec<LevelPair>> = pairs
-                            .iter()
-                            .zip(&others)
-                            .map(|(p, v)| next_pair(&surface, &sky, v, p).unwrap())
-                            .collect();
-                        match next {
-                            Some(next) => pairs = next,
-                            None => break,
-                        }
-                    }
+                    let (pairs, error, ok, _) = batch_of_pairs(&surface, &sky, &others, hint, tol);
                     for (v, pair) in others.iter().zip(&pairs) {
                         let case = format!("n {n} view {v:?} rel {rel} hint {hint}");
                         let hinted =
@@ -1783,27 +1772,13 @@ mod tests {
                     for hint in 3..=6 {
                         let first = level_pair(surface, &sky, &view, hint).unwrap();
                         let next = next_pair(surface, &sky, &view, &first).unwrap().unwrap();
-                        let hinted = reflected_skylight_at(
-                            surface,
-                            0.0,
-                            0.0,
-                            &sky,
-                            &view,
-                            tol,
-                            Start::Level(hint - 2),
-                        )
-                        .unwrap();
+                        let run = |start| {
+                            reflected_skylight_at(surface, 0.0, 0.0, &sky, &view, tol, start)
+                                .unwrap()
+                        };
+                        let hinted = run(Start::Level(hint - 2));
                         for pair in [&first, &next] {
-                            let r = reflected_skylight_at(
-                                surface,
-                                0.0,
-                                0.0,
-                                &sky,
-                                &view,
-                                tol,
-                                Start::After(pair),
-                            )
-                            .unwrap();
+                            let r = run(Start::After(pair));
                             let case = format!("{surface:?} {view:?} rel {rel} hint {hint}");
                             assert_eq!(r.stokes.0, hinted.stokes.0, "{case}");
                             assert_eq!(r.error, hinted.error, "{case}");
@@ -2063,6 +2038,35 @@ mod tests {
             }
         }
 
+        /// The suns of the pair studies, (zenith, azimuth) in degrees: the rooftop's, low,
+        /// high, and near the horizon.
+        const STUDY_SUNS: [(f64, f64); 5] = [
+            (33.6, 115.0),
+            (70.0, 300.0),
+            (10.0, 0.0),
+            (25.0, 130.0),
+            (85.0, 200.0),
+        ];
+
+        /// The level at which a batch hinted at `hint` is accepted on its pairs (`hint - 1`) or
+        /// its next pairs (`hint`), and the claimed error there (`safety` times the batch's
+        /// largest change into that level), as `Prepared::points_paired` accepts it.
+        fn accepted_pair(
+            batch: &[Ray],
+            hint: usize,
+            tol: f64,
+            safety: f64,
+        ) -> Option<(usize, f64)> {
+            [hint - 1, hint]
+                .into_iter()
+                .take_while(|&upper| upper + 2 <= GAUSS_LEVELS.len())
+                .map(|upper| {
+                    let e = safety * batch.iter().fold(0.0f64, |m, r| m.max(r.change(upper)));
+                    (upper, e)
+                })
+                .find(|&(_, e)| e <= tol)
+        }
+
         /// The validation of [`level_pair`] and [`next_pair`] on vegetation (its hemisphere
         /// rule): fields of +-4 and +-6 deg around views 8-68 deg from the normal, 5 suns with
         /// an aureole, leaf indices 1.4-1.6, tolerances 1e-2 to 1e-8 of the centre's S0; the
@@ -2072,22 +2076,13 @@ mod tests {
         #[test]
         #[ignore = "a study: about 1 minute"]
         fn vegetation_pair_study() {
-            let suns = [
-                (33.6, 115.0),
-                (70.0, 300.0),
-                (10.0, 0.0),
-                (25.0, 130.0),
-                (85.0, 200.0),
-            ];
-            let fast = std::env::var("FAST").is_ok();
-            let halves: &[f64] = if fast { &[4.0] } else { &[4.0, 6.0] };
             let safeties = [1.0, 1.5, 2.0, 3.0];
             let nl = GAUSS_LEVELS.len();
             // [safety][hint]: (batches accepted, rays short, worst ratio)
             let mut stats = vec![vec![(0usize, 0usize, 0.0f64); nl]; safeties.len()];
             let (mut cost_ladders, mut cost_pairs) = (vec![0usize; nl], vec![0usize; nl]);
             let mut truth_gap = 0.0f64;
-            for &half in halves {
+            for half in [4.0f64, 6.0] {
                 let g = half / 3f64.sqrt();
                 let batch_at = [
                     (-half, -half),
@@ -2103,7 +2098,7 @@ mod tests {
                     (g, -g),
                     (g, g),
                 ];
-                for (sz, sa) in suns {
+                for (sz, sa) in STUDY_SUNS {
                     let sky = aureole(sz, sa);
                     for n in [1.4, 1.5, 1.6] {
                         let surface =
@@ -2148,21 +2143,8 @@ mod tests {
                                     batch.iter().map(|r| r.ladder(hint - 2, tol).1).sum();
                                 cost_ladders[hint] += ladders;
                                 for (si, &safety) in safeties.iter().enumerate() {
-                                    let mut accepted = None;
-                                    for upper in [hint - 1, hint] {
-                                        if upper + 2 > nl {
-                                            break;
-                                        }
-                                        let e = safety
-                                            * batch
-                                                .iter()
-                                                .fold(0.0f64, |m, r| m.max(r.change(upper)));
-                                        if e <= tol {
-                                            accepted = Some((upper, e));
-                                            break;
-                                        }
-                                    }
-                                    let Some((upper, e)) = accepted else {
+                                    let Some((upper, e)) = accepted_pair(&batch, hint, tol, safety)
+                                    else {
                                         if si == 2 {
                                             cost_pairs[hint] += ladders;
                                         }
@@ -2232,13 +2214,6 @@ mod tests {
         #[test]
         #[ignore = "a study: about 10 minutes"]
         fn field_pair_study() {
-            let suns = [
-                (33.6, 115.0),
-                (70.0, 300.0),
-                (10.0, 0.0),
-                (25.0, 130.0),
-                (85.0, 200.0),
-            ];
             let eps = [
                 RefractiveIndex::new(1.5, 0.0).unwrap().permittivity(),
                 RefractiveIndex::new(1.02, 2.58).unwrap().permittivity(),
@@ -2269,7 +2244,7 @@ mod tests {
                 ] {
                     let (mut batches, mut first, mut next, mut worst) = (0, 0, 0, 0.0f64);
                     let (mut cost_ladders, mut cost_pairs) = (0usize, 0usize);
-                    for (sz, sa) in suns {
+                    for (sz, sa) in STUDY_SUNS {
                         let sky = aureole(sz, sa);
                         for eps in eps {
                             for sigma in [0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0] {
@@ -2311,20 +2286,9 @@ mod tests {
                                             .iter()
                                             .map(|r| r.ladder(hint - 2, tol).1)
                                             .sum::<usize>();
-                                        let mut accepted = None;
-                                        for upper in [hint - 1, hint] {
-                                            if upper + 2 > GAUSS_LEVELS.len() {
-                                                break;
-                                            }
-                                            let e = batch
-                                                .iter()
-                                                .fold(0.0f64, |m, r| m.max(r.change(upper)));
-                                            if e <= tol {
-                                                accepted = Some((upper, e));
-                                                break;
-                                            }
-                                        }
-                                        let Some((upper, e)) = accepted else {
+                                        let Some((upper, e)) =
+                                            accepted_pair(&batch, hint, tol, 1.0)
+                                        else {
                                             // Each ray resumes its ladder: the hinted ladder's cost.
                                             cost_pairs += batch
                                                 .iter()
