@@ -67,8 +67,9 @@ use crate::quadrature::{gauss_legendre_table, integrate, Tolerance};
 use crate::sky::{downward_path, e_vector_in_frame, BerrySky, RayleighSky, AIR_DEPOLARIZATION};
 use crate::sky_table::SkyTable;
 use crate::skylight::{
-    level_pair, next_pair, pair_rule, reflected_skylight, reflected_skylight_at, sky_irradiance,
-    surface_to_frame, LevelPair, SkyRadiance, Start, StokesIntegral, DIRECT_PRODUCT_MIN_COS_VIEW,
+    batch_error, level_pair, next_pair, pair_rule, reflected_skylight, reflected_skylight_at,
+    sky_irradiance, surface_to_frame, LevelPair, SkyRadiance, Start, StokesIntegral,
+    DIRECT_PRODUCT_MIN_COS_VIEW,
 };
 use crate::tiles::{Field, Pointing, Tile};
 use nalgebra::{Matrix3, Vector3};
@@ -1100,9 +1101,8 @@ impl Prepared {
         let tol = Tolerance::absolute(inc.tol_abs);
         let mut accepted = None;
         for step in 0..2 {
-            let error = parts.iter().fold(0.0f64, |m, (_, _, p)| m.max(p.error()));
-            if parts.iter().all(|(_, _, p)| error <= tol.target(p.scale())) {
-                accepted = Some(error);
+            accepted = batch_error(parts.iter().map(|(_, _, p)| p), tol);
+            if accepted.is_some() {
                 break;
             }
             if step == 1 {
@@ -1639,10 +1639,8 @@ impl Prepared {
             // then started needlessly high (up to 2.1x the cost). As pairs, the first rays
             // cost less even so (rooftop grass at 1e-4: 55.5 k -> 32.7 k evaluations, airborne
             // field 35.4 k -> 26.3 k; at 1e-6, 194.6 k -> 198.2 k and unchanged).
-            let microfacet = matches!(surface, Surface::Microfacet { .. });
             let coarse_hint = coarse.level.filter(|&l| {
-                (microfacet || l <= pair_rule(surface).max_hint)
-                    && coarse.sky_error <= tol / 8.0 * s0_direct
+                l <= pair_rule(surface).max_hint && coarse.sky_error <= tol / 8.0 * s0_direct
             });
             let per_ray = Include {
                 tol_abs: tol / 8.0 * s0_direct,
@@ -2449,11 +2447,8 @@ mod tests {
             // As in `evaluate`: the centre ray first, its level hinting the rays (which are
             // then integrated as batches of level pairs where `pair_rule` admits it).
             let c = p.point(&m.surface, f00, &centre, per_ray).unwrap();
-            let microfacet = matches!(m.surface, Surface::Microfacet { .. });
             let per_ray = Include {
-                hint: c
-                    .level
-                    .filter(|&l| microfacet || l <= pair_rule(&m.surface).max_hint),
+                hint: c.level.filter(|&l| l <= pair_rule(&m.surface).max_hint),
                 ..per_ray
             };
             let l = p
