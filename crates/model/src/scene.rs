@@ -48,8 +48,9 @@
 //!   a metre above the ground);
 //! * **skylight** (Eq. 3.22): a coarse integral at the field centre, to `tol / 8` of the
 //!   direct term, bounds the term; when the bound is below `tol / 4` the term is skipped for
-//!   every field point (a metal's specular glint at a loose tolerance); otherwise integrated to
-//!   `tol / 4` in facet-slope space;
+//!   every field point (a metal's specular glint at a loose tolerance); otherwise integrated in
+//!   facet-slope space, a lone ray to `tol / 4` and the field's rays to their share of the
+//!   error budget;
 //! * **geometry variation** `Sigma_g` and **texture** `Sigma_v` as above and in [`Texture`].
 //!
 //! The reported `error_estimate` adds the quadrature, spectral, `mu`-table and field errors, the
