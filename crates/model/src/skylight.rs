@@ -1555,6 +1555,23 @@ mod tests {
             .collect()
     }
 
+    /// A batch ray's skylight as `Prepared::points_paired` takes it: its pair's upper level with
+    /// the batch's error when the batch was accepted, else its ladder resumed after the pair.
+    fn paired_or_resumed<S: SkyRadiance>(
+        surface: &Surface,
+        sky: &S,
+        view: &Vector3<f64>,
+        tol: Tolerance,
+        pair: &LevelPair,
+        accepted_error: Option<f64>,
+    ) -> StokesIntegral {
+        match accepted_error {
+            Some(error) => pair.accept(error, 0.0, 0.0),
+            None => reflected_skylight_at(surface, 0.0, 0.0, sky, view, tol, Start::After(pair))
+                .unwrap(),
+        }
+    }
+
     /// A batch as `Prepared::points_paired` runs it: every view's first pair at `hint`, then,
     /// if the batch is not accepted ([`batch_error`]), its next pairs once. Returns the last
     /// pairs, the error they were accepted with (`None`: not accepted) and whether the batch
@@ -1645,19 +1662,7 @@ mod tests {
                         .unwrap();
                         ladder_cost += hinted.evaluations;
                         let case = format!("n {n} k {k} sigma {sigma} view {v:?} rel {rel}");
-                        let r = match accepted_error {
-                            Some(error) => pair.accept(error, 0.0, 0.0),
-                            None => reflected_skylight_at(
-                                &surface,
-                                0.0,
-                                0.0,
-                                &sky,
-                                v,
-                                tol,
-                                Start::After(pair),
-                            )
-                            .unwrap(),
-                        };
+                        let r = paired_or_resumed(&surface, &sky, v, tol, pair, accepted_error);
                         pair_cost += r.evaluations;
                         assert_honest(&r, &truth, 1e-13 * truth[0], &case);
                         assert!(r.error <= tol.target(max_abs(&truth)) * 1.0001, "{case}");
@@ -1728,24 +1733,12 @@ mod tests {
                             direct_skylight_from(&surface, &sky, v, tol, Start::Level(hint - 2))
                                 .unwrap();
                         ladder_cost += hinted.evaluations;
-                        let r = if let Some(error) = accepted_error {
-                            pair.accept(error, 0.0, 0.0)
-                        } else {
-                            let r = reflected_skylight_at(
-                                &surface,
-                                0.0,
-                                0.0,
-                                &sky,
-                                v,
-                                tol,
-                                Start::After(pair),
-                            )
-                            .unwrap();
+                        let r = paired_or_resumed(&surface, &sky, v, tol, pair, accepted_error);
+                        if accepted_error.is_none() {
                             assert_eq!(r.stokes.0, hinted.stokes.0, "{case}");
                             assert_eq!(r.error, hinted.error, "{case}");
                             assert_eq!(r.evaluations, hinted.evaluations, "{case}");
-                            r
-                        };
+                        }
                         pair_cost += r.evaluations;
                         assert_honest(&r, &truth(v), 1e-13 * s0, &case);
                     }
