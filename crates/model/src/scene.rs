@@ -20,9 +20,9 @@
 //! * **Field of view**: the mean and covariance over the image are integrals over the image
 //!   plane, computed with tensor Gauss-Legendre rules of order 2, 3, 4, 6, 8, 12 until the mean
 //!   and the covariance's scale change by less than the error budget leaves them (below; the
-//!   last change is reported and added to the error). A probe of the field's corners decides whether one ray suffices (a
-//!   1-degree field of view: `Sigma_g` skipped); when the cheap terms (direct, path) alone vary
-//!   by `tol / 4` it does not integrate the skylight.
+//!   last change is reported and added to the error). A probe of the field's corners decides
+//!   whether one ray suffices (a 1-degree field of view: `Sigma_g` skipped); when the cheap
+//!   terms (direct, path) alone vary by `tol / 4` it does not integrate the skylight.
 //! * **Skylight over the field**: a tensor polynomial through Chebyshev-Lobatto rays (3 x 3, then
 //!   5 points in one direction, the other, both; the probe's rays reused) replaces the
 //!   hemisphere integral at every field ray once the four order-2 Gauss-Legendre rays show
@@ -1644,8 +1644,8 @@ impl Prepared {
             cheap_spread = cheap_spread.max((p.total - cheap_centre.total).norm() / s0_direct);
             corner_tiles.push(((u, v), t));
         }
-        // Rays whose skylight is already integrated, to the rays' budget or tighter: with the centre they
-        // are rays of the sky's field interpolant below.
+        // Rays whose skylight is already integrated, to the rays' budget or tighter: with the
+        // centre they are rays of the sky's field interpolant below.
         let mut probed: Vec<((f64, f64), Point)> = Vec::new();
         let probe = Include {
             tol_abs: ray_tol / 2.0 * s0_direct,
@@ -1698,8 +1698,8 @@ impl Prepared {
         let mut ray_level = None;
         let lobatto = if skylight && spread >= tol / 4.0 {
             // The coarse integral is the centre ray at this tolerance or tighter (its error is
-            // within the rays' budget): its level hints the first rays, which are then integrated as
-            // batches of level pairs where the surface's `pair_rule` admits that level. On
+            // within the rays' budget): its level hints the first rays, which are then integrated
+            // as batches of level pairs where the surface's `pair_rule` admits that level. On
             // vegetation a level it does not admit hints nothing: the centre ray, in the sun's
             // plane there, can need three levels more than its neighbours, whose own ladders
             // then started needlessly high (up to 2.1x the cost). As pairs, the first rays
@@ -1734,8 +1734,8 @@ impl Prepared {
             (p.total, Matrix3::zeros(), p.surface, spread, p.sky_error, 1)
         } else {
             // The skylight varies slowly over the field: once the polynomial through the last
-            // order's rays predicts this order's rays to the interpolant's budget (their quadrature errors
-            // allowed for), the polynomial through this order's rays replaces the hemisphere
+            // order's rays predicts this order's rays to the interpolant's budget (their
+            // quadrature errors allowed for), the polynomial through this order's rays replaces the hemisphere
             // integrals at every higher order, and its last prediction error is reported.
             let per_ray = Include {
                 tol_abs: ray_tol * s0_direct,
