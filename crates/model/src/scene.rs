@@ -30,7 +30,9 @@
 //!   with a margin of 1.7-3.9; `fit_moment_errors`) and that it predicts them within four
 //!   times that; the larger of the mean's and the spread's errors and its rays' quadrature
 //!   errors are reported (`Prepared::lobatto_sky`). If it never does, every field ray
-//!   integrates its own skylight as before.
+//!   integrates its own skylight as before. Once the cross's four edge rays are accepted as a
+//!   batch of level pairs, every later ray (checks, corners, 5-point nodes) computes the
+//!   batch's upper level only and carries its error (`skylight::certified_level`).
 //! * **Error budget** (`SkyBudget`): the errors known before the field is sampled (spectral,
 //!   `mu` table, albedo, a skipped path term) are taken from the tolerance; the rays'
 //!   quadrature and the interpolant each get 0.45 of the rest, and the field's orders stop at
@@ -73,9 +75,9 @@ use crate::quadrature::{gauss_legendre_table, integrate, Tolerance};
 use crate::sky::{downward_path, e_vector_in_frame, BerrySky, RayleighSky, AIR_DEPOLARIZATION};
 use crate::sky_table::SkyTable;
 use crate::skylight::{
-    batch_error, level_pair, next_pair, pair_rule, reflected_skylight, reflected_skylight_at,
-    sky_irradiance, surface_to_frame, LevelPair, SkyRadiance, Start, StokesIntegral,
-    DIRECT_PRODUCT_MIN_COS_VIEW,
+    batch_error, certified_level, level_pair, next_pair, pair_rule, reflected_skylight,
+    reflected_skylight_at, sky_irradiance, surface_to_frame, Certificate, LevelPair, SkyRadiance,
+    Start, StokesIntegral, DIRECT_PRODUCT_MIN_COS_VIEW,
 };
 use crate::tiles::{Field, Pointing, Tile};
 use nalgebra::{Matrix3, Vector3};
@@ -422,6 +424,9 @@ struct Include {
     /// tolerance, were accepted at: this ray's skylight starts two levels below it (`ladder`:
     /// the error test is unchanged).
     hint: Option<usize>,
+    /// An accepted batch of level pairs around this batch, at the same tolerance: its rays
+    /// take the batch's upper level alone, with its error ([`certified_level`]).
+    certified: Option<Certificate>,
 }
 
 /// One field point's radiance in the camera frame.
@@ -435,6 +440,8 @@ struct Point {
     evaluations: usize,
     /// The skylight's accepted product-rule level, if any.
     level: Option<usize>,
+    /// The batch of level pairs this point's skylight was accepted in, if any.
+    certificate: Option<Certificate>,
 }
 
 /// A field point's terms before its skylight, in the surface frame.
@@ -1141,6 +1148,20 @@ impl Prepared {
         inc: Include,
         hint: usize,
     ) -> Result<Vec<Point>, ModelError> {
+        if let Some(c) = inc.certified.filter(|c| c.error <= inc.tol_abs) {
+            // Rays around an accepted batch: its upper level alone, with its error.
+            let results: Vec<Result<Point, ModelError>> = tiles
+                .par_iter()
+                .map(|t| {
+                    let base = self.point_base(surface, f00_diffuse, t, inc)?;
+                    let sky = self.ray_sky(&base.ray, inc.coarse_table);
+                    let r =
+                        certified_level(surface, &sky, &t.omega_view, c, f00_diffuse, base.e_sky)?;
+                    Ok(self.finish(t, base, Some(&r)))
+                })
+                .collect();
+            return results.into_iter().collect();
+        }
         // Each ray's terms, band sky and first pair, in parallel (the first error in the order
         // of `tiles`, as in `points`).
         let parts: Vec<Result<(PointBase, BandSky<'_>, LevelPair), ModelError>> = tiles
@@ -1181,6 +1202,10 @@ impl Prepared {
             .into_par_iter()
             .zip(tiles)
             .map(|((base, sky, pair), tile)| {
+                let certificate = accepted.map(|error| Certificate {
+                    level: pair.upper_level(),
+                    error,
+                });
                 let r = match accepted {
                     Some(error) => pair.accept(error, f00_diffuse, base.e_sky),
                     None => reflected_skylight_at(
@@ -1193,7 +1218,10 @@ impl Prepared {
                         Start::After(&pair),
                     )?,
                 };
-                Ok(self.finish(tile, base, Some(&r)))
+                Ok(Point {
+                    certificate,
+                    ..self.finish(tile, base, Some(&r))
+                })
             })
             .collect();
         results.into_iter().collect()
@@ -1241,6 +1269,7 @@ impl Prepared {
             sky_error: sky.map_or(0.0, |r| r.error),
             evaluations: sky.map_or(0, |r| r.evaluations),
             level: sky.and_then(|r| r.level),
+            certificate: None,
         }
     }
 
@@ -1288,6 +1317,7 @@ impl Prepared {
             tol_abs: 0.0,
             coarse_table: false,
             hint: None,
+            certified: None,
         };
         let no_sky = self.point(surface, diffuse.f00, &centre, base)?;
         let white = self.white_radiance();
@@ -1313,7 +1343,9 @@ impl Prepared {
     /// Chebyshev-Lobatto rays (the combination technique, [`SkyFit::sparse`], on nested levels
     /// [`LOBATTO_LEVELS`]), checked at the four rays `(+-1/sqrt 3, +-1/sqrt 3)`. It starts as
     /// the cross `{-1, 0, 1} x {0} + {0} x {-1, 0, 1}` (five rays: the centre and corners may
-    /// come from `probed`, the others are integrated with `inc`); while it fails the check, it
+    /// come from `probed`, the others are integrated with `inc`; when the cross's edges are
+    /// accepted as a batch of level pairs, the checks and every later ray take the batch's
+    /// upper level alone, `skylight::certified_level`); while it fails the check, it
     /// adds one level pair at a time, reusing every ray before: the mixed `(1, 1)` (the
     /// corners: the 3 x 3 grid) when the checks' residual is largest in its part odd in both
     /// directions (the `u v` term nothing else resolves), else 5 points
@@ -1386,19 +1418,23 @@ impl Prepared {
             }
             out
         };
-        // The sparse grid starts as the cross `{-1, 0, 1} x {0} + {0} x {-1, 0, 1}`; the
-        // check rays and the cross in one parallel batch.
+        // The sparse grid starts as the cross `{-1, 0, 1} x {0} + {0} x {-1, 0, 1}`.
         let mut set = vec![(0, 0), (1, 0), (0, 1)];
-        let mut first: Vec<(f64, f64)> = check_coords.to_vec();
-        first.extend(set_rays(&set));
-        let points = fetch(&first, &mut rays, inc)?;
-        // The later levels' rays start two product-rule levels below the lowest level of these
-        // neighbours, integrated to the same tolerance (`reflected_skylight`).
-        // (Rays accepted as a batch of level pairs have no level of their own: then the hint
-        // that admitted them stands.)
+        let points = fetch(&set_rays(&set), &mut rays, inc)?;
+        // The later rays (the checks, then every later level's) start two product-rule levels
+        // below the lowest level of these neighbours, integrated to the same tolerance
+        // (`reflected_skylight`). (Rays accepted as a batch of level pairs have no level of
+        // their own: then the hint that admitted them stands.) When the cross's edges were
+        // accepted as such a batch, the later rays, which lie around them, take its upper
+        // level alone, with its error (`certified_level`).
         let level = points.iter().filter_map(|p| p.level).chain(inc.hint).min();
-        let later = Include { hint: level, ..inc };
-        let checks: Vec<((f64, f64), Point)> = check_coords.into_iter().zip(points).collect();
+        let later = Include {
+            hint: level,
+            certified: points.iter().find_map(|p| p.certificate),
+            ..inc
+        };
+        let check_points = fetch(&check_coords, &mut rays, later)?;
+        let checks: Vec<((f64, f64), Point)> = check_coords.into_iter().zip(check_points).collect();
         let check_error = checks.iter().fold(0.0f64, |m, c| m.max(c.1.sky_error));
         loop {
             let coords = set_rays(&set);
@@ -1519,6 +1555,7 @@ impl Prepared {
             tol_abs: 0.0,
             coarse_table: false,
             hint: None,
+            certified: None,
         };
         // Scale of every decision: the centre's direct term, floored by the band's TOA
         // irradiance times 1e-15 (the sun at the horizon gives no direct light at all).
@@ -1600,7 +1637,12 @@ impl Prepared {
             evaluations += diffuse.specular_albedo.evaluations;
             f00 = diffuse.f00;
         }
-        let f00_unchanged = f00 == coarse_f00;
+        // The coarse integral's skylight with the current Lambertian term: the point is linear
+        // in `f00_d`, whose term is unpolarised, so only its S0 moves, by the change times the
+        // sky irradiance (the same in the camera frame). Its quadrature error is the specular
+        // part's and does not change; the albedo's error is in the budget below.
+        let coarse_sky =
+            coarse.sky + Vector3::x() * ((f00 - coarse_f00) * self.ray_terms(&centre)?.e_sky);
         // Every tolerance from here on is relative to the estimated S0.
         let s0_direct = s0_est;
         let inc = Include {
@@ -1609,6 +1651,7 @@ impl Prepared {
             tol_abs: tol / 4.0 * s0_direct,
             coarse_table: false,
             hint: None,
+            certified: None,
         };
 
         // Geometry: the field's corners decide whether one ray is enough: the field's mean then
@@ -1636,6 +1679,16 @@ impl Prepared {
             ..inc
         };
         let cheap_centre = self.point(surface, f00, &centre, cheap)?;
+        // The centre with the coarse integral's skylight, when that is tight enough (below).
+        let coarse_centre = Point {
+            total: cheap_centre.total + coarse_sky,
+            surface: cheap_centre.surface + coarse_sky,
+            sky: coarse_sky,
+            sky_error: coarse.sky_error,
+            evaluations: 0,
+            level: coarse.level,
+            certificate: None,
+        };
         let mut cheap_spread = 0.0f64;
         let mut corner_tiles = Vec::with_capacity(4);
         for (u, v) in corners {
@@ -1655,17 +1708,9 @@ impl Prepared {
             (cheap_spread, None)
         } else {
             // The centre: the coarse integral's skylight on the cheap terms when it already
-            // meets the probe's tolerance and its Lambertian term is current (the point is linear
-            // in its terms), else integrated.
-            let c0 = if skylight && f00_unchanged && coarse.sky_error <= ray_tol / 2.0 * s0_direct {
-                Point {
-                    total: cheap_centre.total + coarse.sky,
-                    surface: cheap_centre.surface + coarse.sky,
-                    sky: coarse.sky,
-                    sky_error: coarse.sky_error,
-                    evaluations: 0,
-                    level: coarse.level,
-                }
+            // meets the probe's tolerance (the point is linear in its terms), else integrated.
+            let c0 = if skylight && coarse.sky_error <= ray_tol / 2.0 * s0_direct {
+                coarse_centre
             } else {
                 let c0 = self.point(surface, f00, &centre, probe)?;
                 evaluations += c0.evaluations;
@@ -1683,11 +1728,9 @@ impl Prepared {
             }
             (spread, Some(c0))
         };
-        // The coarse integral is the centre's skylight when it is tight enough and the
-        // Lambertian term it includes was not changed since.
-        if skylight && probed.is_empty() && f00_unchanged && coarse.sky_error <= ray_tol * s0_direct
-        {
-            probed.push(((0.0, 0.0), coarse));
+        // The coarse integral is the centre's skylight when it is tight enough.
+        if skylight && probed.is_empty() && coarse.sky_error <= ray_tol * s0_direct {
+            probed.push(((0.0, 0.0), coarse_centre));
         }
         let mut sky_fit_error = 0.0;
         // The sky over the field as an interpolant through Chebyshev-Lobatto rays (the probe's
@@ -2545,6 +2588,7 @@ mod tests {
                 tol_abs: 0.0,
                 coarse_table: false,
                 hint: None,
+                certified: None,
             };
             let s0 = p
                 .point(
