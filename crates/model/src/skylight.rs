@@ -1799,6 +1799,16 @@ mod tests {
         println!("{accepted} of {batches} batches accepted; {pair_cost} evaluations against {ladder_cost}");
     }
 
+    /// A microfacet (the rooftop's paint, sigma 0.3) and vegetation, both of index 1.5: the
+    /// two kinds of surface whose rays are integrated as level pairs.
+    fn paint_and_leaf() -> [Surface; 2] {
+        let index = RefractiveIndex::new(1.5, 0.0).unwrap();
+        [
+            Surface::microfacet(index, 0.3, 0.1).unwrap(),
+            Surface::vegetation(index, 0.01).unwrap(),
+        ]
+    }
+
     /// A ray whose batch was not accepted resumes its ladder after its first pair or after its
     /// next pair, and either way gets exactly what the ladder from the first pair's lower level
     /// gets (value, error, level and evaluations): the next pair's upper level is tested with
@@ -1810,10 +1820,7 @@ mod tests {
     #[test]
     fn resumed_ladders_equal_hinted_ladders() {
         let sky = aureole(33.6, 115.0);
-        let surfaces = [
-            Surface::microfacet(RefractiveIndex::new(1.5, 0.0).unwrap(), 0.3, 0.1).unwrap(),
-            Surface::vegetation(RefractiveIndex::new(1.5, 0.0).unwrap(), 0.01).unwrap(),
-        ];
+        let surfaces = paint_and_leaf();
         let mut compared = 0;
         for surface in &surfaces {
             for view in [
@@ -1854,10 +1861,7 @@ mod tests {
     #[test]
     fn certified_level_is_the_batch_upper_level() {
         let sky = aureole(33.6, 115.0);
-        let surfaces = [
-            Surface::microfacet(RefractiveIndex::new(1.5, 0.0).unwrap(), 0.3, 0.1).unwrap(),
-            Surface::vegetation(RefractiveIndex::new(1.5, 0.0).unwrap(), 0.01).unwrap(),
-        ];
+        let surfaces = paint_and_leaf();
         let view = direction_from_deg(60.0, 300.0);
         let (f00, e_sky, error) = (0.02, 3.0, 1e-6);
         for surface in &surfaces {
