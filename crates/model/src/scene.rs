@@ -385,8 +385,10 @@ impl SkyRadiance for BandSky<'_> {
         Stokes::new(intensity, pol * c2, pol * s2)
     }
 
-    /// The single-scattering sky's E-vector (`k × sun`, `k = -towards`) angle taken in
+    /// The single-scattering sky's E-vector (`e = k × sun`, `k = -towards`) angle taken in
     /// `frame_x` directly: one division instead of the surface frame's and the rotation's.
+    /// With `frame_x` perpendicular to `k`, `e . (k × frame_x) = frame_x . (e × k) =
+    /// frame_x . sun`, since `e × k = sun - k (k . sun)`.
     fn stokes_in_frame(&self, towards: &Vector3<f64>, frame_x: &Vector3<f64>) -> Stokes {
         if !matches!(self.prepared.sky, Sky::SingleScattering) {
             return surface_to_frame(self.stokes_from(towards), towards, frame_x);
@@ -396,7 +398,7 @@ impl SkyRadiance for BandSky<'_> {
         };
         let k = -towards;
         let e = k.cross(&self.prepared.sun);
-        let (c, s) = (e.dot(frame_x), e.dot(&k.cross(frame_x)));
+        let (c, s) = (e.dot(frame_x), frame_x.dot(&self.prepared.sun));
         let n2 = c * c + s * s;
         if n2 == 0.0 {
             // Towards or away from the sun: no scattering plane, and no polarisation.
@@ -825,33 +827,44 @@ impl Prepared {
             let path = downward_path(tau, mu0_slant, mu) / (4.0 * PI * tau);
             (n.rayleigh * path, atm.aerosol_ssa * n.aerosol * path)
         };
-        // The tables: 256 intervals, refined 4x until their error is below tol/8.
+        // One node's tables on `intervals` intervals, and their error: a half-resolution
+        // table's error at the odd points, divided by 8, relative to the table's peak.
+        // Fourth-order interpolation gains 16 from halving, but the largest error lies between
+        // the odd points: over 20 001 values of `mu` the rooftop's tables were off by up to
+        // 1.08x the odd points' error / 16 (`sized_mu_tables_meet_their_error`).
+        let node_tables = |n: &Node, intervals: usize| {
+            let (ta, tb): (Vec<f64>, Vec<f64>) = (0..=intervals)
+                .map(|j| factors(n, j as f64 / intervals as f64))
+                .unzip();
+            let mut table_error = 0.0f64;
+            for t in [&ta, &tb] {
+                let coarse: Vec<f64> = t.iter().step_by(2).copied().collect();
+                let peak = t.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                if peak > 0.0 {
+                    for j in (1..intervals).step_by(2) {
+                        let x = j as f64 / intervals as f64;
+                        let e = (lagrange4(&coarse, x) - t[j]).abs() / 8.0 / peak;
+                        table_error = table_error.max(e);
+                    }
+                }
+            }
+            (ta, tb, table_error)
+        };
+        // The tables: 256 intervals, refined 4x until their error is below tol/8. The nodes are
+        // independent: built in parallel, collected in their order (the result does not depend
+        // on the thread count).
         let build_tables = |nodes: &[Node], intervals: usize| {
+            let per_node: Vec<(Vec<f64>, Vec<f64>, f64)> = nodes
+                .par_iter()
+                .map(|n| node_tables(n, intervals))
+                .collect();
             let mut table_a = Vec::with_capacity(nodes.len());
             let mut table_b = Vec::with_capacity(nodes.len());
             let mut table_error = 0.0f64;
-            for n in nodes {
-                let (ta, tb): (Vec<f64>, Vec<f64>) = (0..=intervals)
-                    .map(|j| factors(n, j as f64 / intervals as f64))
-                    .unzip();
-                // Error of the table: a half-resolution table's error at the odd points,
-                // divided by 8, relative to the table's peak. Fourth-order interpolation gains
-                // 16 from halving, but the largest error lies between the odd points: over
-                // 20 001 values of `mu` the rooftop's tables were off by up to 1.08x the
-                // odd points' error / 16 (`sized_mu_tables_meet_their_error`).
-                for t in [&ta, &tb] {
-                    let coarse: Vec<f64> = t.iter().step_by(2).copied().collect();
-                    let peak = t.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-                    if peak > 0.0 {
-                        for j in (1..intervals).step_by(2) {
-                            let x = j as f64 / intervals as f64;
-                            let e = (lagrange4(&coarse, x) - t[j]).abs() / 8.0 / peak;
-                            table_error = table_error.max(e);
-                        }
-                    }
-                }
+            for (ta, tb, e) in per_node {
                 table_a.push(ta);
                 table_b.push(tb);
+                table_error = table_error.max(e);
             }
             (table_a, table_b, table_error)
         };
@@ -868,37 +881,44 @@ impl Prepared {
             }
             intervals = table_intervals_for(intervals, t.2, tol / 8.0);
         };
+        // Sky irradiance per unit weight: azimuth in closed form, mu adaptively; the nodes in
+        // parallel, collected in their order.
+        let irradiances: Vec<(f64, usize)> = nodes
+            .par_iter()
+            .map(|n| {
+                let (alpha, beta) = {
+                    let (p0, _) = rayleigh.phase(0.0);
+                    let (p1, _) = rayleigh.phase(1.0);
+                    (p0, p1 - p0)
+                };
+                let s0sq = 1.0 - mu0 * mu0;
+                let scale = factors(n, 1.0).0.max(factors(n, 1.0).1).max(1e-300);
+                let g = atm.aerosol_g;
+                let node = *n;
+                let e = integrate(
+                    |mu| {
+                        let (fa, fb) = factors(&node, mu);
+                        let pr = 2.0
+                            * PI
+                            * (alpha + beta * (mu * mu * mu0 * mu0 + 0.5 * (1.0 - mu * mu) * s0sq));
+                        let hg = if fb == 0.0 {
+                            0.0
+                        } else {
+                            hg_azimuthal(g, mu, mu0)
+                        };
+                        mu * (pr * fa + hg * fb)
+                    },
+                    0.0,
+                    1.0,
+                    Tolerance::absolute(tol / 64.0 * scale),
+                );
+                (e.value, e.evaluations)
+            })
+            .collect();
         let mut evaluations = 0;
-        for n in &mut nodes {
-            // Sky irradiance per unit weight: azimuth in closed form, mu adaptively.
-            let (alpha, beta) = {
-                let (p0, _) = rayleigh.phase(0.0);
-                let (p1, _) = rayleigh.phase(1.0);
-                (p0, p1 - p0)
-            };
-            let s0sq = 1.0 - mu0 * mu0;
-            let scale = factors(n, 1.0).0.max(factors(n, 1.0).1).max(1e-300);
-            let g = atm.aerosol_g;
-            let node = *n;
-            let e = integrate(
-                |mu| {
-                    let (fa, fb) = factors(&node, mu);
-                    let pr = 2.0
-                        * PI
-                        * (alpha + beta * (mu * mu * mu0 * mu0 + 0.5 * (1.0 - mu * mu) * s0sq));
-                    let hg = if fb == 0.0 {
-                        0.0
-                    } else {
-                        hg_azimuthal(g, mu, mu0)
-                    };
-                    mu * (pr * fa + hg * fb)
-                },
-                0.0,
-                1.0,
-                Tolerance::absolute(tol / 64.0 * scale),
-            );
-            evaluations += e.evaluations;
-            n.e_sky = e.value;
+        for (n, (e_sky, e)) in nodes.iter_mut().zip(irradiances) {
+            n.e_sky = e_sky;
+            evaluations += e;
         }
         let sky = match &spec.sky {
             SkyModel::SingleScattering => Sky::SingleScattering,

@@ -214,32 +214,33 @@ struct SlopeIntegrand<'a, S: SkyRadiance + ?Sized> {
     e2: Vector3<f64>,
     /// The facet slope that reflects the sky's peak into the view, as `(psi, t)`.
     peak: Option<(f64, f64)>,
-    /// [`reflected_frame_x`] of the view.
-    s_r: Vector3<f64>,
+    /// The view's reflected surface frame.
+    s_r: ReflectedFrame,
 }
 
 /// `w R(-eta_r) M(beta) S_f` (Eqs. 3.5 and 3.7) for a sky Stokes vector `s_f` already in the
 /// facet frame (`x ∝ s_f_x = omega_r × omega_i`, from [`SkyRadiance::stokes_in_frame`]), out
-/// in the reflected surface frame (`x ∝ s_r`), `M(beta)` applied by its four distinct entries:
-/// what `FacetGeometry::rotated_fresnel(eps) * stokes_from(..) * w` computes, without the
-/// incident surface frame, `R(eta_i)` or the 3 x 3 product (equal up to rounding; tested).
+/// in the reflected surface frame `r` ([`ReflectedFrame`]), `M(beta)` applied by its four
+/// distinct entries: what `FacetGeometry::rotated_fresnel(eps) * stokes_from(..) * w`
+/// computes, without the incident surface frame, `R(eta_i)` or the 3 x 3 product (equal up to
+/// rounding; tested).
 #[inline]
 fn facet_reflection(
     eps: num_complex::Complex64,
     cos_beta: f64,
     s_f: &Stokes,
     s_f_x: &Vector3<f64>,
-    s_r: &Vector3<f64>,
-    omega_r: &Vector3<f64>,
+    r: &ReflectedFrame,
     w: f64,
 ) -> [f64; 3] {
     let s = &s_f.0;
-    let r = amplitudes_eps(eps, cos_beta.min(1.0));
-    let (rs2, rp2) = (r.rs_power(), r.rp_power());
-    let (a, b, d) = (0.5 * (rs2 + rp2), 0.5 * (rs2 - rp2), r.re_rs_rp_conj());
+    let f = amplitudes_eps(eps, cos_beta.min(1.0));
+    let (rs2, rp2) = (f.rs_power(), f.rp_power());
+    let (a, b, d) = (0.5 * (rs2 + rp2), 0.5 * (rs2 - rp2), f.re_rs_rp_conj());
     let (y0, y1, y2) = (a * s[0] + b * s[1], b * s[0] + a * s[1], d * s[2]);
-    // `cos_sin_2eta(s_r, s_f_x, omega_r)` with one division, its scale folded into `w`'s.
-    let (c, sn) = (s_r.dot(s_f_x), s_r.cross(s_f_x).dot(omega_r));
+    // `cos_sin_2eta(s_r, s_f_x, omega_r)` with one division, its scale folded into `w`'s:
+    // `(s_r × s_f_x) . omega_r = s_f_x . (omega_r × s_r)`, the frame's `y` computed once.
+    let (c, sn) = (r.x.dot(s_f_x), r.y.dot(s_f_x));
     let scale = w / (c * c + sn * sn);
     let (cr, sr) = (c * c - sn * sn, 2.0 * c * sn);
     [
@@ -247,6 +248,24 @@ fn facet_reflection(
         (cr * y1 - sr * y2) * scale,
         (sr * y1 + cr * y2) * scale,
     ]
+}
+
+/// The reflected surface frame of a view `omega_r`: `x` from [`reflected_frame_x`] and
+/// `y = omega_r × x` (both of the same length), fixed for every incident ray of the view.
+#[derive(Debug, Clone, Copy)]
+struct ReflectedFrame {
+    x: Vector3<f64>,
+    y: Vector3<f64>,
+}
+
+impl ReflectedFrame {
+    fn new(omega_view: &Vector3<f64>, peak: Option<Vector3<f64>>) -> ReflectedFrame {
+        let x = reflected_frame_x(omega_view, peak);
+        ReflectedFrame {
+            x,
+            y: omega_view.cross(&x),
+        }
+    }
 }
 
 /// Fixed splits of every line in `t`, so that no piece spans more than the Gaussian weight's
@@ -293,7 +312,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
             e1,
             e2,
             peak,
-            s_r: reflected_frame_x(omega_view, sky.peak()),
+            s_r: ReflectedFrame::new(omega_view, sky.peak()),
         }
     }
 
@@ -342,7 +361,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
             // formed, and `M(beta)` (Eq. 3.5) applied by its four distinct entries: the same
             // product as `rotated_fresnel(..) * stokes_from(..)` up to rounding (tested).
             let s = self.sky.stokes_in_frame(&omega_d, &s_f);
-            return facet_reflection(self.eps, cos_beta, &s, &s_f, &self.s_r, &self.omega_view, w);
+            return facet_reflection(self.eps, cos_beta, &s, &s_f, &self.s_r, w);
         }
         // omega_d is unit (to rounding) and above the horizon, omega_view checked, h and
         // cos beta known: the world-frame facet geometry without normalising its frames.
@@ -1067,7 +1086,7 @@ fn direction_integrand<'a, S: SkyRadiance + ?Sized>(
     sky: &'a S,
     omega_view: &'a Vector3<f64>,
 ) -> impl Fn(&Vector3<f64>) -> [f64; 3] + Copy + 'a {
-    let s_r = reflected_frame_x(omega_view, sky.peak());
+    let s_r = ReflectedFrame::new(omega_view, sky.peak());
     let cos_tr = omega_view.z.clamp(COS_FLOOR, 1.0);
     let leaf_eps = match surface {
         Surface::Vegetation { lobe, .. } => Some(lobe.index().permittivity()),
@@ -1082,7 +1101,7 @@ fn direction_integrand<'a, S: SkyRadiance + ?Sized>(
                 let cos_beta = 0.5 * (d + omega_view).norm();
                 let s = sky.stokes_in_frame(d, &s_f_x);
                 let w = 0.25 / (mu.clamp(COS_FLOOR, 1.0) + cos_tr) * mu;
-                return facet_reflection(eps, cos_beta, &s, &s_f_x, &s_r, omega_view, w);
+                return facet_reflection(eps, cos_beta, &s, &s_f_x, &s_r, w);
             }
         }
         let Ok(g) = Geometry::from_directions(d, omega_view) else {
