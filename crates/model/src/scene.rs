@@ -883,15 +883,15 @@ impl Prepared {
         };
         // Sky irradiance per unit weight: azimuth in closed form, mu adaptively; the nodes in
         // parallel, collected in their order.
+        let (alpha, beta) = {
+            let (p0, _) = rayleigh.phase(0.0);
+            let (p1, _) = rayleigh.phase(1.0);
+            (p0, p1 - p0)
+        };
+        let s0sq = 1.0 - mu0 * mu0;
         let irradiances: Vec<(f64, usize)> = nodes
             .par_iter()
             .map(|n| {
-                let (alpha, beta) = {
-                    let (p0, _) = rayleigh.phase(0.0);
-                    let (p1, _) = rayleigh.phase(1.0);
-                    (p0, p1 - p0)
-                };
-                let s0sq = 1.0 - mu0 * mu0;
                 let scale = factors(n, 1.0).0.max(factors(n, 1.0).1).max(1e-300);
                 let g = atm.aerosol_g;
                 let node = *n;
@@ -1798,8 +1798,9 @@ impl Prepared {
         } else {
             // The skylight varies slowly over the field: once the polynomial through the last
             // order's rays predicts this order's rays to the interpolant's budget (their
-            // quadrature errors allowed for), the polynomial through this order's rays replaces the hemisphere
-            // integrals at every higher order, and its last prediction error is reported.
+            // quadrature errors allowed for), the polynomial through this order's rays replaces
+            // the hemisphere integrals at every higher order, and its last prediction error is
+            // reported.
             let per_ray = Include {
                 tol_abs: ray_tol * s0_direct,
                 ..inc

@@ -626,15 +626,26 @@ impl LevelPair {
     /// The upper level accepted with `error` (the batch's largest change), plus the
     /// Lambertian term `f00_diffuse * e_sky` in S0, as [`reflected_skylight`] returns it.
     pub(crate) fn accept(&self, error: f64, f00_diffuse: f64, e_sky: f64) -> StokesIntegral {
-        let mut r = StokesIntegral::from(IntegralN {
-            value: self.upper,
-            error,
-            evaluations: self.evaluations,
-            converged: true,
-        });
-        r.stokes.0[0] += f00_diffuse * e_sky;
-        r
+        accepted_level(self.upper, error, self.evaluations, f00_diffuse * e_sky)
     }
+}
+
+/// A product-rule level accepted with `error`, plus the Lambertian term `lambertian` in S0,
+/// as [`reflected_skylight`] returns it.
+fn accepted_level(
+    value: [f64; 3],
+    error: f64,
+    evaluations: usize,
+    lambertian: f64,
+) -> StokesIntegral {
+    let mut r = StokesIntegral::from(IntegralN {
+        value,
+        error,
+        evaluations,
+        converged: true,
+    });
+    r.stokes.0[0] += lambertian;
+    r
 }
 
 /// When a batch of a surface's rays may be accepted on level pairs ([`level_pair`]): the
@@ -783,14 +794,12 @@ pub(crate) fn certified_level<S: SkyRadiance + ?Sized>(
 ) -> Result<StokesIntegral, ModelError> {
     let level = certificate.level.min(GAUSS_LEVELS.len() - 1);
     let (value, evaluations) = rule_level(surface, sky, omega_view, level)?;
-    let mut r = StokesIntegral::from(IntegralN {
+    Ok(accepted_level(
         value,
-        error: certificate.error,
+        certificate.error,
         evaluations,
-        converged: true,
-    });
-    r.stokes.0[0] += f00_diffuse * e_sky;
-    Ok(r)
+        f00_diffuse * e_sky,
+    ))
 }
 
 /// The skylight of `surface`'s polarising lobe by the product rule at `GAUSS_LEVELS[level]`,
@@ -2324,7 +2333,7 @@ mod tests {
         /// copper, sigma 0.02-1) and vegetation as in `vegetation_pair_study` (leaf indices
         /// 1.4-1.6), each with its [`pair_rule`].
         #[test]
-        #[ignore = "a study: about 6 minutes on 2 cores"]
+        #[ignore = "a study: about 4 minutes on 2 cores"]
         fn certificate_study() {
             use rayon::prelude::*;
             let glass = RefractiveIndex::new(1.5, 0.0).unwrap();
