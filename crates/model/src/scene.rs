@@ -363,8 +363,10 @@ impl BandTables {
     fn at(&self, mu: f64) -> (f64, f64) {
         let m = self.cubics.len();
         let t = mu.clamp(0.0, 1.0) * m as f64;
-        // t >= 0, so the truncating cast is the floor (see `lagrange4_stencil`).
-        let i = (t as usize).min(m.saturating_sub(1));
+        // t >= 0, so the truncating cast is the floor (see `lagrange4_stencil`); through `u32`
+        // (tables hold at most `TABLE_MAX_INTERVALS` intervals), whose saturating cast is half
+        // the instructions of `usize`'s.
+        let i = (t as u32 as usize).min(m.saturating_sub(1));
         let Some(c) = self.cubics.get(i) else {
             return (0.0, 0.0);
         };
