@@ -330,7 +330,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
 
     /// [`SlopeIntegrand::value`] on the line of horizontal direction `along` (from
     /// [`SlopeIntegrand::direction`]: the product rule computes it once per line).
-    #[inline]
+    #[inline(always)]
     fn value_along(&self, along: &Vector3<f64>, t: f64) -> [f64; 3] {
         let rho = self.sigma * std::f64::consts::SQRT_2 * t;
         let hv = Vector3::z() - along * rho;
