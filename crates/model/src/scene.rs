@@ -448,7 +448,9 @@ impl SkyRadiance for BandSky<'_> {
     /// The single-scattering sky's E-vector (`e = k × sun`, `k = -towards`) angle taken in
     /// `frame_x` directly: one division instead of the surface frame's and the rotation's.
     /// With `frame_x` perpendicular to `k`, `e . (k × frame_x) = frame_x . (e × k) =
-    /// frame_x . sun`, since `e × k = sun - k (k . sun)`.
+    /// frame_x . sun`, since `e × k = sun - k (k . sun)`. Inlined into the integrands' loops:
+    /// it is asked once per integrand point.
+    #[inline(always)]
     fn stokes_in_frame(&self, towards: &Vector3<f64>, frame_x: &Vector3<f64>) -> Stokes {
         if !matches!(self.prepared.sky, Sky::SingleScattering) {
             return surface_to_frame(self.stokes_from(towards), towards, frame_x);

@@ -1101,6 +1101,9 @@ fn direction_integrand<'a, S: SkyRadiance + ?Sized>(
         Surface::Vegetation { lobe, .. } => Some(lobe.index().permittivity()),
         Surface::Microfacet { .. } => None,
     };
+    // Inlined into the product rule's loop (asked once per integrand point); the general
+    // path, taken off the vegetation's facet frame, is a call.
+    #[inline(always)]
     move |d: &Vector3<f64>| {
         let mu = d.z;
         if let Some(eps) = leaf_eps {
@@ -1113,12 +1116,24 @@ fn direction_integrand<'a, S: SkyRadiance + ?Sized>(
                 return facet_reflection(eps, cos_beta, &s, &s_f_x, &s_r, w);
             }
         }
-        let Ok(g) = Geometry::from_directions(d, omega_view) else {
-            return [0.0; 3];
-        };
-        let out = surface.specular(&g).0 * sky.stokes_from(d).0 * mu;
-        [out[0], out[1], out[2]]
+        specular_times_sky(surface, sky, omega_view, d)
     }
+}
+
+/// [`direction_integrand`] by the surface's own Mueller matrix: `Surface::specular` times the
+/// sky's Stokes vector in the surface frame, times `mu`.
+#[inline(never)]
+fn specular_times_sky<S: SkyRadiance + ?Sized>(
+    surface: &Surface,
+    sky: &S,
+    omega_view: &Vector3<f64>,
+    d: &Vector3<f64>,
+) -> [f64; 3] {
+    let Ok(g) = Geometry::from_directions(d, omega_view) else {
+        return [0.0; 3];
+    };
+    let out = surface.specular(&g).0 * sky.stokes_from(d).0 * d.z;
+    [out[0], out[1], out[2]]
 }
 
 /// Eq. 3.22's specular part by direct integration over incident directions `(phi_d, cos theta_d)`,
