@@ -318,7 +318,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
 
     #[inline]
     fn value(&self, psi: f64, t: f64) -> [f64; 3] {
-        self.value_along(&self.direction(psi), t)
+        self.value_along(&self.direction(psi), t, slope_weight(t))
     }
 
     /// The horizontal unit vector of azimuth `psi` from `e1` towards `e2`.
@@ -331,7 +331,9 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
     /// [`SlopeIntegrand::value`] on the line of horizontal direction `along` (from
     /// [`SlopeIntegrand::direction`]: the product rule computes it once per line).
     #[inline(always)]
-    fn value_along(&self, along: &Vector3<f64>, t: f64) -> [f64; 3] {
+    /// `weight` is [`slope_weight`]`(t)`: the product rule takes it from a table for the pieces
+    /// every line shares.
+    fn value_along(&self, along: &Vector3<f64>, t: f64, weight: f64) -> [f64; 3] {
         let rho = self.sigma * std::f64::consts::SQRT_2 * t;
         let hv = Vector3::z() - along * rho;
         // One division for the three components (as for every reciprocal below: a division
@@ -351,8 +353,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
         let g_cb_over_cv = (cos_beta * inv_cv)
             .min(2.0 * cos_alpha)
             .min(2.0 * cos_alpha * cos_d * inv_cv);
-        // The slope weight `2 t exp(-t^2) / (2 pi)`.
-        let w = t * (-t * t).exp() * g_cb_over_cv * std::f64::consts::FRAC_1_PI;
+        let w = weight * g_cb_over_cv;
         // The facet frame's x, `omega_r × omega_i` as in `FacetGeometry::from_half_vector`.
         let s_f = self.omega_view.cross(&omega_d);
         if s_f.norm_squared() > 1e-200 {
@@ -491,6 +492,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
     fn gauss(&self, n: usize, q: usize, pieces: &mut Vec<f64>) -> ([f64; 3], usize) {
         let mut sum = [0.0; 3];
         let mut evaluations = 0;
+        let mut shared = SharedWeights::new(self.peak.map(|p| p.1));
         let mut arcs = [(0.0, 0.0); 5];
         let count = self.arcs(&mut arcs);
         for &(a, b) in &arcs[..count] {
@@ -513,8 +515,11 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
                     } else {
                         q
                     });
-                    for &(y, wy) in gq {
-                        let v = self.value_along(&along, mid + half * y);
+                    let weights = shared.get(w[0], w[1], gq);
+                    for (k, &(y, wy)) in gq.iter().enumerate() {
+                        let t = mid + half * y;
+                        let g = weights.map_or_else(|| slope_weight(t), |ws| ws[k]);
+                        let v = self.value_along(&along, t, g);
                         let wt = wpsi * half * wy;
                         add_scaled(&mut sum, &v, wt);
                     }
@@ -523,6 +528,69 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
             }
         }
         (sum, evaluations)
+    }
+}
+
+/// The slope weight `2 t exp(-t^2) / (2 pi)` of [`SlopeIntegrand`]'s measure `dpsi dt`.
+#[inline(always)]
+fn slope_weight(t: f64) -> f64 {
+    t * (-t * t).exp() * std::f64::consts::FRAC_1_PI
+}
+
+/// [`slope_weight`] at the Gauss nodes of the pieces that every line of a product rule shares:
+/// those between the fixed splits, the sky peak's split, `0` and [`SLOPE_T`] (the line's
+/// kinks and horizon end move with its azimuth). Computed once per rule instead of once per
+/// line: the same values to the bit, since a piece's nodes come from its ends alone.
+struct SharedWeights {
+    /// The splits every line has: `0`, [`SLOPE_SPLITS`], the peak's and [`SLOPE_T`].
+    fixed: [f64; 5],
+    /// Per piece met so far: its ends and its nodes' weights (at most [`SHARED_MAX_NODES`]).
+    pieces: Vec<(f64, f64, usize, [f64; SHARED_MAX_NODES])>,
+}
+
+/// The most Gauss nodes a piece's shared weights hold (`GAUSS_LEVELS`' largest `q`).
+const SHARED_MAX_NODES: usize = 24;
+
+impl SharedWeights {
+    fn new(peak_t: Option<f64>) -> SharedWeights {
+        SharedWeights {
+            fixed: [
+                0.0,
+                SLOPE_SPLITS[0],
+                SLOPE_SPLITS[1],
+                peak_t.unwrap_or(0.0),
+                SLOPE_T,
+            ],
+            pieces: Vec::new(),
+        }
+    }
+
+    /// The weights at the nodes `gq` of the piece `[a, b]` when every line shares it (`None`
+    /// otherwise: the caller computes its own).
+    #[inline]
+    fn get(&mut self, a: f64, b: f64, gq: &[(f64, f64)]) -> Option<&[f64]> {
+        let shared = |x: f64| self.fixed.contains(&x);
+        if gq.len() > SHARED_MAX_NODES || !shared(a) || !shared(b) {
+            return None;
+        }
+        let found = self
+            .pieces
+            .iter()
+            .position(|p| p.0 == a && p.1 == b && p.2 == gq.len());
+        let i = match found {
+            Some(i) => i,
+            None => {
+                let (mid, half) = (0.5 * (a + b), 0.5 * (b - a));
+                let mut weights = [0.0; SHARED_MAX_NODES];
+                for (w, &(y, _)) in weights.iter_mut().zip(gq) {
+                    *w = slope_weight(mid + half * y);
+                }
+                self.pieces.push((a, b, gq.len(), weights));
+                self.pieces.len() - 1
+            }
+        };
+        let p = &self.pieces[i];
+        Some(&p.3[..p.2])
     }
 }
 
@@ -1515,7 +1583,7 @@ mod tests {
                     let along = integrand.direction(psi);
                     for j in 0..30 {
                         let t = 0.05 + j as f64 * 0.2;
-                        let fast = integrand.value_along(&along, t);
+                        let fast = integrand.value_along(&along, t, slope_weight(t));
                         // The general product, as before the facet-frame path.
                         let rho = 0.3 * std::f64::consts::SQRT_2 * t;
                         let hv = Vector3::z() - along * rho;
@@ -1585,6 +1653,33 @@ mod tests {
     /// for smooth and rough lobes, views from nadir to 88 deg, the sun in and out of the lobe,
     /// at 1e-3 and 1e-6 of S0. One change alone fell short of the error in 6-8 % of such cases;
     /// the larger of the last two never did.
+    /// A shared piece's weights are `slope_weight` at its nodes, to the bit, whichever line
+    /// asks first; a piece with an end of its own (a kink, the horizon) gets none.
+    #[test]
+    fn shared_weights_are_the_slope_weights() {
+        let mut shared = SharedWeights::new(Some(2.4));
+        let gq = gauss_legendre_table(10);
+        for (a, b) in [
+            (0.0, 1.5),
+            (1.5, 2.4),
+            (2.4, 3.0),
+            (3.0, SLOPE_T),
+            (1.5, 2.4),
+        ] {
+            let ws = shared.get(a, b, gq).unwrap().to_vec();
+            assert_eq!(ws.len(), 10);
+            let (mid, half) = (0.5 * (a + b), 0.5 * (b - a));
+            for (w, &(y, _)) in ws.iter().zip(gq) {
+                assert_eq!(w.to_bits(), slope_weight(mid + half * y).to_bits());
+            }
+        }
+        // Four distinct pieces kept (the repeated one found again).
+        assert_eq!(shared.pieces.len(), 4);
+        assert!(shared.get(0.7, 1.5, gq).is_none());
+        assert!(shared.get(3.0, 5.9, gq).is_none());
+        assert!(shared.get(0.0, 1.5, gauss_legendre_table(32)).is_none());
+    }
+
     #[test]
     fn product_rule_error_covers_the_actual_error() {
         let eps = RefractiveIndex::new(1.5, 0.0).unwrap().permittivity();
