@@ -24,7 +24,7 @@
 //! change over the batch as every ray's error (`level_pair`, validated by
 //! `field_pair_study`), which halves the cost of the scene's field rays; vegetation's batches
 //! likewise, on twice that change (`vegetation_pair_study`). Rays around an accepted batch
-//! then take its upper level alone, with its error ([`certified_level`], validated by
+//! then take its upper level alone, with its error (`certified_level`, validated by
 //! `certificate_study`).
 //!
 //! The Lambertian part is `f00_d` times the sky irradiance, and the vegetation lobe, which is
