@@ -1044,6 +1044,17 @@ fn hemisphere_gauss<F: Fn(&Vector3<f64>) -> [f64; 3]>(
     mus.sort_by(f64::total_cmp);
     mus.dedup();
     let gq = gauss_legendre_table(q);
+    // The `mu` nodes, their `sin theta` and weights, the same on every azimuth line.
+    let column: Vec<(f64, f64, f64)> = mus
+        .windows(2)
+        .flat_map(|w| {
+            let (mid, h) = (0.5 * (w[0] + w[1]), 0.5 * (w[1] - w[0]));
+            gq.iter().map(move |&(y, wy)| {
+                let mu = mid + h * y;
+                (mu, (1.0 - mu * mu).max(0.0).sqrt(), h * wy)
+            })
+        })
+        .collect();
     let mut sum = [0.0; 3];
     let mut evaluations = 0;
     for (a, b) in arcs {
@@ -1052,15 +1063,12 @@ fn hemisphere_gauss<F: Fn(&Vector3<f64>) -> [f64; 3]>(
         for &(x, wx) in gauss_legendre_table(m) {
             let phi = centre + half * x;
             let (cos_phi, sin_phi) = (phi.cos(), phi.sin());
-            for w in mus.windows(2) {
-                let (mid, h) = (0.5 * (w[0] + w[1]), 0.5 * (w[1] - w[0]));
-                for &(y, wy) in gq {
-                    let v = f(&hemisphere_direction(cos_phi, sin_phi, mid + h * y));
-                    let wt = half * wx * h * wy;
-                    add_scaled(&mut sum, &v, wt);
-                }
-                evaluations += gq.len();
+            for &(mu, s, wmu) in &column {
+                let v = f(&Vector3::new(s * cos_phi, s * sin_phi, mu));
+                let wt = half * wx * wmu;
+                add_scaled(&mut sum, &v, wt);
             }
+            evaluations += column.len();
         }
     }
     (sum, evaluations)
