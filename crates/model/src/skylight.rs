@@ -329,10 +329,10 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
     }
 
     /// [`SlopeIntegrand::value`] on the line of horizontal direction `along` (from
-    /// [`SlopeIntegrand::direction`]: the product rule computes it once per line).
+    /// [`SlopeIntegrand::direction`]: the product rule computes it once per line). `weight` is
+    /// [`slope_weight`]`(t)`: the product rule takes it from a table for the pieces every line
+    /// shares ([`SharedWeights`]). Inlined into the rule's loop: it is one integrand point.
     #[inline(always)]
-    /// `weight` is [`slope_weight`]`(t)`: the product rule takes it from a table for the pieces
-    /// every line shares.
     fn value_along(&self, along: &Vector3<f64>, t: f64, weight: f64) -> [f64; 3] {
         let rho = self.sigma * std::f64::consts::SQRT_2 * t;
         let hv = Vector3::z() - along * rho;
