@@ -111,23 +111,15 @@ pub fn csqrt(z: Complex64) -> Complex64 {
 /// A dielectric below its critical angle takes a real-arithmetic path.
 #[inline]
 pub fn amplitudes_eps(eps: Complex64, cos_ti: f64) -> FresnelAmplitudes {
-    let c = cos_ti.clamp(0.0, 1.0);
-    let sin2 = (1.0 - c * c).max(0.0);
-    let zero = Complex64::new(0.0, 0.0);
-    if eps.im == 0.0 && eps.re >= sin2 {
-        let w = (eps.re - sin2).sqrt();
-        let (ds, dp) = (c + w, eps.re * c + w);
-        let rs = if ds == 0.0 { 0.0 } else { (c - w) / ds };
-        let rp = if dp == 0.0 {
-            0.0
-        } else {
-            (eps.re * c - w) / dp
-        };
+    if let Some((rs, rp)) = real_amplitudes(eps, cos_ti) {
         return FresnelAmplitudes {
             rs: Complex64::new(rs, 0.0),
             rp: Complex64::new(rp, 0.0),
         };
     }
+    let c = cos_ti.clamp(0.0, 1.0);
+    let sin2 = (1.0 - c * c).max(0.0);
+    let zero = Complex64::new(0.0, 0.0);
     let w = csqrt(eps - sin2);
     let ds = c + w;
     let dp = eps * c + w;
@@ -135,6 +127,28 @@ pub fn amplitudes_eps(eps: Complex64, cos_ti: f64) -> FresnelAmplitudes {
         rs: if ds == zero { zero } else { (c - w) / ds },
         rp: if dp == zero { zero } else { (eps * c - w) / dp },
     }
+}
+
+/// [`amplitudes_eps`]'s real-arithmetic path: the real `(rs, rp)` of a dielectric (`eps` real)
+/// below its critical angle, `None` otherwise. A caller that needs only `|rs|^2`, `|rp|^2` and
+/// `Re(rs rp*)` takes them as `rs^2`, `rp^2` and `rs rp` from here, equal to the bit and
+/// without the complex products on zero imaginary parts.
+#[inline]
+pub(crate) fn real_amplitudes(eps: Complex64, cos_ti: f64) -> Option<(f64, f64)> {
+    let c = cos_ti.clamp(0.0, 1.0);
+    let sin2 = (1.0 - c * c).max(0.0);
+    if !(eps.im == 0.0 && eps.re >= sin2) {
+        return None;
+    }
+    let w = (eps.re - sin2).sqrt();
+    let (ds, dp) = (c + w, eps.re * c + w);
+    let rs = if ds == 0.0 { 0.0 } else { (c - w) / ds };
+    let rp = if dp == 0.0 {
+        0.0
+    } else {
+        (eps.re * c - w) / dp
+    };
+    Some((rs, rp))
 }
 
 /// Fresnel amplitudes at incidence angle `theta_i_rad` in `[0, pi/2]`.

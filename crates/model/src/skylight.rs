@@ -32,7 +32,7 @@
 //! result carries the quadrature's error estimate and evaluation count.
 
 use crate::error::ModelError;
-use crate::fresnel::amplitudes_eps;
+use crate::fresnel::{amplitudes_eps, real_amplitudes};
 use crate::pbrdf::{FacetGeometry, Geometry, Surface, COS_FLOOR};
 use crate::polarization::{cos_sin_2eta, Stokes};
 use crate::quadrature::{
@@ -234,9 +234,14 @@ fn facet_reflection(
     w: f64,
 ) -> [f64; 3] {
     let s = &s_f.0;
-    let f = amplitudes_eps(eps, cos_beta.min(1.0));
-    let (rs2, rp2) = (f.rs_power(), f.rp_power());
-    let (a, b, d) = (0.5 * (rs2 + rp2), 0.5 * (rs2 - rp2), f.re_rs_rp_conj());
+    let (rs2, rp2, d) = match real_amplitudes(eps, cos_beta.min(1.0)) {
+        Some((rs, rp)) => (rs * rs, rp * rp, rs * rp),
+        None => {
+            let f = amplitudes_eps(eps, cos_beta.min(1.0));
+            (f.rs_power(), f.rp_power(), f.re_rs_rp_conj())
+        }
+    };
+    let (a, b) = (0.5 * (rs2 + rp2), 0.5 * (rs2 - rp2));
     let (y0, y1, y2) = (a * s[0] + b * s[1], b * s[0] + a * s[1], d * s[2]);
     // `cos_sin_2eta(s_r, s_f_x, omega_r)` with one division, its scale folded into `w`'s:
     // `(s_r × s_f_x) . omega_r = s_f_x . (omega_r × s_r)`, the frame's `y` computed once.
