@@ -955,7 +955,8 @@ impl Prepared {
         let irradiances: Vec<(f64, usize)> = nodes
             .par_iter()
             .map(|n| {
-                let scale = factors(n, 1.0).0.max(factors(n, 1.0).1).max(1e-300);
+                let (fa_zenith, fb_zenith) = factors(n, 1.0);
+                let scale = fa_zenith.max(fb_zenith).max(1e-300);
                 let g = atm.aerosol_g;
                 let node = *n;
                 let e = integrate(
