@@ -476,7 +476,9 @@ impl SkyRadiance for BandSky<'_> {
 
     /// [`BandSky::stokes_in_frame`] over a batch: the tables looked up one ray at a time, the
     /// rest in a loop the compiler vectorises (branches as selects; the same values to the
-    /// bit as one ray at a time, tested).
+    /// bit as one ray at a time, tested). Inlined into the product rules' loops, so that it is
+    /// compiled for the instruction set they are dispatched to.
+    #[inline(always)]
     fn stokes_in_frame_batch(
         &self,
         towards: [&[f64]; 3],
