@@ -517,8 +517,22 @@ impl SkyRadiance for BandSky<'_> {
                 &mut o1[start..end],
                 &mut o2[start..end],
             );
-            for i in 0..n {
-                (a[i], b[i]) = self.tables.at(tz[i].max(0.0));
+            // `BandTables::at` (the same arithmetic), with the empty table taken once, so
+            // that the index needs no check per ray.
+            let cubics = &self.tables.cubics[..];
+            if let Some(last) = cubics.len().checked_sub(1) {
+                let scale = cubics.len() as f64;
+                for i in 0..n {
+                    let t = tz[i].clamp(0.0, 1.0) * scale;
+                    let j = (t as u32 as usize).min(last);
+                    let s = t - j as f64;
+                    let c = &cubics[j];
+                    a[i] = c[0] + s * (c[1] + s * (c[2] + s * c[3]));
+                    b[i] = c[4] + s * (c[5] + s * (c[6] + s * c[7]));
+                }
+            } else {
+                a[..n].fill(0.0);
+                b[..n].fill(0.0);
             }
             for i in 0..n {
                 let (x, y, z) = (tx[i], ty[i], tz[i]);
