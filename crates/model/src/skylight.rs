@@ -426,10 +426,10 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
         self.e1 * cp + self.e2 * sp
     }
 
-    /// [`SlopeIntegrand::value`] on the line `line` (from [`SlopeIntegrand::line`]: the product
-    /// rule computes it once per line). `weight` is [`slope_weight`]`(t)`: the product rule
-    /// takes it from a table for the pieces every line shares ([`SharedWeights`]). Inlined
-    /// into the rule's loop: it is one integrand point.
+    /// [`SlopeIntegrand::value`] on the line `line` (from [`SlopeIntegrand::line`]). `weight`
+    /// is [`slope_weight`]`(t)`. The adaptive rule's point, and the product rule's at a
+    /// degenerate facet frame; the product rule's pieces compute the same in vector loops
+    /// ([`SlopeIntegrand::piece`], tested against this).
     #[inline(always)]
     fn value_on(&self, line: &SlopeLine, t: f64, weight: f64) -> [f64; 3] {
         let rho = self.rho_per_t * t;
