@@ -452,6 +452,7 @@ pub struct ClearSky {
 
 impl ClearSky {
     /// Henyey-Greenstein phase function normalised to average 1 over the sphere.
+    #[inline]
     pub fn henyey_greenstein(g: f64, cos_gamma: f64) -> f64 {
         let d = 1.0 + g * g - 2.0 * g * cos_gamma;
         (1.0 - g * g) / (d * d.sqrt())

@@ -361,15 +361,23 @@ impl BandTables {
     /// `(A(mu), B(mu))` for `mu` in `[0, 1]` (clamped); zero for empty tables.
     #[inline]
     fn at(&self, mu: f64) -> (f64, f64) {
-        let m = self.cubics.len();
-        let t = mu.clamp(0.0, 1.0) * m as f64;
+        let Some(last) = self.cubics.len().checked_sub(1) else {
+            return (0.0, 0.0);
+        };
+        self.at_in(mu, last)
+    }
+
+    /// [`BandTables::at`] for non-empty tables, `last` the index of the last interval: no check
+    /// per call, so that a loop over rays ([`BandSky::stokes_in_frame_batch`]) takes the empty
+    /// table once.
+    #[inline(always)]
+    fn at_in(&self, mu: f64, last: usize) -> (f64, f64) {
+        let t = mu.clamp(0.0, 1.0) * (last + 1) as f64;
         // t >= 0, so the truncating cast is the floor (see `lagrange4_stencil`); through `u32`
         // (tables hold at most `TABLE_MAX_INTERVALS` intervals), whose saturating cast is half
         // the instructions of `usize`'s.
-        let i = (t as u32 as usize).min(m.saturating_sub(1));
-        let Some(c) = self.cubics.get(i) else {
-            return (0.0, 0.0);
-        };
+        let i = (t as u32 as usize).min(last);
+        let c = &self.cubics[i];
         let s = t - i as f64;
         (
             c[0] + s * (c[1] + s * (c[2] + s * c[3])),
@@ -410,16 +418,68 @@ impl BandSky<'_> {
     /// polarised part `P12 A(mu)` (module docs); `None` where the radiance is not positive.
     #[inline]
     fn single_scattering(&self, towards: &Vector3<f64>) -> Option<(f64, f64)> {
-        let p = self.prepared;
-        let mu = towards.z.max(0.0);
-        let (a, b) = self.tables.at(mu);
-        let c = p.sun.dot(towards).clamp(-1.0, 1.0);
-        // `RayleighSky::phase` with its depolarisation factor taken once.
-        let [k0, k1] = p.rayleigh_phase;
+        let (intensity, pol) = self
+            .prepared
+            .scattering()
+            .radiance(self.tables.at(towards.z.max(0.0)), towards);
+        (intensity > 0.0).then_some((intensity, pol))
+    }
+}
+
+/// The band sky's single-scattering constants, copied out of [`Prepared`] so that a loop over
+/// rays ([`BandSky::stokes_in_frame_batch`]) holds them in registers.
+#[derive(Debug, Clone, Copy)]
+struct Scattering {
+    sun: Vector3<f64>,
+    /// `RayleighSky::phase` with its depolarisation factor taken once.
+    rayleigh_phase: [f64; 2],
+    aerosol_g: f64,
+}
+
+impl Scattering {
+    /// The radiance `P11 A(mu) + P_HG B(mu)` arriving from `towards` and its polarised part
+    /// `P12 A(mu)` (module docs), from the tables' `(A, B)` at the ray's `mu`; the radiance
+    /// may be `<= 0` (the callers take that as no light).
+    #[inline(always)]
+    fn radiance(&self, (a, b): (f64, f64), towards: &Vector3<f64>) -> (f64, f64) {
+        let c = self.sun.dot(towards).clamp(-1.0, 1.0);
+        let [k0, k1] = self.rayleigh_phase;
         let c2 = c * c;
         let (p11, p12) = (k0 * (1.0 + c2) + k1, k0 * (1.0 - c2));
-        let intensity = p11 * a + ClearSky::henyey_greenstein(p.atmosphere.aerosol_g, c) * b;
-        (intensity > 0.0).then_some((intensity, p12 * a))
+        let hg = ClearSky::henyey_greenstein(self.aerosol_g, c);
+        (p11 * a + hg * b, p12 * a)
+    }
+
+    /// [`BandSky::stokes_in_frame`] from [`Scattering::radiance`]'s `(intensity, pol)`: the
+    /// E-vector (`e = k × sun`, `k = -towards`) angle taken in `frame_x` directly, one division
+    /// instead of the surface frame's and the rotation's. With `frame_x` perpendicular to `k`,
+    /// `e . (k × frame_x) = frame_x . (e × k) = frame_x . sun`, since `e × k = sun - k (k .
+    /// sun)`. Zero where the radiance is not positive. Branch-free (selects), so that the
+    /// batch's loop vectorises.
+    #[inline(always)]
+    fn in_frame(
+        &self,
+        (intensity, pol): (f64, f64),
+        towards: &Vector3<f64>,
+        frame_x: &Vector3<f64>,
+    ) -> Stokes {
+        let k = -towards;
+        let e = k.cross(&self.sun);
+        let (c, s) = (e.dot(frame_x), frame_x.dot(&self.sun));
+        let n2 = c * c + s * s;
+        // `n2 = 0`: towards or away from the sun, no scattering plane and no polarisation.
+        let (q1, q2) = if n2 == 0.0 {
+            (pol, 0.0)
+        } else {
+            let pol = pol / n2;
+            (pol * (c * c - s * s), pol * 2.0 * c * s)
+        };
+        let on = intensity > 0.0;
+        Stokes::new(
+            if on { intensity } else { 0.0 },
+            if on { q1 } else { 0.0 },
+            if on { q2 } else { 0.0 },
+        )
     }
 }
 
@@ -445,29 +505,17 @@ impl SkyRadiance for BandSky<'_> {
         Stokes::new(intensity, pol * c2, pol * s2)
     }
 
-    /// The single-scattering sky's E-vector (`e = k × sun`, `k = -towards`) angle taken in
-    /// `frame_x` directly: one division instead of the surface frame's and the rotation's.
-    /// With `frame_x` perpendicular to `k`, `e . (k × frame_x) = frame_x . (e × k) =
-    /// frame_x . sun`, since `e × k = sun - k (k . sun)`. Inlined into the integrands' loops:
-    /// it is asked once per integrand point.
+    /// The single-scattering sky's E-vector angle taken in `frame_x` directly
+    /// ([`Scattering::in_frame`]). Inlined into the integrands' loops: it is asked once per
+    /// integrand point.
     #[inline(always)]
     fn stokes_in_frame(&self, towards: &Vector3<f64>, frame_x: &Vector3<f64>) -> Stokes {
         if !matches!(self.prepared.sky, Sky::SingleScattering) {
             return surface_to_frame(self.stokes_from(towards), towards, frame_x);
         }
-        let Some((intensity, pol)) = self.single_scattering(towards) else {
-            return Stokes::new(0.0, 0.0, 0.0);
-        };
-        let k = -towards;
-        let e = k.cross(&self.prepared.sun);
-        let (c, s) = (e.dot(frame_x), frame_x.dot(&self.prepared.sun));
-        let n2 = c * c + s * s;
-        if n2 == 0.0 {
-            // Towards or away from the sun: no scattering plane, and no polarisation.
-            return Stokes::new(intensity, pol, 0.0);
-        }
-        let pol = pol / n2;
-        Stokes::new(intensity, pol * (c * c - s * s), pol * 2.0 * c * s)
+        let scattering = self.prepared.scattering();
+        let radiance = scattering.radiance(self.tables.at(towards.z.max(0.0)), towards);
+        scattering.in_frame(radiance, towards, frame_x)
     }
 
     fn peak(&self) -> Option<Vector3<f64>> {
@@ -475,8 +523,8 @@ impl SkyRadiance for BandSky<'_> {
     }
 
     /// [`BandSky::stokes_in_frame`] over a batch: the tables looked up one ray at a time, the
-    /// rest in a loop the compiler vectorises (branches as selects; the same values to the
-    /// bit as one ray at a time, tested). Inlined into the product rules' loops, so that it is
+    /// rest ([`Scattering`]) in a loop the compiler vectorises (the same values to the bit as
+    /// one ray at a time, tested). Inlined into the product rules' loops, so that it is
     /// compiled for the instruction set they are dispatched to.
     #[inline(always)]
     fn stokes_in_frame_batch(
@@ -490,11 +538,7 @@ impl SkyRadiance for BandSky<'_> {
             crate::skylight::stokes_in_frame_each(self, towards, frame_x, out);
             return;
         }
-        let p = self.prepared;
-        let [k0, k1] = p.rayleigh_phase;
-        let g = p.atmosphere.aerosol_g;
-        let (hg_num, hg_a, hg_b) = (1.0 - g * g, 1.0 + g * g, 2.0 * g);
-        let (sx, sy, sz) = (p.sun.x, p.sun.y, p.sun.z);
+        let scattering = self.prepared.scattering();
         let [o0, o1, o2] = out;
         let total = o0.len();
         let mut a = [0.0; CHUNK];
@@ -517,48 +561,20 @@ impl SkyRadiance for BandSky<'_> {
                 &mut o1[start..end],
                 &mut o2[start..end],
             );
-            // `BandTables::at` (the same arithmetic), with the empty table taken once, so
-            // that the index needs no check per ray.
-            let cubics = &self.tables.cubics[..];
-            if let Some(last) = cubics.len().checked_sub(1) {
-                let scale = cubics.len() as f64;
+            if let Some(last) = self.tables.cubics.len().checked_sub(1) {
                 for i in 0..n {
-                    let t = tz[i].clamp(0.0, 1.0) * scale;
-                    let j = (t as u32 as usize).min(last);
-                    let s = t - j as f64;
-                    let c = &cubics[j];
-                    a[i] = c[0] + s * (c[1] + s * (c[2] + s * c[3]));
-                    b[i] = c[4] + s * (c[5] + s * (c[6] + s * c[7]));
+                    (a[i], b[i]) = self.tables.at_in(tz[i], last);
                 }
             } else {
                 a[..n].fill(0.0);
                 b[..n].fill(0.0);
             }
             for i in 0..n {
-                let (x, y, z) = (tx[i], ty[i], tz[i]);
-                let c = (sx * x + sy * y + sz * z).clamp(-1.0, 1.0);
-                let c2 = c * c;
-                let (p11, p12) = (k0 * (1.0 + c2) + k1, k0 * (1.0 - c2));
-                // `ClearSky::henyey_greenstein(g, c)`.
-                let d = hg_a - hg_b * c;
-                let hg = hg_num / (d * d.sqrt());
-                let intensity = p11 * a[i] + hg * b[i];
-                let pol = p12 * a[i];
-                // `e = k × sun`, `k = -towards`.
-                let (ex, ey, ez) = (z * sy - y * sz, x * sz - z * sx, y * sx - x * sy);
-                let (f0, f1, f2) = (fx[i], fy[i], fz[i]);
-                let (ce, se) = (ex * f0 + ey * f1 + ez * f2, f0 * sx + f1 * sy + f2 * sz);
-                let n2 = ce * ce + se * se;
-                let (q1, q2) = if n2 == 0.0 {
-                    (pol, 0.0)
-                } else {
-                    let pol = pol / n2;
-                    (pol * (ce * ce - se * se), pol * 2.0 * ce * se)
-                };
-                let on = intensity > 0.0;
-                o0[i] = if on { intensity } else { 0.0 };
-                o1[i] = if on { q1 } else { 0.0 };
-                o2[i] = if on { q2 } else { 0.0 };
+                let towards = Vector3::new(tx[i], ty[i], tz[i]);
+                let frame = Vector3::new(fx[i], fy[i], fz[i]);
+                let radiance = scattering.radiance((a[i], b[i]), &towards);
+                let s = scattering.in_frame(radiance, &towards, &frame).0;
+                (o0[i], o1[i], o2[i]) = (s[0], s[1], s[2]);
             }
         }
     }
@@ -906,6 +922,16 @@ pub struct Prepared {
 }
 
 impl Prepared {
+    /// The single-scattering constants the band sky's per-ray arithmetic reads.
+    #[inline(always)]
+    fn scattering(&self) -> Scattering {
+        Scattering {
+            sun: self.sun,
+            rayleigh_phase: self.rayleigh_phase,
+            aerosol_g: self.atmosphere.aerosol_g,
+        }
+    }
+
     /// Prepares `spec` for evaluation at relative tolerance `tol` in `[1e-10, 0.1]`. Errors
     /// name the field.
     pub fn new(spec: &SceneSpec, tol: f64) -> Result<Prepared, ModelError> {

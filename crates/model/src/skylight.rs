@@ -231,7 +231,6 @@ fn check_view(omega_view: &Vector3<f64>) -> Result<(), ModelError> {
 /// `2 t exp(-t^2) / (2 pi)` included).
 struct SlopeIntegrand<'a, S: SkyRadiance + ?Sized> {
     eps: num_complex::Complex64,
-    sigma: f64,
     sky: &'a S,
     omega_view: Vector3<f64>,
     /// `cos theta_v`, floored at [`COS_FLOOR`].
@@ -258,6 +257,25 @@ struct SlopeIntegrand<'a, S: SkyRadiance + ?Sized> {
     /// [`real_amplitudes`] holds for every facet), whose Fresnel terms the batch computes in
     /// vector loops; `None` for any other surface.
     real_eps: Option<f64>,
+}
+
+/// [`SlopeIntegrand::point`]: one point's geometry. On the integrand's support when
+/// `cos_beta > 0` and `cos_d > 0`.
+struct SlopePoint {
+    /// `1 / sqrt(1 + rho^2)`, the half vector's `z`.
+    inv_n: f64,
+    cos_beta: f64,
+    /// `omega_d.z`.
+    cos_d: f64,
+    /// The reflected (incident sky) direction.
+    omega_d: Vector3<f64>,
+    /// The shadowing term times `cos beta / cos theta_v`.
+    g: f64,
+    /// The facet frame's `x` (unnormalised) and its components along the reflected frame's `x`
+    /// and `y`.
+    s_f: Vector3<f64>,
+    c: f64,
+    sn: f64,
 }
 
 /// The terms of one line of [`SlopeIntegrand`] (slope azimuth `psi`) that do not change along
@@ -307,7 +325,6 @@ fn facet_reflection_cs(
     sn: f64,
     w: f64,
 ) -> [f64; 3] {
-    let s = &s_f.0;
     let (rs2, rp2, d) = match real_amplitudes(eps, cos_beta.min(1.0)) {
         Some((rs, rp)) => (rs * rs, rp * rp, rs * rp),
         None => {
@@ -315,9 +332,26 @@ fn facet_reflection_cs(
             (f.rs_power(), f.rp_power(), f.re_rs_rp_conj())
         }
     };
+    reflected_stokes((rs2, rp2, d), &s_f.0.into(), c, sn, w)
+}
+
+/// `w R(-eta_r) M(beta) S_f` from the Fresnel terms `(|rs|^2, |rp|^2, Re(rs rp*))`: `M(beta)`
+/// (Eq. 3.5) by its four distinct entries, then the rotation from the facet frame `(c, sn)`
+/// ([`facet_reflection_cs`]) into the reflected frame with one division, its scale folded into
+/// `w`'s. Branch-free (a zero frame gives zero polarisation), so that [`reflect_batch`]'s loop
+/// vectorises.
+#[inline(always)]
+fn reflected_stokes(
+    (rs2, rp2, d): (f64, f64, f64),
+    s: &[f64; 3],
+    c: f64,
+    sn: f64,
+    w: f64,
+) -> [f64; 3] {
     let (a, b) = (0.5 * (rs2 + rp2), 0.5 * (rs2 - rp2));
     let (y0, y1, y2) = (a * s[0] + b * s[1], b * s[0] + a * s[1], d * s[2]);
-    let scale = w / (c * c + sn * sn);
+    let r2 = c * c + sn * sn;
+    let scale = if r2 > 0.0 { w / r2 } else { 0.0 };
     let (cr, sr) = (c * c - sn * sn, 2.0 * c * sn);
     [
         y0 * w,
@@ -381,7 +415,6 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
         let view_cross_z = omega_view.cross(&Vector3::z());
         SlopeIntegrand {
             eps,
-            sigma,
             sky,
             omega_view: *omega_view,
             cv,
@@ -433,63 +466,73 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
     #[inline(always)]
     fn value_on(&self, line: &SlopeLine, t: f64, weight: f64) -> [f64; 3] {
         let rho = self.rho_per_t * t;
+        let p = self.point(line, rho);
+        if p.cos_beta <= 0.0 || p.cos_d <= 0.0 {
+            return [0.0; 3];
+        }
+        let w = weight * p.g;
+        if p.s_f.norm_squared() > 1e-200 {
+            // `R(-eta_r) M(beta) R(eta_i) S` (Eq. 3.7) with the sky's Stokes vector asked for
+            // in the facet frame, so that neither the incident surface frame nor `R(eta_i)` is
+            // formed, and `M(beta)` (Eq. 3.5) applied by its four distinct entries: the same
+            // product as `rotated_fresnel(..) * stokes_from(..)` up to rounding (tested).
+            let s = self.sky.stokes_in_frame(&p.omega_d, &p.s_f);
+            return facet_reflection_cs(self.eps, p.cos_beta, &s, p.c, p.sn, w);
+        }
+        // omega_d is unit (to rounding) and above the horizon, omega_view checked, h and
+        // cos beta known: the world-frame facet geometry without normalising its frames.
+        let h = Vector3::new(
+            -rho * p.inv_n * line.along.x,
+            -rho * p.inv_n * line.along.y,
+            p.inv_n,
+        );
+        let m = FacetGeometry::from_half_vector(&p.omega_d, &self.omega_view, &h, p.cos_beta)
+            .rotated_fresnel(self.eps);
+        let s = self.sky.stokes_from(&p.omega_d);
+        let out = m * s.0 * w;
+        [out[0], out[1], out[2]]
+    }
+
+    /// The geometry of the point of slope `rho` on `line` ([`SlopeLine`]): shared by
+    /// [`SlopeIntegrand::value_on`] and the product rule's vector loop
+    /// ([`SlopeIntegrand::piece`]), branch-free so that the loop vectorises.
+    #[inline(always)]
+    fn point(&self, line: &SlopeLine, rho: f64) -> SlopePoint {
         // `h = (z - rho along) / n`, `n = sqrt(1 + rho^2)` (`along` is unit and horizontal).
         let inv_n = 1.0 / (1.0 + rho * rho).sqrt();
         let omega_view = &self.omega_view;
         let cos_beta = (omega_view.z - rho * line.view_along) * inv_n;
-        if cos_beta <= 0.0 {
-            return [0.0; 3];
-        }
         // `omega_d = 2 cos beta h - omega_view`.
         let twice_cb_inv_n = 2.0 * cos_beta * inv_n;
         let cos_d = twice_cb_inv_n - omega_view.z;
-        if cos_d <= 0.0 {
-            return [0.0; 3];
-        }
         let out_of_plane = twice_cb_inv_n * rho;
         let omega_d = Vector3::new(
             -out_of_plane * line.along.x - omega_view.x,
             -out_of_plane * line.along.y - omega_view.y,
             cos_d,
         );
-        let inv_cv = self.inv_cv;
-        let cos_alpha = inv_n;
-        let g_cb_over_cv = (cos_beta * inv_cv)
-            .min(2.0 * cos_alpha)
-            .min(2.0 * cos_alpha * cos_d * inv_cv);
-        let w = weight * g_cb_over_cv;
+        // `G cos beta / cos theta_v` (`cos alpha = 1 / n`).
+        let g = less(
+            less(cos_beta * self.inv_cv, 2.0 * inv_n),
+            2.0 * inv_n * cos_d * self.inv_cv,
+        );
         // The facet frame's x, `omega_r × omega_i` as in `FacetGeometry::from_half_vector`, up
-        // to its positive scale `2 cos beta / n` ([`SlopeLine`]).
+        // to its positive scale `2 cos beta / n`, and its components in the reflected frame.
         let q = &line.view_cross_along;
-        let s_f = Vector3::new(
-            self.view_cross_z.x - rho * q.x,
-            self.view_cross_z.y - rho * q.y,
-            -rho * q.z,
-        );
-        if s_f.norm_squared() > 1e-200 {
-            // `R(-eta_r) M(beta) R(eta_i) S` (Eq. 3.7) with the sky's Stokes vector asked for
-            // in the facet frame, so that neither the incident surface frame nor `R(eta_i)` is
-            // formed, and `M(beta)` (Eq. 3.5) applied by its four distinct entries: the same
-            // product as `rotated_fresnel(..) * stokes_from(..)` up to rounding (tested).
-            let s = self.sky.stokes_in_frame(&omega_d, &s_f);
-            let (c, sn) = (
-                self.view_cross_z_r.0 - rho * line.view_cross_along_r.0,
-                self.view_cross_z_r.1 - rho * line.view_cross_along_r.1,
-            );
-            return facet_reflection_cs(self.eps, cos_beta, &s, c, sn, w);
-        }
-        // omega_d is unit (to rounding) and above the horizon, omega_view checked, h and
-        // cos beta known: the world-frame facet geometry without normalising its frames.
-        let h = Vector3::new(
-            -rho * inv_n * line.along.x,
-            -rho * inv_n * line.along.y,
+        SlopePoint {
             inv_n,
-        );
-        let m = FacetGeometry::from_half_vector(&omega_d, omega_view, &h, cos_beta)
-            .rotated_fresnel(self.eps);
-        let s = self.sky.stokes_from(&omega_d);
-        let out = m * s.0 * w;
-        [out[0], out[1], out[2]]
+            cos_beta,
+            cos_d,
+            omega_d,
+            g,
+            s_f: Vector3::new(
+                self.view_cross_z.x - rho * q.x,
+                self.view_cross_z.y - rho * q.y,
+                -rho * q.z,
+            ),
+            c: self.view_cross_z_r.0 - rho * line.view_cross_along_r.0,
+            sn: self.view_cross_z_r.1 - rho * line.view_cross_along_r.1,
+        }
     }
 
     /// The integrand's kinks along `t` at azimuth `psi` (`k = cos psi sin theta_v`), in slope
@@ -498,7 +541,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
     /// shadowing min switching branches: `rho = -cos theta_v / k` and `rho = -k / cos theta_v`.
     fn kinks(&self, psi: f64, out: &mut Vec<f64>) {
         let (k, cv) = (psi.cos() * self.sv, self.cv);
-        let to_t = 1.0 / (self.sigma * std::f64::consts::SQRT_2);
+        let to_t = 1.0 / self.rho_per_t;
         if k != 0.0 {
             out.push(cv / k * to_t);
             out.push(-cv / k * to_t);
@@ -520,7 +563,7 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
     fn pieces(&self, psi: f64, out: &mut Vec<f64>) {
         out.clear();
         let (k, cv) = (psi.cos() * self.sv, self.cv);
-        let to_t = 1.0 / (self.sigma * std::f64::consts::SQRT_2);
+        let to_t = 1.0 / self.rho_per_t;
         let end = ((-k + k.hypot(cv)) / cv * to_t).min(SLOPE_T);
         let abc = |rho: f64| {
             let c = 1.0 / (1.0 + rho * rho).sqrt();
@@ -713,38 +756,16 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
                 }
             }
         }
-        let omega_view = &self.omega_view;
-        let (vx, vy, vz, inv_cv) = (omega_view.x, omega_view.y, omega_view.z, self.inv_cv);
-        let (ax, ay, view_along) = (line.along.x, line.along.y, line.view_along);
-        let (pzx, pzy) = (self.view_cross_z.x, self.view_cross_z.y);
-        let q = line.view_cross_along;
-        let (czr, szr) = self.view_cross_z_r;
-        let (cqr, sqr) = line.view_cross_along_r;
         let mut idle = false;
         for i in 0..n {
-            let rho = b.rho[i];
-            let inv_n = 1.0 / (1.0 + rho * rho).sqrt();
-            let cos_beta = (vz - rho * view_along) * inv_n;
-            let twice_cb_inv_n = 2.0 * cos_beta * inv_n;
-            let cos_d = twice_cb_inv_n - vz;
-            let out_of_plane = twice_cb_inv_n * rho;
-            b.dx[i] = -out_of_plane * ax - vx;
-            b.dy[i] = -out_of_plane * ay - vy;
-            b.dz[i] = cos_d;
-            b.cos_beta[i] = cos_beta;
-            let g = less(
-                less(cos_beta * inv_cv, 2.0 * inv_n),
-                2.0 * inv_n * cos_d * inv_cv,
-            );
-            let (fx, fy, fz) = (pzx - rho * q.x, pzy - rho * q.y, -rho * q.z);
-            b.fx[i] = fx;
-            b.fy[i] = fy;
-            b.fz[i] = fz;
-            b.f2[i] = fx * fx + fy * fy + fz * fz;
-            b.c[i] = czr - rho * cqr;
-            b.sn[i] = szr - rho * sqr;
-            let on = cos_beta > 0.0 && cos_d > 0.0;
-            b.w[i] = if on { b.w[i] * g } else { 0.0 };
+            let p = self.point(line, b.rho[i]);
+            (b.dx[i], b.dy[i], b.dz[i]) = (p.omega_d.x, p.omega_d.y, p.omega_d.z);
+            b.cos_beta[i] = p.cos_beta;
+            (b.fx[i], b.fy[i], b.fz[i]) = (p.s_f.x, p.s_f.y, p.s_f.z);
+            b.f2[i] = p.s_f.x * p.s_f.x + p.s_f.y * p.s_f.y + p.s_f.z * p.s_f.z;
+            (b.c[i], b.sn[i]) = (p.c, p.sn);
+            let on = p.cos_beta > 0.0 && p.cos_d > 0.0;
+            b.w[i] = if on { b.w[i] * p.g } else { 0.0 };
             // A point to set aside below (a vectorised OR: most pieces have none).
             idle |= !on | (b.f2[i] <= 1e-200) | (b.w[i] == 0.0);
         }
@@ -819,18 +840,9 @@ fn reflect_batch<S: SkyRadiance + ?Sized>(
         let den = ds * dp;
         let inv = if den > 0.0 { 1.0 / den } else { 0.0 };
         let (rs, rp) = ((c - root) * dp * inv, (er * c - root) * ds * inv);
-        let (rs2, rp2, d) = (rs * rs, rp * rp, rs * rp);
-        let (a, bb) = (0.5 * (rs2 + rp2), 0.5 * (rs2 - rp2));
-        let (s0, s1, s2) = (b.s0[i], b.s1[i], b.s2[i]);
-        let (y0, y1, y2) = (a * s0 + bb * s1, bb * s0 + a * s1, d * s2);
-        let (cc, sn) = (b.c[i], b.sn[i]);
-        let r2 = cc * cc + sn * sn;
-        let w = b.w[i];
-        let scale = if r2 > 0.0 { w / r2 } else { 0.0 };
-        let (cr, sr) = (cc * cc - sn * sn, 2.0 * cc * sn);
-        b.s0[i] = y0 * w;
-        b.s1[i] = (cr * y1 - sr * y2) * scale;
-        b.s2[i] = (sr * y1 + cr * y2) * scale;
+        let s = [b.s0[i], b.s1[i], b.s2[i]];
+        let r = reflected_stokes((rs * rs, rp * rp, rs * rp), &s, b.c[i], b.sn[i], b.w[i]);
+        (b.s0[i], b.s1[i], b.s2[i]) = (r[0], r[1], r[2]);
     }
     for i in 0..n {
         sum[0] += b.s0[i];
@@ -1554,25 +1566,15 @@ impl<'a, S: SkyRadiance + ?Sized> LeafColumns<'a, S> {
         for chunk in nodes.chunks(FACET_BATCH) {
             let n = chunk.len();
             for (i, &(mu, s, wmu)) in chunk.iter().enumerate() {
-                let (dx, dy, dz) = (s * cos_phi, s * sin_phi, mu);
-                b.dx[i] = dx;
-                b.dy[i] = dy;
-                b.dz[i] = dz;
-                // `omega_r × omega_i`, the facet frame's x as in `FacetGeometry`.
-                let (fx, fy, fz) = (
-                    v.y * dz - v.z * dy,
-                    v.z * dx - v.x * dz,
-                    v.x * dy - v.y * dx,
-                );
-                b.fx[i] = fx;
-                b.fy[i] = fy;
-                b.fz[i] = fz;
-                b.f2[i] = fx * fx + fy * fy + fz * fz;
-                let (hx, hy, hz) = (dx + v.x, dy + v.y, dz + v.z);
-                b.cos_beta[i] = 0.5 * (hx * hx + hy * hy + hz * hz).sqrt();
-                b.w[i] = 0.25 / (mu.clamp(COS_FLOOR, 1.0) + self.cos_tr) * mu * (wphi * wmu);
-                b.c[i] = rx.x * fx + rx.y * fy + rx.z * fz;
-                b.sn[i] = ry.x * fx + ry.y * fy + ry.z * fz;
+                let d = Vector3::new(s * cos_phi, s * sin_phi, mu);
+                let (f, cos_beta, w) = leaf_facet(v, &d, self.cos_tr);
+                (b.dx[i], b.dy[i], b.dz[i]) = (d.x, d.y, d.z);
+                (b.fx[i], b.fy[i], b.fz[i]) = (f.x, f.y, f.z);
+                b.f2[i] = f.x * f.x + f.y * f.y + f.z * f.z;
+                b.cos_beta[i] = cos_beta;
+                b.w[i] = w * (wphi * wmu);
+                b.c[i] = rx.dot(&f);
+                b.sn[i] = ry.dot(&f);
             }
             // The facet frame is 0/0 (light from the view's own direction): the surface's
             // Mueller matrix, one point.
@@ -1725,19 +1727,35 @@ fn direction_integrand<'a, S: SkyRadiance + ?Sized>(
     // path, taken off the vegetation's facet frame, is a call.
     #[inline(always)]
     move |d: &Vector3<f64>| {
-        let mu = d.z;
         if let Some(eps) = leaf_eps {
             // `omega_r × omega_i`, the facet frame's x as in `FacetGeometry`.
-            let s_f_x = omega_view.cross(d);
+            let (s_f_x, cos_beta, w) = leaf_facet(omega_view, d, cos_tr);
             if s_f_x.norm_squared() > 1e-200 {
-                let cos_beta = 0.5 * (d + omega_view).norm();
                 let s = sky.stokes_in_frame(d, &s_f_x);
-                let w = 0.25 / (mu.clamp(COS_FLOOR, 1.0) + cos_tr) * mu;
                 return facet_reflection(eps, cos_beta, &s, &s_f_x, &s_r, w);
             }
         }
         specular_times_sky(surface, sky, omega_view, d)
     }
+}
+
+/// Vegetation's facet for light from `d` seen from `omega_view` (Eq. 3.19): the facet frame's
+/// `x`, `omega_r × omega_i` as in `FacetGeometry` (zero for light from the view's own
+/// direction), `cos beta = |d + omega_view| / 2`, and the weight `mu / (4 (cos ti + cos tr))`
+/// (`cos_tr` floored at [`COS_FLOOR`]). Shared by [`direction_integrand`] and
+/// [`LeafColumns::column`]'s vector loop.
+#[inline(always)]
+fn leaf_facet(
+    omega_view: &Vector3<f64>,
+    d: &Vector3<f64>,
+    cos_tr: f64,
+) -> (Vector3<f64>, f64, f64) {
+    let mu = d.z;
+    (
+        omega_view.cross(d),
+        0.5 * (d + omega_view).norm(),
+        0.25 / (mu.clamp(COS_FLOOR, 1.0) + cos_tr) * mu,
+    )
 }
 
 /// [`direction_integrand`] by the surface's own Mueller matrix: `Surface::specular` times the
