@@ -123,8 +123,17 @@ impl RayleighSky {
 pub(crate) fn downward_path(tau: f64, mu0: f64, mu: f64) -> f64 {
     if mu0 <= 0.0 || tau == 0.0 {
         0.0
-    } else if mu <= 0.0 {
-        (-tau / mu0).exp()
+    } else {
+        downward_path_beam(tau, mu0, mu, (-tau / mu0).exp())
+    }
+}
+
+/// [`downward_path`] for `mu0 > 0` and `tau != 0` with the sun beam's attenuation
+/// `beam = e^{-tau/mu0}` given, so that the points of one layer's `mu` table take it once (the
+/// same values to the bit).
+pub(crate) fn downward_path_beam(tau: f64, mu0: f64, mu: f64, beam: f64) -> f64 {
+    if mu <= 0.0 {
+        beam
     } else {
         // = e^{-tau/mu0} (tau/mu) (1 - e^{-x})/x, x = tau (mu0 - mu) / (mu mu0).
         let x = tau * (mu0 - mu) / (mu * mu0);
@@ -133,7 +142,7 @@ pub(crate) fn downward_path(tau: f64, mu0: f64, mu: f64) -> f64 {
         } else {
             -(-x).exp_m1() / x
         };
-        (-tau / mu0).exp() * (tau / mu) * ratio
+        beam * (tau / mu) * ratio
     }
 }
 
