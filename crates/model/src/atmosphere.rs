@@ -381,19 +381,44 @@ impl Atmosphere {
     ) -> Result<Path, ModelError> {
         self.validate()?;
         ModelError::check_range("altitude_m", altitude_m, 0.0, 1e5, "[0, 1e5]")?;
-        let t = self.optical_depths(nm)?;
-        let (fr, fa) = self.fraction_below(altitude_m);
+        let depths = self.optical_depths(nm)?;
+        let below = self.fractions_below(altitude_m)?;
+        Ok(self.path_through(depths, below, slant_mu0(sun.z), sun, omega_view))
+    }
+
+    /// The fractions of the Rayleigh and aerosol columns below `altitude_m` in `[0, 1e5]`
+    /// (exponential profiles), for [`Atmosphere::path_through`]; errors name `altitude_m`.
+    pub fn fractions_below(&self, altitude_m: f64) -> Result<(f64, f64), ModelError> {
+        ModelError::check_range("altitude_m", altitude_m, 0.0, 1e5, "[0, 1e5]")?;
+        Ok(self.fraction_below(altitude_m))
+    }
+
+    /// [`Atmosphere::path`] at a wavelength whose optical depths are `depths`, with the
+    /// fractions of the columns below the sensor `below` ([`Atmosphere::fractions_below`]) and
+    /// the sun's `mu0_slant` ([`slant_mu0`]) given: what a scene's rays share is computed once,
+    /// and the values are the same to the bit. The atmosphere must have passed
+    /// [`Atmosphere::validate`].
+    pub fn path_through(
+        &self,
+        depths: OpticalDepths,
+        below: (f64, f64),
+        mu0_slant: f64,
+        sun: &Vector3<f64>,
+        omega_view: &Vector3<f64>,
+    ) -> Path {
+        let t = depths;
+        let (fr, fa) = below;
         let (lr, la) = (t.rayleigh * fr, t.aerosol * fa);
         let tau_l = lr + la;
         let mu = omega_view.z.max(1e-6);
-        let mu0 = slant_mu0(sun.z);
+        let mu0 = mu0_slant;
         let transmittance = (-tau_l / mu).exp();
         if mu0 <= 0.0 || tau_l == 0.0 {
-            return Ok(Path {
+            return Path {
                 radiance: Stokes::new(0.0, 0.0, 0.0),
                 transmittance,
                 layer_optical_depth: tau_l,
-            });
+            };
         }
         let sky = ClearSky {
             rayleigh: lr,
@@ -412,11 +437,11 @@ impl Atmosphere {
         let radiance = p11 / (4.0 * PI) * geom;
         let p = radiance * p12 / p11.max(1e-300);
         let (c2, s2) = e_vector_in_frame(omega_view, sun);
-        Ok(Path {
+        Path {
             radiance: Stokes::new(radiance, p * c2, p * s2),
             transmittance,
             layer_optical_depth: tau_l,
-        })
+        }
     }
 }
 

@@ -67,7 +67,7 @@
 //! attenuation uses the pseudo-spherical cosine ([`crate::atmosphere::slant_mu0`]), so a sun at
 //! the horizon still lights the sky.
 
-use crate::atmosphere::{air_mass, slant_mu0, Atmosphere, Band, ClearSky};
+use crate::atmosphere::{air_mass, slant_mu0, Atmosphere, Band, ClearSky, OpticalDepths};
 use crate::error::ModelError;
 use crate::pbrdf::Surface;
 use crate::polarization::{rotation_from_cos_sin_2eta, Stokes};
@@ -206,6 +206,9 @@ pub struct MaterialResult {
 /// direct transmittance to the ground.
 #[derive(Debug, Clone, Copy)]
 struct Node {
+    /// The wavelength (nm); the optical depths below are its, and the model needs no more of
+    /// it (tests rebuild a node's sky from it).
+    #[cfg_attr(not(test), allow(dead_code))]
     nm: f64,
     weight: f64,
     rayleigh: f64,
@@ -465,11 +468,16 @@ impl BandTables {
         // 2` ([`lagrange4_stencil`]'s weights expanded), shifted to the interval's own
         // coordinate `s' = s - d` (`d = i - j`: the first and last intervals use the stencil
         // next to them).
-        let cubic = |v: &[f64], d: f64| -> [f64; 4] {
-            let c0 = v[1];
-            let c1 = -v[0] / 3.0 - v[1] / 2.0 + v[2] - v[3] / 6.0;
-            let c2 = v[0] / 2.0 - v[1] + v[2] / 2.0;
-            let c3 = (v[3] - v[0]) / 6.0 + (v[1] - v[2]) / 2.0;
+        let stencil = |v: &[f64]| -> [f64; 4] {
+            [
+                v[1],
+                -v[0] / 3.0 - v[1] / 2.0 + v[2] - v[3] / 6.0,
+                v[0] / 2.0 - v[1] + v[2] / 2.0,
+                (v[3] - v[0]) / 6.0 + (v[1] - v[2]) / 2.0,
+            ]
+        };
+        let shifted = |v: &[f64], d: f64| -> [f64; 4] {
+            let [c0, c1, c2, c3] = stencil(v);
             [
                 c0 + d * (c1 + d * (c2 + d * c3)),
                 c1 + d * (2.0 * c2 + 3.0 * d * c3),
@@ -477,14 +485,22 @@ impl BandTables {
                 c3,
             ]
         };
-        let cubics = (0..m)
-            .map(|i| {
-                let j = i.clamp(1, m - 2);
-                let d = i as f64 - j as f64;
-                let (ca, cb) = (cubic(&a[j - 1..j + 3], d), cubic(&b[j - 1..j + 3], d));
-                [ca[0], ca[1], ca[2], ca[3], cb[0], cb[1], cb[2], cb[3]]
-            })
-            .collect();
+        let pack =
+            |ca: [f64; 4], cb: [f64; 4]| [ca[0], ca[1], ca[2], ca[3], cb[0], cb[1], cb[2], cb[3]];
+        // The first and last intervals take the stencil next to them (`d = -1`, `+1`); the
+        // interior ones their own (`d = 0`: no shift).
+        let mut cubics = Vec::with_capacity(m);
+        cubics.push(pack(shifted(&a[0..4], -1.0), shifted(&b[0..4], -1.0)));
+        cubics.extend(
+            a.windows(4)
+                .zip(b.windows(4))
+                .take(m - 2)
+                .map(|(va, vb)| pack(stencil(va), stencil(vb))),
+        );
+        cubics.push(pack(
+            shifted(&a[m - 3..m + 1], 1.0),
+            shifted(&b[m - 3..m + 1], 1.0),
+        ));
         BandTables { cubics }
     }
 
@@ -1421,8 +1437,16 @@ impl Prepared {
         let mut e_sky = 0.0;
         let mut path = Vector3::zeros();
         let mut up = Vec::with_capacity(self.nodes.len());
+        let below = self.atmosphere.fractions_below(altitude)?;
+        let mu0_slant = slant_mu0(self.sun.z);
         for n in &self.nodes {
-            let p = self.atmosphere.path(n.nm, &self.sun, &view, altitude)?;
+            let depths = OpticalDepths {
+                rayleigh: n.rayleigh,
+                aerosol: n.aerosol,
+            };
+            let p = self
+                .atmosphere
+                .path_through(depths, below, mu0_slant, &self.sun, &view);
             let t = p.transmittance * n.weight;
             up.push(t);
             e_dir += t * n.t_sun * mu0;

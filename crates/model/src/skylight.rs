@@ -434,7 +434,13 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
     /// The line of slope azimuth `psi`'s constant terms.
     #[inline]
     fn line(&self, psi: f64) -> SlopeLine {
-        let along = self.direction(psi);
+        self.line_at(psi.sin_cos())
+    }
+
+    /// [`SlopeIntegrand::line`] from `(sin psi, cos psi)`.
+    #[inline]
+    fn line_at(&self, (sp, cp): (f64, f64)) -> SlopeLine {
+        let along = self.e1 * cp + self.e2 * sp;
         let view_cross_along = self.omega_view.cross(&along);
         SlopeLine {
             along,
@@ -450,13 +456,6 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
     #[inline]
     fn value(&self, psi: f64, t: f64) -> [f64; 3] {
         self.value_on(&self.line(psi), t, slope_weight(t))
-    }
-
-    /// The horizontal unit vector of azimuth `psi` from `e1` towards `e2`.
-    #[inline]
-    fn direction(&self, psi: f64) -> Vector3<f64> {
-        let (sp, cp) = psi.sin_cos();
-        self.e1 * cp + self.e2 * sp
     }
 
     /// [`SlopeIntegrand::value`] on the line `line` (from [`SlopeIntegrand::line`]). `weight`
@@ -550,19 +549,19 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
         out.push((-k + k.hypot(cv)) / cv * to_t);
     }
 
-    /// The smooth pieces of the line at azimuth `psi`, as `t` from 0 to the end of the
-    /// integrand's support: the line ends where the reflected ray reaches the horizon
-    /// (`cos theta_v rho^2 + 2 k rho - cos theta_v = 0`, `k = cos psi sin theta_v`; beyond it
-    /// the integrand is 0) or at `T`, and breaks where the shadowing `min(A, B, C)` (`A =
-    /// cos beta / cos theta_v`, `B = 2 cos alpha`, `C = 2 cos alpha cos theta_d / cos theta_v`)
-    /// switches branches: `A = B` at `rho = -cos theta_v / k`, `B = C` at
+    /// The smooth pieces of the line at azimuth `psi` (given as `cos_psi`), as `t` from 0 to
+    /// the end of the integrand's support: the line ends where the reflected ray reaches the
+    /// horizon (`cos theta_v rho^2 + 2 k rho - cos theta_v = 0`, `k = cos psi sin theta_v`;
+    /// beyond it the integrand is 0) or at `T`, and breaks where the shadowing `min(A, B, C)`
+    /// (`A = cos beta / cos theta_v`, `B = 2 cos alpha`, `C = 2 cos alpha cos theta_d / cos
+    /// theta_v`) switches branches: `A = B` at `rho = -cos theta_v / k`, `B = C` at
     /// `rho = -k / cos theta_v`, and `A = C` on the cubic
     /// `k rho^3 - 3 cos theta_v rho^2 - 3 k rho + cos theta_v = 0`, which with `rho = tan x` is
     /// `tan 3x = cos theta_v / k`. A switch is a break only where its two branches are the
     /// minimum.
-    fn pieces(&self, psi: f64, out: &mut Vec<f64>) {
+    fn pieces(&self, cos_psi: f64, out: &mut Vec<f64>) {
         out.clear();
-        let (k, cv) = (psi.cos() * self.sv, self.cv);
+        let (k, cv) = (cos_psi * self.sv, self.cv);
         let to_t = 1.0 / self.rho_per_t;
         let end = ((-k + k.hypot(cv)) / cv * to_t).min(SLOPE_T);
         let abc = |rho: f64| {
@@ -589,13 +588,17 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
             let (a, b, _) = abc(r);
             push(r, b <= a * slack);
         }
-        let phi0 = cv.atan2(k);
-        for x in [phi0 / 3.0, (phi0 + PI) / 3.0] {
-            if x < std::f64::consts::FRAC_PI_2 {
-                let r = x.tan();
-                let (_, b, c) = abc(r);
-                push(r, c <= b * slack);
-            }
+        // The roots `tan x` at `x = phi0 / 3` and `x + pi / 3` (below pi / 2), the second by
+        // the addition formula: one `tan` for both.
+        let x = cv.atan2(k) / 3.0;
+        let r = x.tan();
+        let (_, b, c) = abc(r);
+        push(r, c <= b * slack);
+        if x + std::f64::consts::FRAC_PI_3 < std::f64::consts::FRAC_PI_2 {
+            let sqrt3 = 3f64.sqrt();
+            let r = (r + sqrt3) / (1.0 - sqrt3 * r);
+            let (_, b, c) = abc(r);
+            push(r, c <= b * slack);
         }
         for t in SLOPE_SPLITS.into_iter().chain(self.peak.map(|p| p.1)) {
             if t > 0.0 && t < end {
@@ -676,8 +679,9 @@ impl<'a, S: SkyRadiance + ?Sized> SlopeIntegrand<'a, S> {
             for &(x, wx) in gn {
                 let psi = centre + half * x;
                 let wpsi = half * wx;
-                self.pieces(psi, pieces);
-                let line = self.line(psi);
+                let (sp, cp) = psi.sin_cos();
+                self.pieces(cp, pieces);
+                let line = self.line_at((sp, cp));
                 for w in pieces.windows(2) {
                     let (mid, half) = (0.5 * (w[0] + w[1]), 0.5 * (w[1] - w[0]));
                     if half <= 0.0 {
@@ -2149,7 +2153,7 @@ mod tests {
                 for i in 0..12 {
                     let psi = i as f64 * PI / 6.0 + 0.05;
                     let line = integrand.line(psi);
-                    integrand.pieces(psi, &mut pieces);
+                    integrand.pieces(psi.cos(), &mut pieces);
                     for w in pieces.windows(2) {
                         let (mid, half) = (0.5 * (w[0] + w[1]), 0.5 * (w[1] - w[0]));
                         for q in [13, 24, 31] {
