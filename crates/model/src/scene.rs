@@ -325,16 +325,17 @@ fn irradiance_on_table(phases: &[(f64, f64)], a: &[f64], b: &[f64]) -> Option<(f
     if intervals == 0 || intervals % 4 != 0 || a.len() != phases.len() || b.len() != phases.len() {
         return None;
     }
-    let f = |j: usize| {
-        let (pa, pb) = phases[j];
-        pa * a[j] + if b[j] == 0.0 { 0.0 } else { pb * b[j] }
-    };
+    let f: Vec<f64> = phases
+        .iter()
+        .zip(a.iter().zip(b))
+        .map(|(&(pa, pb), (&a, &b))| pa * a + if b == 0.0 { 0.0 } else { pb * b })
+        .collect();
     // Simpson's sums on step `step` (in points): ends once, odd points 4x, even inner 2x; and
     // the same of `|f|`, which bounds the sum's rounding.
     let simpson = |step: usize| {
-        let (mut sum, mut abs) = (f(0) + f(intervals), f(0).abs() + f(intervals).abs());
+        let (mut sum, mut abs) = (f[0] + f[intervals], f[0].abs() + f[intervals].abs());
         for (i, j) in (step..intervals).step_by(step).enumerate() {
-            let (w, v) = (if i % 2 == 0 { 4.0 } else { 2.0 }, f(j));
+            let (w, v) = (if i % 2 == 0 { 4.0 } else { 2.0 }, f[j]);
             sum += w * v;
             abs += w * v.abs();
         }
@@ -679,49 +680,32 @@ impl SkyRadiance for BandSky<'_> {
         frame_x: [&[f64]; 3],
         out: [&mut [f64]; 3],
     ) {
-        const CHUNK: usize = 24;
         if !matches!(self.prepared.sky, Sky::SingleScattering) {
             crate::skylight::stokes_in_frame_each(self, towards, frame_x, out);
             return;
         }
         let scattering = self.prepared.scattering();
         let [o0, o1, o2] = out;
-        let total = o0.len();
-        let mut a = [0.0; CHUNK];
-        let mut b = [0.0; CHUNK];
-        for start in (0..total).step_by(CHUNK) {
-            let end = (start + CHUNK).min(total);
-            let n = end - start;
-            let (tx, ty, tz) = (
-                &towards[0][start..end],
-                &towards[1][start..end],
-                &towards[2][start..end],
-            );
-            let (fx, fy, fz) = (
-                &frame_x[0][start..end],
-                &frame_x[1][start..end],
-                &frame_x[2][start..end],
-            );
-            let (o0, o1, o2) = (
-                &mut o0[start..end],
-                &mut o1[start..end],
-                &mut o2[start..end],
-            );
-            if let Some(last) = self.tables.cubics.len().checked_sub(1) {
-                for i in 0..n {
-                    (a[i], b[i]) = self.tables.at_in(tz[i], last);
-                }
-            } else {
-                a[..n].fill(0.0);
-                b[..n].fill(0.0);
-            }
+        let n = o0.len().min(o1.len()).min(o2.len());
+        let (tx, ty, tz) = (&towards[0][..n], &towards[1][..n], &towards[2][..n]);
+        let (fx, fy, fz) = (&frame_x[0][..n], &frame_x[1][..n], &frame_x[2][..n]);
+        let (o0, o1, o2) = (&mut o0[..n], &mut o1[..n], &mut o2[..n]);
+        // The tables' `(A, B)` go through the first two outputs, which the second loop then
+        // overwrites point by point (no scratch arrays to clear).
+        if let Some(last) = self.tables.cubics.len().checked_sub(1) {
             for i in 0..n {
-                let towards = Vector3::new(tx[i], ty[i], tz[i]);
-                let frame = Vector3::new(fx[i], fy[i], fz[i]);
-                let radiance = scattering.radiance((a[i], b[i]), &towards);
-                let s = scattering.in_frame(radiance, &towards, &frame).0;
-                (o0[i], o1[i], o2[i]) = (s[0], s[1], s[2]);
+                (o0[i], o1[i]) = self.tables.at_in(tz[i], last);
             }
+        } else {
+            o0.fill(0.0);
+            o1.fill(0.0);
+        }
+        for i in 0..n {
+            let towards = Vector3::new(tx[i], ty[i], tz[i]);
+            let frame = Vector3::new(fx[i], fy[i], fz[i]);
+            let radiance = scattering.radiance((o0[i], o1[i]), &towards);
+            let s = scattering.in_frame(radiance, &towards, &frame).0;
+            (o0[i], o1[i], o2[i]) = (s[0], s[1], s[2]);
         }
     }
 }
@@ -1206,27 +1190,53 @@ impl Prepared {
         // The tables: 256 intervals, refined until their error is below tol/8. The nodes are
         // independent: built in parallel, collected in their order (the result does not depend
         // on the thread count).
-        let build_tables = |nodes: &[Node], intervals: usize, previous: &[NodeTables]| {
+        let build_tables = |nodes: &[Node], intervals: usize, previous: &[Option<NodeTables>]| {
             nodes
                 .par_iter()
                 .enumerate()
-                .map(|(k, n)| node_tables(n, intervals, previous.get(k)))
+                .map(|(k, n)| node_tables(n, intervals, previous.get(k).and_then(Option::as_ref)))
                 .collect::<Vec<NodeTables>>()
         };
         // From 256 intervals on, the table's error falls as the fourth power of the interval
         // (fourth-order interpolation: 256 -> 1024 took the rooftop's estimate from 2.6e-5 to
         // 1.1e-7, 230x for 4^4 = 256; from 128 it was not yet in that regime, 128 -> 246 gained
         // 5.5x for 13.6): a table short of tol/8 is rebuilt at the size that law asks for with a
-        // factor 2 to spare, and checked again.
+        // factor 2 to spare, and checked again. The first size is probed on the nodes of least
+        // and greatest optical depth alone, where the error is largest (the horizon's
+        // transition lies at `mu ~ tau`: sharpest for the least, and the greatest has the
+        // deepest attenuation), and every node's tables are built at the size their error asks
+        // for and checked there; were another node's error larger, the check refines again.
         let mut intervals = TABLE_INTERVALS;
-        let mut tables: Vec<NodeTables> = Vec::new();
-        let table_error = loop {
-            tables = build_tables(&nodes, intervals, &tables);
+        let tau = |k: usize| nodes[k].rayleigh + nodes[k].aerosol;
+        let by_tau = |a: &usize, b: &usize| tau(*a).total_cmp(&tau(*b));
+        let mut probes: Vec<usize> = [
+            (0..nodes.len()).min_by(by_tau),
+            (0..nodes.len()).max_by(by_tau),
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
+        probes.dedup();
+        let mut previous: Vec<Option<NodeTables>> = (0..nodes.len()).map(|_| None).collect();
+        let probed: Vec<NodeTables> = probes
+            .par_iter()
+            .map(|&k| node_tables(&nodes[k], intervals, None))
+            .collect();
+        let probe_error = probed.iter().fold(0.0f64, |m, t| m.max(t.error));
+        if probe_error > tol / 8.0 {
+            intervals = table_intervals_for(intervals, probe_error, tol / 8.0);
+        }
+        for (k, t) in probes.into_iter().zip(probed) {
+            previous[k] = Some(t);
+        }
+        let (tables, table_error) = loop {
+            let tables = build_tables(&nodes, intervals, &previous);
             let error = tables.iter().fold(0.0f64, |m, t| m.max(t.error));
             if error <= tol / 8.0 || intervals >= TABLE_MAX_INTERVALS {
-                break error;
+                break (tables, error);
             }
             intervals = table_intervals_for(intervals, error, tol / 8.0);
+            previous = tables.into_iter().map(Some).collect();
         };
         // Sky irradiance per unit weight, `int_0^1 mu (P_R(mu) A(mu) + P_HG(mu) B(mu)) dmu` with
         // the phase functions integrated over azimuth in closed form: by Simpson's rule on the
