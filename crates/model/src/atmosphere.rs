@@ -380,9 +380,8 @@ impl Atmosphere {
         altitude_m: f64,
     ) -> Result<Path, ModelError> {
         self.validate()?;
-        ModelError::check_range("altitude_m", altitude_m, 0.0, 1e5, "[0, 1e5]")?;
-        let depths = self.optical_depths(nm)?;
         let below = self.fractions_below(altitude_m)?;
+        let depths = self.optical_depths(nm)?;
         Ok(self.path_through(depths, below, slant_mu0(sun.z), sun, omega_view))
     }
 
@@ -393,25 +392,22 @@ impl Atmosphere {
         Ok(self.fraction_below(altitude_m))
     }
 
-    /// [`Atmosphere::path`] at a wavelength whose optical depths are `depths`, with the
-    /// fractions of the columns below the sensor `below` ([`Atmosphere::fractions_below`]) and
-    /// the sun's `mu0_slant` ([`slant_mu0`]) given: what a scene's rays share is computed once,
+    /// [`Atmosphere::path`] at a wavelength whose optical depths are `t`, with the fractions
+    /// of the columns below the sensor `(fr, fa)` ([`Atmosphere::fractions_below`]) and the
+    /// sun's slant `mu0` ([`slant_mu0`]) given: what a scene's rays share is computed once,
     /// and the values are the same to the bit. The atmosphere must have passed
     /// [`Atmosphere::validate`].
     pub fn path_through(
         &self,
-        depths: OpticalDepths,
-        below: (f64, f64),
-        mu0_slant: f64,
+        t: OpticalDepths,
+        (fr, fa): (f64, f64),
+        mu0: f64,
         sun: &Vector3<f64>,
         omega_view: &Vector3<f64>,
     ) -> Path {
-        let t = depths;
-        let (fr, fa) = below;
         let (lr, la) = (t.rayleigh * fr, t.aerosol * fa);
         let tau_l = lr + la;
         let mu = omega_view.z.max(1e-6);
-        let mu0 = mu0_slant;
         let transmittance = (-tau_l / mu).exp();
         if mu0 <= 0.0 || tau_l == 0.0 {
             return Path {

@@ -981,9 +981,10 @@ fn slope_weight(t: f64) -> f64 {
 /// into even and odd parts), and `2^k` put into the exponent field.
 #[inline(always)]
 fn exp_nonpositive(x: f64) -> f64 {
-    const SHIFT: f64 = 6_755_399_441_055_744.0; // 1.5 * 2^52
-                                                // ln 2 in two parts, the first with its low 32 bits zero, so that `k * LN2_HI` is exact
-                                                // for `|k| < 2^20` (fdlibm's split).
+    // 1.5 * 2^52.
+    const SHIFT: f64 = 6_755_399_441_055_744.0;
+    // ln 2 in two parts, the first with its low 32 bits zero, so that `k * LN2_HI` is exact for
+    // `|k| < 2^20` (fdlibm's split).
     const LN2_HI: f64 = f64::from_bits(0x3fe6_2e42_fee0_0000);
     const LN2_LO: f64 = f64::from_bits(0x3dea_39ef_3579_3c76);
     // Taylor coefficients 1/j!: even j from 12 down to 2, odd j from 13 down to 3.
