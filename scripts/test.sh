@@ -26,11 +26,21 @@ if ((${#APT_PACKAGES[@]})); then
 fi
 if [ "${1:-}" = "--deps-only" ]; then exit 0; fi
 
-# Python's zarr (v3) reads a run back in the interop tests (crates/engine/tests/store.rs,
-# crates/cli/tests/interop.rs): every array and the metadata must equal what was written.
-if ! python3 -c 'import zarr, sys; sys.exit(0 if int(zarr.__version__.split(".")[0]) >= 3 else 1)' 2>/dev/null; then
-  python3 -m pip install --quiet --disable-pip-version-check 'zarr>=3,<4'
+# Python packages the tests use, in a venv of their own (target/py-venv), pinned in
+# scripts/requirements.txt and reinstalled when that file changes; the tests find the venv's
+# python through POLARIMETER_PYTHON:
+# * zarr-python 3, xarray and xxhash read runs back from the outside (scripts/check_run.py,
+#   scripts/zarr_interop.py; crates/engine/tests/{store,crash_safety}.rs, crates/cli/tests/crash.rs);
+# * public client libraries (pylablib, thorlabs_elliptec, roesel's elliptec) drive the
+#   simulated Elliptec and FW102C/FW212C devices (hil-mocks/tests/client_conformance.rs).
+PY_VENV=target/py-venv
+REQUIREMENTS=scripts/requirements.txt
+[ -x "$PY_VENV/bin/python" ] || python3 -m venv "$PY_VENV"
+if ! cmp -s "$REQUIREMENTS" "$PY_VENV/requirements.installed"; then
+  "$PY_VENV/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps -r "$REQUIREMENTS"
+  cp "$REQUIREMENTS" "$PY_VENV/requirements.installed"
 fi
+export POLARIMETER_PYTHON="$PWD/$PY_VENV/bin/python"
 
 # The firmware protocol must build for a Cortex-M4F without std (thumbv7em-none-eabihf).
 rustup target add thumbv7em-none-eabihf >/dev/null

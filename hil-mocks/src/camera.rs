@@ -1,4 +1,4 @@
-//! The simulated camera: every frame rendered from the model (`../shared/design/SYSTEM.md`,
+//! The simulated camera: every frame rendered from the model (`ARCHITECTURE.md`,
 //! "Simulated devices").
 //!
 //! * [`SimScene`]: the scene as the camera sees it. It is a layout of regions (panels of paint,
@@ -347,6 +347,10 @@ pub struct SimCameraConfig {
     pub faults: CameraFaults,
     /// Seed of the noise and the faults.
     pub seed: u64,
+    /// The noise stream: frame `id` of stream `k` draws its noise from `(seed, k, id)`. A
+    /// process that continues a run (whose frame ids restart at 0) takes a stream no earlier
+    /// process of the run used, so no draw repeats within a run; 0 for a new run.
+    pub noise_stream: u64,
 }
 
 /// An exposure under way.
@@ -592,7 +596,7 @@ impl SimCamera {
                     electrons.iter_mut().for_each(|e| *e *= light);
                 }
                 let camera = self.camera_at_gain(self.gain_db);
-                let seed = self.config.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ id;
+                let seed = noise_seed(self.config.seed, self.config.noise_stream, id);
                 let raw = polar_model::montecarlo::expose_pixels(
                     &camera,
                     &electrons,
@@ -780,4 +784,16 @@ impl BlockingCamera for SimCamera {
         self.exposing = None;
         self.finish(exposing)
     }
+}
+
+/// The noise seed of frame `id` in `stream` (see [`SimCameraConfig::noise_stream`]): the three
+/// mixed through SplitMix64's finaliser, so distinct `(stream, id)` pairs give unrelated
+/// seeds.
+pub fn noise_seed(seed: u64, stream: u64, id: u64) -> u64 {
+    let mix = |mut z: u64| {
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    };
+    mix(mix(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ stream).wrapping_add(id))
 }

@@ -1,46 +1,72 @@
-//! Thorlabs Elliptec ELLx devices simulated at the byte level (`../shared/design/DEVICES.md`,
-//! section 1.1): the ELL14 and ELL18 rotation mounts and the ELL6 and ELL9 indexed sliders.
-//! The host sends `A cc [data]` without a terminator, the device answers `A CC data\r\n`; the
-//! reply to a motion command is held back until the motion ends.
+//! Thorlabs Elliptec ELLx devices simulated at the byte level (`docs/DEVICES.md` section 1.1):
+//! the ELL14 and ELL18 rotation mounts and the ELL6 and ELL9 indexed sliders. The host sends
+//! `A cc [data]` without a terminator, the device answers `A CC data\r\n`; the reply to a
+//! motion command (and to a frequency search) is held back until it ends.
 //!
-//! Choices where the notes are silent (a driver must not depend on them):
+//! **Defaults are the healthy device**: a client written for the real module, that has never
+//! seen this simulator, works unchanged (`docs/DEVICES-conformance.md` runs public client
+//! libraries against it). Quirks that a real module shows only now and then are fault knobs
+//! in [`FaultProfile`], off by default.
+//!
+//! Behaviour, with its source where there is one; the rest are choices where the sources are
+//! silent (a driver must not depend on those):
 //! * **Counter at power-on.** The encoder is incremental: the position reads 0 wherever the
-//!   mechanism happens to be at power-on (a random angle, or a random slot for a slider), and
-//!   moves work before homing, relative to that arbitrary zero. Homing makes 0 the index (plus
-//!   the home offset `so`) and reports `PO00000000` exactly.
+//!   mechanism happens to be at power-on (a random angle, or a random slot for a slider), and moves
+//!   work before homing, relative to that arbitrary zero. Homing makes 0 the index (plus the home
+//!   offset `so`) and reports `PO00000000` exactly.
 //! * **Rotator positions** stay in `[0, PULSES)`: `ma` takes its target modulo a turn, and `mr`,
-//!   `fw`, `bw` end wrapped into it. A move turns the way of the sign of the difference in
-//!   those counts (no short-way logic: that is the driver's job, with `mr`). `ho0` homes in the
-//!   positive direction, `ho1` in the negative one.
-//! * **Sliders** rest only in detents: slot `k` sits at `k * PULSES` counts (ELL9: 0, 32, 64, 96;
-//!   ELL6: 0, 31, as roesel/elliptec uses), so `PULSES` is the slot pitch. `ma`/`mr` go to the
-//!   nearest slot, `fw`/`bw` to the next/previous one, clamped at the ends (a null move answered
-//!   `PO`). `ho` takes no data; `sj`, `so` and `st` are `GS03`. The `IN` travel field is the
-//!   last slot's position in counts.
-//! * **Parsing.** A command starts with an upper-case hex address, then a lower-case letter,
-//!   then a lower-case letter or digit; a byte that cannot continue the command drops the first
-//!   pending byte and the rest is scanned again (resynchronisation). Data bytes must be hex
-//!   digits (any other byte there drops the command silently); lower-case digits `a`-`f` are
-//!   consumed but the command is answered `GS04`. An unknown command (`i1`, `xx`) takes no
-//!   data and is answered `GS03`. A partial command idle for [`IDLE_TIMEOUT_S`] or more is
-//!   dropped and answered `GS01` if it was for this address.
-//! * **Status.** Every error reply (`GS` with a code other than `00`) latches its code; `gs`
-//!   returns the latched code and clears it, else `09` while moving, else `00`. `gs`, `gp`,
-//!   `in`, `gv`, `gj`, `go`, `sv`, `sj`, `so` and `st` are answered during a move; motion
-//!   commands, `ca` and `us` are `GS09` then.
-//! * **Settings.** `sv` 1..=100 %, `sj` 1..=PULSES counts (an eighth of a turn at power-on),
-//!   `so` 0..=PULSES/4, `ho` data `0`/`1`; anything else `GS04`. Homing lasts `homing_s` or the
-//!   trapezoid to the index, whichever is longer.
+//!   `fw`, `bw` end wrapped into it. A move turns the way of the sign of the difference in those
+//!   counts (no short-way logic: that is the driver's job, with `mr`). `ho0` homes in the positive
+//!   direction, `ho1` in the negative one. The encoder noise is added after the wrap: a reading
+//!   just below 0 is a small negative 32-bit two's complement number (`FFFFFFFF` for -1), which is
+//!   how the manual defines positions and how clients parse them (pylablib `_from_steps_data`,
+//!   thorlabs_elliptec `struct.unpack(">i")`), not the top of the turn.
+//! * **Sliders** rest only in detents: slot `k` sits at `k * pitch` counts (ELL9: 0, 32, 64, 96;
+//!   ELL6: 0, 31, as roesel/elliptec uses). `ma`/`mr` go to the nearest slot, `fw`/`bw` to the
+//!   next/previous one, clamped at the ends (a null move answered `PO`). `ho` takes its direction
+//!   digit as on every model (`ho0` and `ho1` both end on slot 0); `sj`, `so` and `st` are `GS03`.
+//!   The `IN` travel field is the last slot's position in counts and the PULSES field is 0: the
+//!   indexed sliders have no pulses-per-unit scale (a user's report of a real ELL6, followed for
+//!   the ELL9 too; pylablib guards for it, `pulse/travel if pulse>0 else 1`; the protocol manual
+//!   could not be checked for it: `docs/DEVICES-conformance.md`).
+//! * **Parsing.** Every command has a fixed data length, the same on every model (the ELLx protocol
+//!   manual's command table as reported to us: `ho` takes its direction digit on every model,
+//!   sliders included, and every public client sends it): `ma`, `mr`, `sj`, `so` 8; `f1`, `b1`,
+//!   `f2`, `b2` 4; `sv` 2; `ho`, `ca` 1; `in`, `gs`, `gp`, `fw`, `bw`, `gj`, `go`, `gv`, `st`,
+//!   `us`, `i1`, `i2`, `s1`, `s2` none. A command starts with an upper-case hex address, then a
+//!   lower-case letter, then a lower-case letter or digit; a byte that cannot continue the command
+//!   drops the first pending byte and the rest is scanned again (resynchronisation: a client's
+//!   trailing CR LF is skipped so). Data bytes must be hex digits (any other byte there drops the
+//!   command silently); lower-case digits `a`-`f` are consumed but the command is answered `GS04`.
+//!   An unknown command (`i3`, `xx`) takes no data and is answered `GS03`. A partial command idle
+//!   for [`IDLE_TIMEOUT_S`] or more is dropped and answered `GS01` if it was for this address.
+//! * **Status.** An error reply (`GS` with a code other than `00` and `09`) latches its code; `gs`
+//!   returns the latched code and clears it, else `09` while busy, else `00`. Busy is a state, not
+//!   an error: a `GS09` refusal is not latched, so `gs` reads `00` once the module is idle (clients
+//!   poll `gs` until it is no longer busy). `gs`, `gp`, `in`, `gv`, `gj`, `go`, `i1`, `i2`, `sv`,
+//!   `sj`, `so` and `st` are answered while busy; motion commands, frequency commands, `ca` and
+//!   `us` are `GS09` then.
+//! * **Settings.** `sv` 1..=100 %, `sj` 1..=PULSES counts (an eighth of a turn at power-on), `so`
+//!   0..=PULSES/4, `ho` data `0`/`1`, motor periods `f1`/`b1`/`f2`/`b2` nonzero; anything else
+//!   `GS04`. Homing lasts `homing_s` or the trapezoid to the index, whichever is longer.
+//! * **Motors.** Every model answers `i1` and `i2` (two resonant motors; `i3` is GS03): loop on,
+//!   motor on, current 0.4 A (0x02EA = 746 of 1866 per ampere), ramps `FFFF`, and the forward and
+//!   backward periods (frequency = 14.74 MHz / period; at power-on motor 1 0x0091/0x0088, motor 2
+//!   0x0093/0x008C, about 100 kHz). A frequency search (`s1`, `s2`) holds its `GS00` for
+//!   `frequency_search_s` and restores that motor's power-on periods; the mechanism does not move
+//!   (a real one may move slightly).
 //! * **Stop** (`st`, rotators) answers `GS00` at once; the held move reply then comes when the
-//!   mechanism has decelerated, as `PO` with where it stopped (a stopped homing leaves the
-//!   datum unset).
+//!   mechanism has decelerated, as `PO` with where it stopped (a stopped homing leaves the datum
+//!   unset).
 //! * **Faults.** A stall (moves only, not homing) ends half way with the held reply `GS02`; the
-//!   quick-move bug sends `ma`/`mr`/`fw`/`bw` to position 0 when they arrive less than
-//!   [`QUICK_MOVE_S`] after the previous motion ended; a spontaneous reset (rolled when a
-//!   motion command would start the motor, which browns the controller out: that command is
-//!   lost, unanswered; queries never reset) and a power cycle forget the datum, the held reply, the address change, the velocity, jog step and home
-//!   offset (`us` answers `GS00` but nothing is kept in flash). Unsolicited lines are `BS00` or
-//!   `BO` with the position, with equal odds, before the reply of a command for this address.
+//!   quick-move fault ([`FaultProfile::quick_move_to_zero`], off by default) sends
+//!   `ma`/`mr`/`fw`/`bw` to position 0, answered `PO` with no error, when they arrive less than
+//!   [`QUICK_MOVE_S`] after the previous motion ended; a spontaneous reset (rolled when a motion
+//!   command would start the motor, which browns the controller out: that command is lost,
+//!   unanswered; queries never reset) and a power cycle forget the datum, the held reply, the
+//!   address change, the velocity, jog step, home offset and motor periods (`us` answers `GS00` but
+//!   nothing is kept in flash). Unsolicited lines are `BS00` or `BO` with the position, with equal
+//!   odds, before the reply of a command for this address.
 
 use crate::faults::{Dice, DutyCycle, FaultProfile};
 use crate::motion::{output_from_motor, Profile};
@@ -49,9 +75,15 @@ use std::f64::consts::TAU;
 
 /// A partial command idle this long (simulated seconds) is dropped and answered `GS01`.
 pub const IDLE_TIMEOUT_S: f64 = 0.05;
-/// With [`ElliptecConfig::quick_move_bug`], a move command arriving sooner than this after the
-/// previous motion ended moves to 0 instead (pylablib's `_pre_move_delay`).
+/// With [`FaultProfile::quick_move_to_zero`], a move command arriving sooner than this after the
+/// previous motion ended may move to 0 instead (pylablib's `_pre_move_delay`: "if the move
+/// command is issued too soon after a previous one, it can move to 0 instead").
 pub const QUICK_MOVE_S: f64 = 0.1;
+/// Motor periods at power-on, (forward, backward) for motors 1 and 2; frequency = 14.74 MHz /
+/// period (pylablib `get_motor_info`).
+pub const MOTOR_PERIODS: [(u16, u16); 2] = [(0x0091, 0x0088), (0x0093, 0x008C)];
+/// The `I1`/`I2` current field: 746 / 1866 per ampere = 0.4 A.
+const MOTOR_CURRENT: u16 = 0x02EA;
 /// A slider is on a slot when within this many counts of it (roesel/elliptec).
 pub const SLOT_TOLERANCE_COUNTS: f64 = 5.0;
 
@@ -110,7 +142,8 @@ pub struct ElliptecConfig {
     pub model: ElliptecModel,
     /// Bus address at power-on, 0..=15 (higher bits are ignored).
     pub address: u8,
-    /// The `IN` PULSES field: counts per turn (rotators) or per slot pitch (sliders).
+    /// Counts per turn (rotators, reported as the `IN` PULSES field) or per slot pitch (sliders,
+    /// whose `IN` PULSES field is 0).
     pub pulses: u32,
     /// Serial number (its last 8 decimal digits are reported).
     pub serial: u32,
@@ -124,8 +157,8 @@ pub struct ElliptecConfig {
     pub backlash_counts: f64,
     /// Encoder noise (standard deviation) on every position read, counts.
     pub encoder_noise_counts: f64,
-    /// A move command less than [`QUICK_MOVE_S`] after the previous motion ended moves to 0.
-    pub quick_move_bug: bool,
+    /// How long a frequency search (`s1`, `s2`) lasts, seconds (pylablib allows 10).
+    pub frequency_search_s: f64,
     /// Probability per command for this address that an unsolicited `BS`/`BO` line precedes
     /// the reply.
     pub unsolicited_status: f64,
@@ -133,7 +166,7 @@ pub struct ElliptecConfig {
 
 impl ElliptecConfig {
     /// A rotation mount: 430 deg/s at 100 %, 50 ms ramps, 1 s homing, 10 counts backlash,
-    /// 0.5 count encoder noise.
+    /// 0.5 count encoder noise, 2 s frequency search.
     fn rotator(model: ElliptecModel, pulses: u32, serial: u32) -> Self {
         let v = 430.0 / 360.0 * pulses as f64;
         ElliptecConfig {
@@ -146,7 +179,7 @@ impl ElliptecConfig {
             homing_s: 1.0,
             backlash_counts: 10.0,
             encoder_noise_counts: 0.5,
-            quick_move_bug: true,
+            frequency_search_s: 2.0,
             unsolicited_status: 0.0,
         }
     }
@@ -193,6 +226,8 @@ struct Motion {
     home: bool,
     /// Cut half way: the reply is `GS02`.
     stalled: bool,
+    /// A frequency search, not a motion: the held reply is `GS00`.
+    search: bool,
 }
 
 /// What the bytes pending at the front of the input buffer are.
@@ -216,23 +251,24 @@ fn hex32(v: i64) -> String {
     format!("{:08X}", v as u32)
 }
 
-/// The data length of a known command; `None` for an unknown one.
-fn data_len(cc: [u8; 2], rotator: bool) -> Option<usize> {
+/// The data length of a known command (the same on every model); `None` for an unknown one.
+fn data_len(cc: [u8; 2]) -> Option<usize> {
     match &cc {
         b"ma" | b"mr" | b"sj" | b"so" => Some(8),
+        b"f1" | b"b1" | b"f2" | b"b2" => Some(4),
         b"sv" => Some(2),
-        b"ca" => Some(1),
-        b"ho" => Some(usize::from(rotator)),
-        b"in" | b"gs" | b"gp" | b"fw" | b"bw" | b"gj" | b"go" | b"gv" | b"st" | b"us" => Some(0),
+        b"ca" | b"ho" => Some(1),
+        b"in" | b"gs" | b"gp" | b"fw" | b"bw" | b"gj" | b"go" | b"gv" | b"st" | b"us" | b"i1"
+        | b"i2" | b"s1" | b"s2" => Some(0),
         _ => None,
     }
 }
 
 /// Whether `buf` starts with a complete command, a prefix of one, or a byte to skip.
-fn scan(buf: &[u8], rotator: bool) -> Scan {
+fn scan(buf: &[u8]) -> Scan {
     // Until both command letters are in, any length will do: only the prefix is checked.
     let cc = [1, 2].map(|i| buf.get(i).copied().unwrap_or(b'?'));
-    let n = 3 + data_len(cc, rotator).unwrap_or(0);
+    let n = 3 + data_len(cc).unwrap_or(0);
     for (i, &b) in buf.iter().enumerate().take(n) {
         let fits = match i {
             0 => hex_digit(b).is_some(),
@@ -275,6 +311,8 @@ pub struct ElliptecDevice {
     motion: Option<Motion>,
     last_end_s: Option<f64>,
     duty: DutyCycle,
+    /// (forward, backward) period of motors 1 and 2.
+    periods: [(u16, u16); 2],
 }
 
 impl ElliptecDevice {
@@ -299,6 +337,7 @@ impl ElliptecDevice {
             motion: None,
             last_end_s: None,
             duty: DutyCycle::default(),
+            periods: MOTOR_PERIODS,
         };
         dev.power_on();
         dev
@@ -314,16 +353,26 @@ impl ElliptecDevice {
         self.homed
     }
 
-    /// Whether a motion is in progress at `now_s`.
+    /// Whether a motion or a frequency search is in progress at `now_s`.
     pub fn busy(&self, now_s: f64) -> bool {
         self.motion.is_some_and(|m| now_s < m.end_s)
+    }
+
+    /// Whether the mechanism is moving at `now_s` (a frequency search keeps it still).
+    fn moving(&self, now_s: f64) -> bool {
+        self.motion.is_some_and(|m| !m.search && now_s < m.end_s)
+    }
+
+    /// The motion in progress, if it moves the mechanism.
+    fn mechanical(&self) -> Option<Motion> {
+        self.motion.filter(|m| !m.search)
     }
 
     /// The output's true position in counts from the index at `now_s` (what the optics see):
     /// the motor lagged by half the backlash, without encoder noise.
     pub fn true_output_counts(&self, now_s: f64) -> f64 {
         let direction = self
-            .motion
+            .mechanical()
             .map_or(self.direction, |m| m.profile.direction());
         output_from_motor(
             self.position_now(now_s) + self.origin,
@@ -349,7 +398,7 @@ impl ElliptecDevice {
 
     /// Forgets everything not mechanical; the counter reads 0 at `physical`.
     fn reset_state(&mut self, physical: f64) {
-        if let Some(m) = self.motion.take() {
+        if let Some(m) = self.motion.take().filter(|m| !m.search) {
             self.direction = m.profile.direction();
         }
         self.address = self.config.address & 0x0F;
@@ -362,16 +411,18 @@ impl ElliptecDevice {
         self.homed = false;
         self.latched = OK;
         self.last_end_s = None;
+        self.periods = MOTOR_PERIODS;
     }
 
     fn position_now(&self, now_s: f64) -> f64 {
         self.motion.map_or(self.pos, |m| m.profile.position(now_s))
     }
 
-    /// The encoder reading of a position: noisy, wrapped into a turn on rotators.
+    /// The encoder reading of a position: wrapped into a turn on rotators, then noisy (so an
+    /// error just below 0 reads as a small negative number).
     fn reported(&mut self, pos: f64) -> i64 {
-        let noisy = (pos + self.config.encoder_noise_counts * self.dice.normal()).round();
-        self.wrap(noisy).clamp(i32::MIN as f64, i32::MAX as f64) as i64
+        let noisy = self.wrap(pos) + self.config.encoder_noise_counts * self.dice.normal();
+        noisy.round().clamp(i32::MIN as f64, i32::MAX as f64) as i64
     }
 
     /// A position wrapped into `[0, PULSES)` on a rotator; unchanged on a slider.
@@ -393,9 +444,9 @@ impl ElliptecDevice {
         self.dice.reply_faults(&self.faults, bytes)
     }
 
-    /// A `GS` reply; a code other than `00` is latched until `gs` reads it.
+    /// A `GS` reply; an error (a code other than `00` and `09`) is latched until `gs` reads it.
     fn status(&mut self, code: u8) -> Vec<u8> {
-        if code != OK {
+        if code != OK && code != BUSY {
             self.latched = code;
         }
         self.line("GS", &format!("{code:02X}"))
@@ -418,6 +469,9 @@ impl ElliptecDevice {
 
     /// The held reply of a motion that ended.
     fn finish(&mut self, m: Motion) -> Vec<u8> {
+        if m.search {
+            return self.status(OK);
+        }
         self.direction = m.profile.direction();
         self.last_end_s = Some(m.end_s);
         if m.home {
@@ -489,6 +543,25 @@ impl ElliptecDevice {
                 self.line("PO", &hex32(p))
             }
             b"ma" | b"mr" | b"ho" | b"fw" | b"bw" => self.motion_command(now_s, cc, value, busy),
+            b"i1" | b"i2" => {
+                let (forward, backward) = self.periods[usize::from(cc[1] - b'1')];
+                let data = format!("11{MOTOR_CURRENT:04X}FFFFFFFF{forward:04X}{backward:04X}");
+                self.line(if cc[1] == b'1' { "I1" } else { "I2" }, &data)
+            }
+            b"f1" | b"b1" | b"f2" | b"b2" | b"s1" | b"s2" if busy => self.status(BUSY),
+            b"f1" | b"b1" | b"f2" | b"b2" => {
+                let motor = usize::from(cc[1] - b'1');
+                let period = value as u16;
+                self.set(period > 0, |d| match cc[0] {
+                    b'f' => d.periods[motor].0 = period,
+                    _ => d.periods[motor].1 = period,
+                })
+            }
+            b"s1" | b"s2" => {
+                let motor = usize::from(cc[1] - b'1');
+                self.periods[motor] = MOTOR_PERIODS[motor];
+                self.search(now_s)
+            }
             b"sj" if rotator => self.set((1..=span).contains(&signed), |d| d.jog_counts = signed),
             b"gj" => {
                 let jog = if rotator { self.jog_counts } else { span };
@@ -529,21 +602,42 @@ impl ElliptecDevice {
         self.status(OK)
     }
 
-    /// The `IN` data: type, serial, year, firmware, hardware, travel, pulses (30 chars).
+    /// The `IN` data: type, serial, year, firmware, hardware, travel, pulses (30 chars). The
+    /// indexed sliders report PULSES 0.
     fn info(&self) -> String {
         let c = self.config;
-        let travel = if c.model.is_rotator() {
-            360
+        let (travel, pulses) = if c.model.is_rotator() {
+            (360, c.pulses)
         } else {
-            u64::from(c.pulses) * c.model.slots().saturating_sub(1) as u64
+            let last = c.model.slots().saturating_sub(1) as u64;
+            (u64::from(c.pulses) * last, 0)
         };
         let (kind, serial) = (c.model.type_code(), c.serial % 100_000_000);
         // Year 2023, firmware 17, hardware 01 (metric thread), as on a real ELL14.
         format!(
-            "{kind:02X}{serial:08}20231701{:04X}{:08X}",
-            travel.min(0xFFFF),
-            c.pulses
+            "{kind:02X}{serial:08}20231701{:04X}{pulses:08X}",
+            travel.min(0xFFFF)
         )
+    }
+
+    /// Starts a frequency search: busy for `frequency_search_s`, the mechanism still, then the
+    /// held `GS00`.
+    fn search(&mut self, now_s: f64) -> Vec<u8> {
+        let profile = Profile {
+            start: self.pos,
+            target: self.pos,
+            t0_s: now_s,
+            v: 1.0,
+            a: 1.0,
+        };
+        self.motion = Some(Motion {
+            profile,
+            end_s: now_s + self.config.frequency_search_s.max(0.0),
+            home: false,
+            stalled: false,
+            search: true,
+        });
+        Vec::new()
     }
 
     fn motion_command(&mut self, now_s: f64, cc: [u8; 2], value: u32, busy: bool) -> Vec<u8> {
@@ -570,10 +664,10 @@ impl ElliptecDevice {
             };
             return self.start(now_s, target, true);
         }
-        let quick = self.config.quick_move_bug
-            && self
-                .last_end_s
-                .is_some_and(|end| now_s - end < QUICK_MOVE_S);
+        let quick = self
+            .last_end_s
+            .is_some_and(|end| now_s - end < QUICK_MOVE_S)
+            && self.dice.chance(self.faults.quick_move_to_zero);
         let signed = f64::from(value as i32);
         let jog = self.jog_counts as f64;
         let target = if rotator {
@@ -624,6 +718,7 @@ impl ElliptecDevice {
             end_s,
             home,
             stalled,
+            search: false,
         });
         Vec::new()
     }
@@ -645,12 +740,11 @@ impl Simulator for ElliptecDevice {
 
     fn receive(&mut self, now_s: f64, bytes: &[u8]) -> Vec<u8> {
         let mut out = self.tick(now_s);
-        let rotator = self.config.model.is_rotator();
         for &b in bytes {
             self.pending.push(b);
             self.last_byte_s = now_s;
             loop {
-                match scan(&self.pending, rotator) {
+                match scan(&self.pending) {
                     Scan::NeedMore => break,
                     Scan::Skip => {
                         self.pending.remove(0);
@@ -703,7 +797,7 @@ impl Simulator for ElliptecDevice {
 
     fn truth(&self, now_s: f64) -> Truth {
         let output = self.true_output_counts(now_s);
-        let moving = self.busy(now_s);
+        let moving = self.moving(now_s);
         let span = self.span();
         if self.config.model.is_rotator() {
             let a = output.rem_euclid(span) / span * TAU;
@@ -812,7 +906,7 @@ mod tests {
         let mut d = fresh(C::ell18(), 2);
         script(&mut d, 0.0, "0in -> 0IN121180000120231701016800040000");
         let mut d = fresh(C::ell9(), 2);
-        script(&mut d, 0.0, "0in -> 0IN091090000120231701006000000020");
+        script(&mut d, 0.0, "0in -> 0IN091090000120231701006000000000");
     }
 
     /// Homing takes `homing_s` (1 s, longer than a turn) and reads exactly 0. `ma 0x2000`'s PO
@@ -887,14 +981,14 @@ mod tests {
         assert!(d.tick(2.0).is_empty());
     }
 
-    /// The quick-move bug: a move 50 ms after the previous one ended goes to 0; one 150 ms
-    /// after does not; with the bug off 50 ms is fine (positions within 3 counts, 6 sigma).
+    /// The quick-move fault injected (probability 1): a move 50 ms after the previous one ended
+    /// goes to 0, answered `PO`; one 150 ms after does not; with the knob at 0 (the default)
+    /// 50 ms is fine (positions within 3 counts, 6 sigma of the noise).
     #[test]
-    fn quick_move_bug() {
+    fn quick_move_to_zero_fault() {
         for bug in [true, false] {
-            let mut c = C::ell14();
-            c.quick_move_bug = bug;
-            let mut d = fresh(c, 5);
+            let p = faults(|f| f.quick_move_to_zero = if bug { 1.0 } else { 0.0 });
+            let mut d = ElliptecDevice::new(C::ell14(), p, 5);
             let (_, h) = run(&mut d, 0.0, "0ho0");
             let (r, e) = run(&mut d, h + 0.5, "0ma00002000");
             assert!(po_off(&r, 0x2000) <= 3, "{r}");
@@ -908,9 +1002,10 @@ mod tests {
     /// Device faults: a stall ends half way with the held reply GS02 (position half way, exact
     /// without noise; `gs` 02 once); homing never stalls. 2 % duty: after the 1 s homing (10 %
     /// of the 10 s window) a move is GS08, 11 s later it runs. Spurious busy is GS09 at once. A
-    /// spontaneous reset (on a motion command, which is lost) gives no notice: datum and address lost, position reads 0 where the
-    /// mechanism stands (truth unchanged, exactly). Unsolicited BS00/BO lines precede replies,
-    /// both kinds within 40 fair draws (each missing: probability 2^-40).
+    /// spontaneous reset (on a motion command, which is lost) gives no notice: datum and address
+    /// lost, position reads 0 where the mechanism stands (truth unchanged, exactly). Unsolicited
+    /// BS00/BO lines precede replies, both kinds within 40 fair draws (each missing: probability
+    /// 2^-40).
     #[test]
     fn device_faults() {
         let mut d = ell14(faults(|f| f.stall = 1.0));
@@ -950,7 +1045,7 @@ mod tests {
         assert!(seen[0] > 0 && seen[1] > 0);
     }
 
-    /// An ELL9: `ho` takes no data and ends on slot 0; `fw`/`bw` step one 32-count slot,
+    /// An ELL9: `ho0` ends on slot 0; `fw`/`bw` step one 32-count slot,
     /// clamped at the ends; `ma`/`mr` go to the nearest slot; the truth is the slot (exact: no
     /// noise or backlash), none while moving; `st`/`sj` are GS03; `gj` is the pitch. An ELL6's
     /// second slot is at 31.
@@ -959,7 +1054,7 @@ mod tests {
         let mut d = fresh(C::ell9(), 6);
         let mut t = 0.0;
         let steps =
-            "0ho 0 0, 0fw 20 1, 0ma00000055 60 3, 0fw 60 3, 0bw 40 2, 0mrFFFFFFE0 20 1, 0bw 0 0";
+            "0ho0 0 0, 0fw 20 1, 0ma00000055 60 3, 0fw 60 3, 0bw 40 2, 0mrFFFFFFE0 20 1, 0bw 0 0";
         for step in steps.split(", ") {
             let [cmd, pos, slot] = step.split(' ').collect::<Vec<_>>()[..] else {
                 panic!()
@@ -977,7 +1072,7 @@ mod tests {
         );
         assert_eq!(d.truth(t + 0.01), Truth::Slot { slot: None });
         let mut d = fresh(C::ell6(), 6);
-        let (_, e) = run(&mut d, 0.0, "0ho");
+        let (_, e) = run(&mut d, 0.0, "0ho0");
         assert_eq!(run(&mut d, e + 0.2, "0ma0000001F").0, "0PO0000001F\r\n");
         assert_eq!(d.truth(e + 5.0), Truth::Slot { slot: Some(1) });
     }
@@ -1013,7 +1108,8 @@ mod tests {
     fn random_bytes_never_panic() {
         let alphabet = b"0123456789ABCDEFabcdefghijklmnopqrstuvwxyz\r\n";
         let commands: Vec<&str> = "0gs 0gp 0in 0ho0 0ho1 0ho 0fw 0bw 0st 0gv 0sv32 0gj 0go 0us \
-            0sj00001000 0so00000100 0ca1 1ca0 0ma00004000 0maFFFF0000 0mr80000000 0mr7FFFFFFF"
+            0sj00001000 0so00000100 0ca1 1ca0 0ma00004000 0maFFFF0000 0mr80000000 0mr7FFFFFFF \
+            0i1 0i2 0i3 0s1 0s2 0f10090 0b20000"
             .split_whitespace()
             .collect();
         let noisy = faults(|f| {
@@ -1061,6 +1157,7 @@ mod tests {
             for l in all.split_terminator("\r\n").map(str::as_bytes) {
                 let n = match l.get(1..3) {
                     Some(b"IN") => 30,
+                    Some(b"I1" | b"I2") => 22,
                     Some(b"GS" | b"GV" | b"BS") => 2,
                     Some(b"PO" | b"GJ" | b"HO" | b"BO") => 8,
                     _ => panic!("{l:?}"),
@@ -1070,5 +1167,116 @@ mod tests {
             }
             assert!(all.ends_with("\r\n"));
         }
+    }
+
+    // One test per defect a public client library met with the simulator
+    // (docs/DEVICES-conformance.md).
+
+    /// Defect 1: a move sent 50 ms after the previous move ended (clients such as
+    /// thorlabs_elliptec send moves back to back) goes where asked on a default device: the
+    /// move-to-0 is a fault knob, off by default. Positions within 3 counts (6 sigma of the 0.5
+    /// count noise).
+    #[test]
+    fn back_to_back_moves_reach_their_targets() {
+        let mut d = fresh(C::ell14(), 5);
+        let (_, h) = run(&mut d, 0.0, "0ho0");
+        let (r, e) = run(&mut d, h + 0.5, "0ma00004600");
+        assert!(po_off(&r, 0x4600) <= 3, "{r}");
+        let (r, e) = run(&mut d, e + 0.05, "0ma00008C00");
+        assert!(po_off(&r, 0x8C00) <= 3, "{r}");
+        let (r, _) = run(&mut d, e + 0.001, "0mr00001000");
+        assert!(po_off(&r, 0x9C00) <= 3, "{r}");
+    }
+
+    /// Defect 2: `ho` takes one direction digit on every model, sliders included: `0ho0` (what
+    /// clients and Thorlabs' examples send) and `0ho1` home an ELL6 and an ELL9 with one held
+    /// `PO` and nothing else (no `GS01` for a stray digit); `0ho2` is out of range.
+    #[test]
+    fn slider_home_takes_a_direction_digit() {
+        for c in [C::ell6(), C::ell9()] {
+            let mut d = fresh(c, 7);
+            let (r, e) = run(&mut d, 0.0, "0ho0");
+            assert_eq!(r, "0PO00000000\r\n", "{:?}", c.model);
+            assert!(d.tick(e + 1.0).is_empty() && d.next_event_s().is_none());
+            let (r, e) = run(&mut d, e + 0.2, "0ho1");
+            assert_eq!(r, "0PO00000000\r\n", "{:?}", c.model);
+            script(&mut d, e + 0.2, "0ho2 -> 0GS04; 0gs -> 0GS04; 0gs -> 0GS00");
+        }
+    }
+
+    /// Defect 3: `i1` and `i2` answer the motors' info (22 data characters: loop, motor,
+    /// current, ramps, forward and backward periods) on every model; `i3` (no third motor) is
+    /// GS03. `s1` (frequency search) holds its `GS00` for `frequency_search_s` (busy meanwhile:
+    /// `gs` 09, a move GS09), then `i1` shows the searched periods; `f1`/`b1` set them.
+    #[test]
+    fn motor_info_and_frequency_search() {
+        for c in [C::ell14(), C::ell18(), C::ell6(), C::ell9()] {
+            let mut d = fresh(c, 8);
+            script(
+                &mut d,
+                0.0,
+                "0i1 -> 0I11102EAFFFFFFFF00910088; 0i2 -> 0I21102EAFFFFFFFF0093008C
+                0i3 -> 0GS03; 0gs -> 0GS03",
+            );
+            script(&mut d, 0.1, "0f10080 -> 0GS00; 0b10099 -> 0GS00");
+            script(&mut d, 0.1, "0i1 -> 0I11102EAFFFFFFFF00800099; 0s1 ->");
+            let end = d.next_event_s().expect("the search's held reply");
+            assert!((end - 0.1 - c.frequency_search_s).abs() < 1e-9, "{end}");
+            script(&mut d, 0.2, "0gs -> 0GS09; 0ma00000000 -> 0GS09");
+            assert!(d.tick(end - 1e-6).is_empty());
+            assert_eq!(text(&d.tick(end)), "0GS00\r\n");
+            script(
+                &mut d,
+                end,
+                "0gs -> 0GS00; 0i1 -> 0I11102EAFFFFFFFF00910088",
+            );
+        }
+    }
+
+    /// Defect 4: the indexed sliders' `in` reply carries PULSES 0 (a rotator's is its counts per
+    /// turn): ELL6 travel 31, ELL9 travel 96, both PULSES 00000000.
+    #[test]
+    fn slider_in_reply_has_no_pulses() {
+        let mut d = fresh(C::ell6(), 2);
+        script(&mut d, 0.0, "0in -> 0IN061060000120231701001F00000000");
+        let mut d = fresh(C::ell9(), 2);
+        script(&mut d, 0.0, "0in -> 0IN091090000120231701006000000000");
+    }
+
+    /// Defect 5a: an encoder error just below 0 reads as a small negative 32-bit two's
+    /// complement value (`FFFFFFFF` for -1), as clients parse it (pylablib and
+    /// thorlabs_elliptec read signed), not wrapped to the top of the turn (`00022FFF`, 359.997
+    /// deg). Right after homing, 200 reads are all within 3 counts of 0 (6 sigma of the 0.5
+    /// count noise) and some are negative (a read below -0.5 has probability 0.16).
+    #[test]
+    fn encoder_error_below_zero_reads_negative() {
+        let mut d = fresh(C::ell14(), 11);
+        let (_, h) = run(&mut d, 0.0, "0ho0");
+        let mut negative = 0;
+        for _ in 0..200 {
+            let r = text(&d.receive(h + 0.5, b"0gp"));
+            let p = po(&r) as u32 as i32;
+            assert!(p.abs() <= 3, "{r}");
+            negative += usize::from(p < 0);
+        }
+        assert!(negative > 0);
+    }
+
+    /// Defect 5b: a `GS09` refusal (a move while moving) is not latched: once the module is
+    /// idle `gs` reads 00, as clients that poll `gs` until it is no longer busy expect. A real
+    /// error (GS04) is still latched for one `gs`.
+    #[test]
+    fn busy_refusal_is_not_latched() {
+        let mut d = fresh(C::ell14(), 12);
+        let (_, h) = run(&mut d, 0.0, "0ho0");
+        script(&mut d, h + 0.5, "0ma00004000 ->");
+        script(&mut d, h + 0.51, "0ma00002000 -> 0GS09");
+        let end = d.next_event_s().expect("the move's held reply");
+        assert!(po_off(&text(&d.tick(end)), 0x4000) <= 3);
+        script(
+            &mut d,
+            end + 0.01,
+            "0gs -> 0GS00; 0sv00 -> 0GS04; 0gs -> 0GS04",
+        );
     }
 }

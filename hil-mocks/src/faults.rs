@@ -10,7 +10,8 @@ use rand_core::{Rng, SeedableRng};
 use rand_xorshift::XorShiftRng;
 use serde::Deserialize;
 
-/// Fault knobs (TOML: every field optional; all off by default).
+/// Fault knobs (TOML: every field optional; all off by default, so a simulated device behaves as
+/// the healthy real one).
 #[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct FaultProfile {
@@ -29,6 +30,13 @@ pub struct FaultProfile {
     /// Device: the motor's duty cycle over the last [`THERMAL_WINDOW_S`] above which moves are
     /// refused with the dialect's thermal error until it cools; 0 = never.
     pub thermal_duty: f64,
+    /// Device (Elliptec): a move command (`ma`, `mr`, `fw`, `bw`) arriving less than
+    /// [`crate::elliptec::QUICK_MOVE_S`] after the previous motion ended goes to position 0
+    /// instead, and is still answered `PO` with no error. pylablib's driver notes a real module
+    /// "can" do this when commanded too soon (it waits 0.1 s before every move); most public
+    /// clients send moves back to back and work on real modules, so it is a sometime fault, not
+    /// the device's normal behaviour. Default 0 (never).
+    pub quick_move_to_zero: f64,
     /// Transport: a reply is delivered in random small pieces with short gaps between them.
     pub chunk_reads: f64,
     /// Transport: a reply is held back up to 50 ms and delivered together with what follows.
@@ -61,6 +69,7 @@ impl Default for FaultProfile {
             stall: 0.0,
             spontaneous_reset: 0.0,
             thermal_duty: 0.0,
+            quick_move_to_zero: 0.0,
             chunk_reads: 0.0,
             coalesce_replies: 0.0,
             latency_s: 0.0,
@@ -113,6 +122,7 @@ impl FaultProfile {
             ("stall", self.stall),
             ("spontaneous_reset", self.spontaneous_reset),
             ("thermal_duty", self.thermal_duty),
+            ("quick_move_to_zero", self.quick_move_to_zero),
             ("chunk_reads", self.chunk_reads),
             ("coalesce_replies", self.coalesce_replies),
             ("late_reply", self.late_reply),
@@ -259,7 +269,8 @@ impl DutyCycle {
 mod tests {
     use super::*;
 
-    /// TOML knobs parse, unknown keys and out-of-range values are errors naming the field.
+    /// TOML knobs parse (the quick-move fault off unless set), unknown keys and out-of-range
+    /// values are errors naming the field.
     #[test]
     fn profile_parses_and_validates() {
         let p = FaultProfile::from_toml_str("drop_reply = 0.1\nstall = 0.5\n").unwrap();
@@ -270,6 +281,11 @@ mod tests {
         assert!(e.to_string().contains("drop_reply = 1.5"), "{e}");
         let e = FaultProfile::from_toml_str("latency_s = -1").unwrap_err();
         assert!(e.to_string().contains("latency_s = -1"), "{e}");
+        assert_eq!(p.quick_move_to_zero, 0.0, "off by default");
+        let q = FaultProfile::from_toml_str("quick_move_to_zero = 0.25").unwrap();
+        assert_eq!(q.quick_move_to_zero, 0.25);
+        let e = FaultProfile::from_toml_str("quick_move_to_zero = 2").unwrap_err();
+        assert!(e.to_string().contains("quick_move_to_zero = 2"), "{e}");
         let e = FaultProfile::from_toml_str("explode = 1").unwrap_err();
         assert!(e.to_string().contains("explode"), "{e}");
     }

@@ -1,5 +1,5 @@
 //! Thorlabs FW102C (6 positions) / FW212C (12 positions) motorised filter wheels, simulated at
-//! the byte level (`../shared/design/DEVICES.md` section 1.2): ASCII command lines ending in
+//! the byte level (`docs/DEVICES.md` section 1.2): ASCII command lines ending in
 //! `\r`, an echo of every line, the answer line of a query, then a prompt.
 //!
 //! # Wire format (exact bytes)

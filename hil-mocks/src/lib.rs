@@ -1,5 +1,5 @@
 //! Simulated polarimeter devices: byte-level state machines with physical motion and seeded,
-//! reproducible faults (`../shared/design/SYSTEM.md`, "Simulated devices").
+//! reproducible faults (`ARCHITECTURE.md`, "Simulated devices").
 //!
 //! * [`native::NativeDevice`]: our own firmware's rotation stage or filter wheel
 //!   (`firmware-protocol/SPEC.md`).

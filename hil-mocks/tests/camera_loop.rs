@@ -60,6 +60,7 @@ fn config(scene: Arc<SimScene>, faults: CameraFaults) -> SimCameraConfig {
         max_frame_rate_hz: 200.0,
         faults,
         seed: 11,
+        noise_stream: 0,
     }
 }
 

@@ -130,6 +130,15 @@ fn cases() -> Vec<Case> {
             },
         ),
         transient("stall", FaultProfile { stall: 0.2, ..f() }),
+        // Elliptec only: every move sent within 0.1 s of the previous motion's end goes to 0.
+        // The driver waits 0.1 s before every move, so it must never be hit.
+        clean(
+            "quick move to zero",
+            FaultProfile {
+                quick_move_to_zero: 1.0,
+                ..f()
+            },
+        ),
         transient(
             "spontaneous reset",
             FaultProfile {

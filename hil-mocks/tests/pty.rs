@@ -99,14 +99,17 @@ async fn native_rotator_over_a_pty() {
     );
 }
 
-/// An ELL14 over a pty at 9600 baud: three verified moves, unplug, back (re-homed).
+/// An ELL14 over a pty at 9600 baud, with the quick-move fault always on (a move within 0.1 s
+/// of the previous motion's end goes to 0: the driver's pause before every move must avoid it
+/// in real time): three verified moves, unplug, back (re-homed).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn elliptec_rotator_over_a_pty() {
     let config = ElliptecConfig::ell14();
-    let (server, connector, _) = start(
-        ElliptecDevice::new(config, FaultProfile::default(), 1),
-        "elliptec",
-    );
+    let quick = FaultProfile {
+        quick_move_to_zero: 1.0,
+        ..FaultProfile::default()
+    };
+    let (server, connector, _) = start(ElliptecDevice::new(config, quick, 1), "elliptec");
     let mut r = ElliptecRotator::connect(
         connector,
         0,

@@ -1,6 +1,6 @@
 //! [`FakeAnalyzerCamera`]: Aravis's fake GigE Vision camera running inside this process, whose
 //! image follows the angle of an analyzer in front of a partially polarized scene
-//! (`../shared/design/DEVICES.md` 4.2). The GenICam path (discovery, GVCP control, GVSP
+//! (`docs/DEVICES.md` section 4.2). The GenICam path (discovery, GVCP control, GVSP
 //! streaming, buffer checks) then runs for real in a closed loop with a simulated stage.
 
 use crate::camera::{AravisCamera, AravisOptions};

@@ -1,6 +1,6 @@
 //! GenICam cameras (GigE Vision, USB3 Vision) through [Aravis](https://github.com/AravisProject/aravis),
-//! as a [`polar_hal::BlockingCamera`] (`../shared/design/SYSTEM.md`, "Device abstraction";
-//! `../shared/design/DEVICES.md` 3.3, 4.1, 4.2 and 5.2).
+//! as a [`polar_hal::BlockingCamera`] (`ARCHITECTURE.md`, "Device abstraction";
+//! `docs/DEVICES.md` sections 3.3, 4.1, 4.2 and 5.2).
 //!
 //! * [`list`] discovers cameras (id, vendor, model, serial, address); [`AravisCamera::open`]
 //!   opens one by id.

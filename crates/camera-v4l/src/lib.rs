@@ -1,6 +1,6 @@
 //! V4L2 cameras (webcams, USB and CSI video devices) for the polarimeter, as a
-//! [`polar_hal::BlockingCamera`] (`../shared/design/SYSTEM.md`, "Device abstraction";
-//! `../shared/design/DEVICES.md` 3.2, 4.3, 5.2).
+//! [`polar_hal::BlockingCamera`] (`ARCHITECTURE.md`, "Device abstraction";
+//! `docs/DEVICES.md` sections 3.2, 4.3, 5.2).
 //!
 //! ```no_run
 //! use polar_camera_v4l::V4lCamera;
@@ -19,8 +19,8 @@
 //!
 //! * [`linuxvideo`] (0BSD) does the V4L2 ioctls: capabilities (card, driver, bus info), format
 //!   and frame-size enumeration, format negotiation, controls, and the MMAP stream. Its bindings
-//!   are written by hand, so it builds with no system package. `v4l` 0.14, which DEVICES.md
-//!   recommends, generates its bindings with bindgen in `v4l2-sys-mit`'s build script and so
+//!   are written by hand, so it builds with no system package. `v4l` 0.14, the usual
+//!   choice, generates its bindings with bindgen in `v4l2-sys-mit`'s build script and so
 //!   needs libclang at build time; this machine and CI have none (the build fails with "Unable
 //!   to find libclang"). nokhwa's `input-native` depends on that same `v4l`, so it fails the
 //!   same way, and it would add no control that `linuxvideo` lacks. Neither is used.

@@ -1,8 +1,10 @@
 //! JSON-lines batch mode: one JSON object per input line (keys are the flag names with
 //! underscores), one JSON object per output line, in order. A bad line produces
-//! `{"line": N, "error": "..."}` naming the field, the value and the allowed range; the rest go on.
+//! `{"line": N, "error": "line N: ..."}` naming the field, the value (cut when long) and the
+//! allowed range; the rest go on. A line that is not UTF-8, or has text after its object, is
+//! such a bad line.
 
-use crate::commands::{self, CommandError, DiffuseCache};
+use crate::commands::{self, echo, tidy, CommandError, DiffuseCache, ECHO_MAX};
 use serde::de::DeserializeOwned;
 use serde_json::{json, Value};
 use std::io::{BufRead, Write};
@@ -65,21 +67,46 @@ pub fn allowed(field: &str) -> Option<&'static str> {
     })
 }
 
+/// A JSON error's message with its position as a column of the batch line (the parser sees
+/// each line alone, so its "line 1" would be wrong), long echoed text cut.
+fn json_message(e: &serde_json::Error) -> String {
+    let text = e.to_string();
+    let text = match text.rfind(" at line ") {
+        Some(i) if e.line() > 0 => format!("{} at column {}", &text[..i], e.column()),
+        _ => text,
+    };
+    tidy(&text)
+}
+
 fn parse<T: DeserializeOwned>(line: &str) -> Result<T, CommandError> {
     let de = &mut serde_json::Deserializer::from_str(line);
-    serde_path_to_error::deserialize(de).map_err(|e| {
+    let value = serde_path_to_error::deserialize(&mut *de).map_err(|e| {
         let field = e.path().to_string();
-        let inner = e.into_inner();
+        let inner = json_message(e.inner());
         if field == "." || field.is_empty() {
-            CommandError(format!("{inner}"))
+            CommandError(inner)
         } else {
             let base = field.split(['[', '.']).next().unwrap_or(&field).to_string();
+            // An unknown key is the path: a long one is cut like any echoed text.
+            let field = if field.chars().count() > ECHO_MAX {
+                echo(&field)
+            } else {
+                field
+            };
             match allowed(&base) {
                 Some(a) => CommandError(format!("{field}: {inner}; allowed {a}")),
                 None => CommandError(format!("{field}: {inner}")),
             }
         }
-    })
+    })?;
+    // Only white space may follow the object.
+    de.end().map_err(|e| {
+        CommandError(format!(
+            "trailing text after the JSON object at column {}: allowed one JSON object per line",
+            e.column()
+        ))
+    })?;
+    Ok(value)
 }
 
 /// Evaluates one batch line.
@@ -109,19 +136,43 @@ pub struct Summary {
     pub errors: usize,
 }
 
-/// Runs a batch from `input` to `output`. I/O errors stop the batch; evaluation errors do not.
-pub fn run<R: BufRead, W: Write>(kind: Kind, input: R, mut output: W) -> std::io::Result<Summary> {
+/// Runs a batch from `input` to `output`. I/O errors stop the batch; evaluation errors do not,
+/// nor does a line that is not UTF-8 (it gets its error record like any bad line).
+pub fn run<R: BufRead, W: Write>(
+    kind: Kind,
+    mut input: R,
+    mut output: W,
+) -> std::io::Result<Summary> {
     let mut cache = DiffuseCache::default();
     let mut summary = Summary::default();
     let mut buf = Vec::with_capacity(512);
-    for line in input.lines() {
-        let line = line?;
+    let mut raw = Vec::with_capacity(512);
+    loop {
+        raw.clear();
+        if input.read_until(b'\n', &mut raw)? == 0 {
+            break;
+        }
+        if raw.last() == Some(&b'\n') {
+            raw.pop();
+            if raw.last() == Some(&b'\r') {
+                raw.pop();
+            }
+        }
         summary.lines += 1;
-        let value = match eval_line(kind, &line, &mut cache) {
+        let result = match std::str::from_utf8(&raw) {
+            Ok(line) => eval_line(kind, line, &mut cache),
+            Err(e) => Err(CommandError(format!(
+                "not valid UTF-8 (byte {} of the line): allowed one JSON object per line, in \
+                 UTF-8",
+                e.valid_up_to() + 1
+            ))),
+        };
+        let value = match result {
             Ok(v) => v,
             Err(e) => {
                 summary.errors += 1;
-                json!({"line": summary.lines, "error": e.0})
+                let n = summary.lines;
+                json!({"line": n, "error": format!("line {n}: {}", tidy(&e.0))})
             }
         };
         buf.clear();

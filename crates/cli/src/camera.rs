@@ -115,6 +115,7 @@ pub fn sim_camera(opts: &SimOptions) -> Result<SimCamera, CameraCmdError> {
             max_frame_rate_hz: 100.0,
             faults: Default::default(),
             seed: opts.seed,
+            noise_stream: 0,
         },
         angle,
     )

@@ -23,8 +23,105 @@ pub struct CommandError(pub String);
 
 impl From<ModelError> for CommandError {
     fn from(e: ModelError) -> Self {
-        CommandError(e.to_string())
+        match e {
+            ModelError::OutOfRange {
+                field,
+                value,
+                allowed,
+            } => CommandError(format!(
+                "{field} = {} is out of range: allowed {allowed}",
+                compact(value)
+            )),
+            other => CommandError(tidy(&other.to_string())),
+        }
     }
+}
+
+/// Longest text an error message echoes from the user's input, characters.
+pub const ECHO_MAX: usize = 80;
+
+/// A number as an error message prints it: as Rust writes it when that is short, else in
+/// exponent form (`1e300`, not 301 digits).
+pub fn compact(x: f64) -> String {
+    let plain = format!("{x}");
+    let exp = format!("{x:e}");
+    if plain.len() > 16 && exp.len() < plain.len() {
+        exp
+    } else {
+        plain
+    }
+}
+
+/// Text from the user as an error message echoes it: quoted, and cut to [`ECHO_MAX`]
+/// characters with an ellipsis and its length when longer.
+pub fn echo(text: &str) -> String {
+    let n = text.chars().count();
+    if n <= ECHO_MAX {
+        format!("{text:?}")
+    } else {
+        let head: String = text.chars().take(ECHO_MAX).collect();
+        format!("{:?} ({n} characters)", format!("{head}…"))
+    }
+}
+
+/// A message from elsewhere (a parser, the model, a plan) made fit to show: every quoted span
+/// (`"..."`, `` `...` ``) longer than [`ECHO_MAX`] characters is cut with an ellipsis and its
+/// length, and every long decimal number is printed compactly (see [`compact`]).
+pub fn tidy(message: &str) -> String {
+    let chars: Vec<char> = message.chars().collect();
+    let mut out = String::with_capacity(message.len().min(1024));
+    let mut i = 0;
+    while i < chars.len() {
+        let c = chars[i];
+        if c == '"' || c == '`' {
+            // The closing quote (a `"` escaped by a backslash does not close).
+            let mut j = i + 1;
+            while j < chars.len() && chars[j] != c {
+                if c == '"' && chars[j] == '\\' {
+                    j += 1;
+                }
+                j += 1;
+            }
+            let end = j.min(chars.len());
+            let inner = &chars[i + 1..end];
+            // A span cut already (by [`echo`]) is left as it is.
+            let cut_already = inner.len() == ECHO_MAX + 1 && inner.last() == Some(&'…');
+            if inner.len() > ECHO_MAX && !cut_already {
+                out.push(c);
+                out.extend(&inner[..ECHO_MAX]);
+                out.push('…');
+                out.push(c);
+                out.push_str(&format!(" ({} characters)", inner.len()));
+            } else {
+                out.push(c);
+                out.extend(inner);
+                if j < chars.len() {
+                    out.push(c);
+                }
+            }
+            i = j + 1;
+            continue;
+        }
+        let starts_number = c.is_ascii_digit()
+            && (i == 0 || !(chars[i - 1].is_alphanumeric() || chars[i - 1] == '_'));
+        if starts_number {
+            let mut j = i;
+            while j < chars.len() && (chars[j].is_ascii_digit() || chars[j] == '.') {
+                j += 1;
+            }
+            let token: String = chars[i..j].iter().collect();
+            let bounded = j == chars.len() || !(chars[j].is_alphanumeric() || chars[j] == '_');
+            match token.parse::<f64>() {
+                Ok(x) if token.len() > 20 && bounded => out.push_str(&compact(x)),
+                _ => out.push_str(&token),
+            }
+            i = j;
+            continue;
+        }
+        out.push(c);
+        i += 1;
+    }
+    out
 }
 
 fn required<T>(value: Option<T>, field: &str, allowed: &str) -> Result<T, CommandError> {
@@ -99,7 +196,7 @@ pub struct PbrdfArgs {
     #[arg(long)]
     pub sigma: Option<f64>,
     /// Directional-hemispherical reflectance, [0, 1]. With --vegetation the diffuse term is dhr/pi
-    /// (the seed's vegetation: --n 1.5 --dhr 0.04).
+    /// (Meng (2012)'s vegetation: --n 1.5 --dhr 0.04).
     #[arg(long)]
     pub dhr: Option<f64>,
     /// Incident (sun) zenith angle, degrees, [0, 90].
@@ -111,7 +208,7 @@ pub struct PbrdfArgs {
     /// Relative azimuth between source and view directions, degrees, [-360, 360]; 180 is specular.
     #[arg(long)]
     pub phi_deg: Option<f64>,
-    /// Use the vegetation model (seed Eq. 3.19) instead of the microfacet model.
+    /// Use the vegetation model (Meng (2012) Eq. 3.19) instead of the microfacet model.
     #[arg(long)]
     #[serde(default)]
     pub vegetation: bool,
@@ -260,17 +357,52 @@ fn analyzer_set(angles_deg: &[f64], model: &AnalyzerModel) -> Result<AnalyzerSet
         .find(|a| !a.is_finite() || a.abs() > 3600.0)
     {
         return Err(CommandError(format!(
-            "angles_deg contains {bad}: allowed finite values in [-3600, 3600]"
+            "angles_deg contains {}: allowed finite values in [-3600, 3600]",
+            compact(*bad)
         )));
     }
     let rad: Vec<f64> = angles_deg.iter().map(|a| a.to_radians()).collect();
     Ok(AnalyzerSet::new(&rad, model)?)
 }
 
-/// Evaluates [`StokesArgs`].
+/// Evaluates [`StokesArgs`]. Intensities are powers: a negative one (noise after a dark is
+/// subtracted) is a warning, and a fit without light (S0 <= 0) is refused.
 pub fn stokes(a: &StokesArgs) -> Result<Value, CommandError> {
     let set = analyzer_set(&a.angles_deg, &AnalyzerModel::IDEAL)?;
+    if let Some((i, v)) = a
+        .intensities
+        .iter()
+        .enumerate()
+        .find(|(_, v)| !v.is_finite())
+    {
+        return Err(CommandError(format!(
+            "intensities[{i}] = {} is out of range: allowed finite values >= 0",
+            compact(*v)
+        )));
+    }
     let s = set.reconstruct(&a.intensities)?;
+    if s.0[0].is_nan() || s.0[0] <= 0.0 {
+        let list: Vec<String> = a.intensities.iter().map(|v| compact(*v)).collect();
+        return Err(CommandError(format!(
+            "intensities = {} give S0 = {}: allowed values >= 0 (measured powers) whose fit \
+             has S0 > 0",
+            echo(&list.join(",")),
+            compact(s.0[0])
+        )));
+    }
+    let warnings: Vec<String> = a
+        .intensities
+        .iter()
+        .enumerate()
+        .filter(|(_, v)| **v < 0.0)
+        .map(|(i, v)| {
+            format!(
+                "intensities[{i}] = {} is negative: allowed >= 0 (kept as noise; a dark \
+                 subtracted twice?)",
+                compact(*v)
+            )
+        })
+        .collect();
     let predicted = set.intensities(&s);
     let n = a.intensities.len() as f64;
     let rss: f64 = predicted
@@ -283,6 +415,7 @@ pub fn stokes(a: &StokesArgs) -> Result<Value, CommandError> {
         "dolp": s.dolp(),
         "aop_deg": s.aop_rad().map(f64::to_degrees),
         "residual_rms": (rss / n).sqrt(),
+        "warnings": warnings,
     }))
 }
 
@@ -375,7 +508,8 @@ pub fn parse_utc(text: &str) -> Result<polar_model::sun::UtcTime, CommandError> 
     let t = chrono::DateTime::parse_from_rfc3339(text)
         .map_err(|e| {
             CommandError(format!(
-                "time = {text:?} is invalid ({e}): allowed RFC 3339, e.g. 2026-06-21T15:00:00Z"
+                "time = {} is invalid ({e}): allowed RFC 3339, e.g. 2026-06-21T15:00:00Z",
+                echo(text)
             ))
         })?
         .naive_utc();
@@ -533,7 +667,8 @@ pub fn sky(a: &SkyArgs) -> Result<Value, CommandError> {
                 "vertical" => polar_model::sky_table::StokesReference::Vertical,
                 other => {
                     return Err(CommandError(format!(
-                        "reference = {other:?} is invalid: allowed horizontal or vertical"
+                        "reference = {} is invalid: allowed horizontal or vertical",
+                        echo(other)
                     )))
                 }
             };
@@ -558,7 +693,8 @@ pub fn sky(a: &SkyArgs) -> Result<Value, CommandError> {
         }
         other => {
             return Err(CommandError(format!(
-                "model = {other:?} is invalid: allowed rayleigh, berry or table"
+                "model = {} is invalid: allowed rayleigh, berry or table",
+                echo(other)
             )))
         }
     };
@@ -612,7 +748,8 @@ fn default_tiles() -> String {
 pub fn parse_tiles(text: &str) -> Result<(usize, usize), CommandError> {
     let bad = || {
         CommandError(format!(
-            "tiles = {text:?} is invalid: allowed NxM with N, M >= 1, e.g. 3x3"
+            "tiles = {} is invalid: allowed NxM with N, M >= 1, e.g. 3x3",
+            echo(text)
         ))
     };
     let (a, b) = text.split_once(['x', 'X']).ok_or_else(bad)?;
@@ -925,7 +1062,8 @@ pub fn roc(a: &RocArgs) -> Result<Value, CommandError> {
         "rx" => metrics::rx(&t, &b, a.pfa)?,
         other => {
             return Err(CommandError(format!(
-                "detector = {other:?} is invalid: allowed mf, rx, dolp"
+                "detector = {} is invalid: allowed mf, rx, dolp",
+                echo(other)
             )))
         }
     };
@@ -1001,6 +1139,13 @@ pub fn sensor(a: &SensorArgs) -> Result<Value, CommandError> {
             a.radiance_mean.len()
         )));
     };
+    // The model checks seconds; the user gave milliseconds.
+    if !(a.t_int_ms.is_finite() && a.t_int_ms > 0.0 && a.t_int_ms <= 1e8) {
+        return Err(CommandError(format!(
+            "t_int_ms = {} is out of range: allowed > 0 and <= 1e8 ms",
+            compact(a.t_int_ms)
+        )));
+    }
     let mut exposure = Exposure::new(
         a.t_int_ms * 1e-3,
         polar_model::polarization::Stokes::new(s0, s1, s2),
@@ -1019,7 +1164,8 @@ pub fn sensor(a: &SensorArgs) -> Result<Value, CommandError> {
         "std" => NoiseFactor::StdDev(a.noise_factor),
         other => {
             return Err(CommandError(format!(
-                "noise_factor_scales = {other:?} is invalid: allowed variance, std"
+                "noise_factor_scales = {} is invalid: allowed variance, std",
+                echo(other)
             )))
         }
     };
@@ -1113,9 +1259,29 @@ fn stokes_moments(
             stokes.len()
         )));
     };
+    if !(s0.is_finite() && s0 > 0.0 && s1.is_finite() && s2.is_finite()) {
+        return Err(CommandError(format!(
+            "stokes = {},{},{} is out of range: allowed finite values with S0 > 0",
+            compact(s0),
+            compact(s1),
+            compact(s2)
+        )));
+    }
+    let dolp = s1.hypot(s2) / s0;
+    if dolp > 1.0 + 1e-12 {
+        return Err(CommandError(format!(
+            "stokes = {},{},{} has DoLP = sqrt(S1^2 + S2^2) / S0 = {}: allowed DoLP <= 1 \
+             (a Stokes vector of light)",
+            compact(s0),
+            compact(s1),
+            compact(s2),
+            compact(dolp)
+        )));
+    }
     if !(sigma_i.is_finite() && sigma_i > 0.0) {
         return Err(CommandError(format!(
-            "sigma_i = {sigma_i} is out of range: allowed > 0 and finite"
+            "sigma_i = {} is out of range: allowed > 0 and finite",
+            compact(sigma_i)
         )));
     }
     let set = analyzer_set(angles_deg, &AnalyzerModel::IDEAL)?;
@@ -1136,7 +1302,8 @@ pub fn dolp_stats(a: &DolpStatsArgs) -> Result<Value, CommandError> {
         "rice" => RegimeChoice::Rice,
         other => {
             return Err(CommandError(format!(
-                "regime = {other:?} is invalid: allowed auto, taylor, rice"
+                "regime = {} is invalid: allowed auto, taylor, rice",
+                echo(other)
             )))
         }
     };
@@ -1164,4 +1331,45 @@ pub fn dolp_stats(a: &DolpStatsArgs) -> Result<Value, CommandError> {
         });
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn numbers_print_compactly_and_long_text_is_cut() {
+        assert_eq!(compact(1e300), "1e300");
+        assert_eq!(compact(-1e-300), "-1e-300");
+        assert_eq!(compact(95.0), "95");
+        assert_eq!(compact(0.001), "0.001");
+        assert_eq!(compact(f64::NAN), "NaN");
+        let long = "y".repeat(1000);
+        let e = echo(&long);
+        assert!(
+            e.contains('…') && e.ends_with("(1000 characters)") && e.len() < 120,
+            "{e}"
+        );
+        assert_eq!(echo("3x3"), "\"3x3\"");
+        // Foreign messages: long quoted spans cut, long numbers compact, once.
+        let msg = format!(
+            "invalid type: string \"{long}\", unknown field `{long}`, value {}.0",
+            "1".to_string() + &"0".repeat(300)
+        );
+        let t = tidy(&msg);
+        assert!(t.len() < 300, "{t}");
+        assert!(
+            t.contains("value 1e300") && t.matches("(1000 characters)").count() == 2,
+            "{t}"
+        );
+        assert_eq!(tidy(&t), t);
+        assert_eq!(
+            tidy(&format!("x = {}", echo(&long))),
+            format!("x = {}", echo(&long))
+        );
+        assert_eq!(
+            tidy("a 12345 b_123456789012345678901234 \"q\""),
+            "a 12345 b_123456789012345678901234 \"q\""
+        );
+    }
 }

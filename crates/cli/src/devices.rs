@@ -199,13 +199,50 @@ pub fn stage(
     action: &StageAction,
 ) -> Result<Value, DevicesError> {
     if let StageAction::Move { angle_deg } = action {
-        if !angle_deg.is_finite() {
-            return Err(DevicesError(format!(
-                "--angle-deg = {angle_deg} is invalid: allowed a finite angle in degrees"
-            )));
-        }
+        check_angle(*angle_deg)?;
     }
     runtime()?.block_on(stage_async(port, dialect, address, action))
+}
+
+/// The angles `stage move` takes, degrees: one turn either way.
+pub const MOVE_RANGE_DEG: f64 = 360.0;
+
+/// Refuses a `--angle-deg` that is not finite or beyond one turn, before anything moves.
+pub fn check_angle(angle_deg: f64) -> Result<(), DevicesError> {
+    if angle_deg.is_finite() && angle_deg.abs() <= MOVE_RANGE_DEG {
+        Ok(())
+    } else {
+        Err(DevicesError(format!(
+            "--angle-deg = {} is out of range: allowed a finite angle in [-360, 360] degrees",
+            crate::commands::compact(angle_deg)
+        )))
+    }
+}
+
+/// Checks where a move ended: within the stage's tolerance of the target (modulo a turn),
+/// plus one count of the stage's resolution (the target is rounded to counts), or an error
+/// naming the target, the position reached and the tolerance.
+pub fn check_reached(
+    target_deg: f64,
+    reached_deg: f64,
+    tolerance_deg: f64,
+    counts_per_turn: u32,
+) -> Result<(), DevicesError> {
+    let d = (reached_deg - target_deg).rem_euclid(360.0);
+    let off = d.min(360.0 - d);
+    let allowed = tolerance_deg + 360.0 / f64::from(counts_per_turn.max(1));
+    if off.is_finite() && off <= allowed {
+        Ok(())
+    } else {
+        Err(DevicesError(format!(
+            "the move to --angle-deg = {} ended at {} deg, {} deg off: allowed within {} deg \
+             (the stage's tolerance)",
+            crate::commands::compact(target_deg),
+            crate::commands::compact(reached_deg),
+            crate::commands::compact(off),
+            crate::commands::compact(allowed)
+        )))
+    }
 }
 
 async fn stage_async(
@@ -318,8 +355,16 @@ async fn rotator_action<R: Rotator>(mut r: R, action: &StageAction) -> Result<Va
     });
     match action {
         StageAction::Move { angle_deg } => {
+            check_angle(*angle_deg)?;
             let reached = r.move_to(angle_deg.to_radians()).await?;
-            v["target_deg"] = json!(angle_deg.rem_euclid(360.0));
+            let target = angle_deg.rem_euclid(360.0);
+            check_reached(
+                target,
+                reached.to_degrees(),
+                info.tolerance_rad.to_degrees(),
+                info.counts_per_turn,
+            )?;
+            v["target_deg"] = json!(target);
             v["position_deg"] = json!(reached.to_degrees());
         }
         StageAction::Home => {
@@ -499,5 +544,38 @@ pub fn text(v: &Value) -> String {
             })
             .collect(),
         other => format!("{other}\n"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn absurd_angles_are_refused_naming_flag_value_and_range() {
+        for bad in [1e300, -1e300, f64::NAN, f64::INFINITY, 360.5, -361.0] {
+            let e = check_angle(bad).unwrap_err().0;
+            assert!(
+                e.contains("--angle-deg") && e.contains("[-360, 360]") && e.len() < 120,
+                "{e}"
+            );
+        }
+        assert!(check_angle(1e300).unwrap_err().0.contains("= 1e300 "));
+        for ok in [-360.0, -33.3, 0.0, 359.99, 360.0] {
+            check_angle(ok).unwrap();
+        }
+    }
+
+    #[test]
+    fn a_move_that_ends_outside_the_tolerance_is_an_error() {
+        // 1/100 deg counts: the tolerance plus one count is allowed, across 0/360 too.
+        check_reached(10.0, 10.05, 0.05, 36_000).unwrap();
+        check_reached(359.99, 0.02, 0.05, 36_000).unwrap();
+        let e = check_reached(10.0, 10.2, 0.05, 36_000).unwrap_err().0;
+        assert!(
+            e.contains("--angle-deg = 10") && e.contains("ended at 10.2") && e.contains("allowed"),
+            "{e}"
+        );
+        assert!(check_reached(10.0, f64::NAN, 0.05, 36_000).is_err());
     }
 }

@@ -1,4 +1,4 @@
-//! `polarimeter report figures`: the analogues of the seed's Fig. 2.1 (Fresnel reflectances of
+//! `polarimeter report figures`: the analogues of Meng (2012)'s Fig. 2.1 (Fresnel reflectances of
 //! glass and copper), Fig. 3.6 (glass DoLP over the view hemisphere for four roughnesses),
 //! Fig. 3.7 (glass against vegetation at three incidence angles), Fig. 3.10 (the sky's Stokes
 //! vector and DoLP over the hemisphere), Fig. 3.12 (sky DoLP for four sun zenith angles) and
@@ -443,7 +443,7 @@ fn fig_3_7(out: &Path) -> Result<Vec<PathBuf>, FigureError> {
     Ok(vec![png, csv])
 }
 
-/// The clear sky of the sky figures: a stand-in for the seed's Table 3.3 (1976 US Standard,
+/// The clear sky of the sky figures: a stand-in for Meng (2012)'s Table 3.3 (1976 US Standard,
 /// rural aerosol at 23 km visibility, single scattering, 450 nm): our single-scattering layer
 /// with aerosol optical depth 0.2 at 550 nm, a 440-460 nm band, the sun in the south.
 fn sky_spec(sun_zenith_deg: f64) -> Result<SceneSpec, FigureError> {
@@ -569,7 +569,7 @@ fn fig_3_12(out: &Path) -> Result<Vec<PathBuf>, FigureError> {
     Ok(vec![png, csv])
 }
 
-/// Figs. 4.1-4.2 (a reconstruction: the seed keeps only their titles, "polarization
+/// Figs. 4.1-4.2 (a reconstruction: Meng (2012) keeps only their titles, "polarization
 /// contributions of radiometric sources" i and ii): the direct, skylight and path terms of
 /// Eq. 3.24 for black paint and glass seen from 1 km in the solar principal plane, sun at 46
 /// deg zenith, against the view angle (positive: looking towards the sun's azimuth, where the

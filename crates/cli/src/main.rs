@@ -1,7 +1,15 @@
-//! `polarimeter`: the instrument controller's command line: `model` (evaluate the analytical
-//! model, one call or a JSON-lines batch), `report figures`, `bench`, `devices list`, `stage`
-//! (one command to a stage or wheel in any dialect) and `sim stage` (a simulated device on a
-//! pseudo-terminal).
+//! `polarimeter`: the instrument controller's command line. Its commands:
+//!
+//! * `model`: evaluate the analytical model (one call, or a JSON-lines batch);
+//! * `plan`: analyzer angles, integration time and a forecast from a scene and a camera; `plan
+//!   angles`, `plan aptd` (offline over an image stack), `plan check` (a plan file's forecast);
+//! * `demo`, `run`, `resume`, `export`: acquisition runs on simulated or real devices;
+//! * `devices`, `stage`, `camera`: list the devices, and one command to a stage, wheel or camera;
+//! * `sim`: a simulated stage on a pseudo-terminal, or a photon-transfer series of frames;
+//! * `calibrate`: the camera's noise from frames (EMVA 1288);
+//! * `report`: figures and the validation report; `study`: Meng (2012)'s Chapter 4 trade
+//!   studies and APTD against conventional sets;
+//! * `bench`: speed against error of the model, the planner, the device links and the runs.
 
 use anyhow::Context;
 use clap::error::{ContextKind, ContextValue, ErrorKind};
@@ -50,7 +58,17 @@ struct HardwareArgs {
 }
 
 impl HardwareArgs {
+    /// The hardware the flags describe (see `Hardware::from_flags`); `--zero-offset-deg` is
+    /// checked whether the devices are real or simulated.
     fn hardware(&self) -> Result<Option<polar_cli::acquire::Hardware>, String> {
+        let z = self.zero_offset_deg;
+        if !(z.is_finite() && z.abs() <= 360.0) {
+            return Err(format!(
+                "--zero-offset-deg = {} is out of range: allowed a finite angle in [-360, 360] \
+                 degrees",
+                commands::compact(z)
+            ));
+        }
         polar_cli::acquire::Hardware::from_flags(
             self.port.clone(),
             self.dialect,
@@ -93,6 +111,13 @@ enum Command {
         run_dir: PathBuf,
         #[command(flatten)]
         hardware: HardwareArgs,
+    },
+    /// Check a run directory: every frame the journal counts is stored intact (its hash as
+    /// recorded), damaged frames are named (chunk file, frame, step), products are keyed by
+    /// set. Prints JSON; exit status 1 when something is damaged. Changes nothing.
+    Check {
+        /// The run directory.
+        run_dir: PathBuf,
     },
     /// Export a run for viewers.
     Export {
@@ -184,7 +209,7 @@ enum Command {
         #[command(subcommand)]
         command: SimCommand,
     },
-    /// The seed's Ch. 4 trade studies (sources, altitude, geometry, roughness, noise factor,
+    /// Meng (2012)'s Ch. 4 trade studies (sources, altitude, geometry, roughness, noise factor,
     /// integration time): DoLP SNR and ROC of black paint and glass against asphalt; writes
     /// <kind>.csv, <kind>_roc.csv and <kind>.png.
     Study {
@@ -388,6 +413,31 @@ enum BenchCommand {
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
+    /// The crash campaign: runs of every plan kind on the simulated devices killed (SIGKILL)
+    /// and paused (Ctrl-C) at random moments, in runs and in resumes, resumed to the end, and
+    /// each dataset checked (and by zarr-python with --python). Prints Markdown, or JSON.
+    Crash {
+        /// SIGKILLs per plan kind, 1..=10000.
+        #[arg(long, default_value_t = 20)]
+        kills_per_kind: u32,
+        /// Seed of the kill moments.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// An empty directory for the runs (kept as evidence).
+        #[arg(long)]
+        out: PathBuf,
+        /// A Python with zarr, xarray and xxhash: each dataset is also checked from the
+        /// outside by scripts/check_run.py.
+        #[arg(long)]
+        python: Option<String>,
+        /// Plan kinds (capture, exposures, time-lapse, adaptive, calibrate-noise,
+        /// calibrate-analyzer); default all.
+        #[arg(long, value_delimiter = ',')]
+        kinds: Vec<String>,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// The planner's optimum (to 0.01 deg) beside an exhaustive 1-degree grid search, in the
     /// same run: times and SCRs. Prints a Markdown table.
     Planner {
@@ -447,24 +497,24 @@ enum ModelCommand {
     Fresnel {
         #[command(flatten)]
         args: commands::FresnelArgs,
-        /// JSON-lines input file, `-` for stdin.
-        #[arg(long)]
+        /// JSON-lines input file, `-` for stdin (no other flag: each line gives its values).
+        #[arg(long, conflicts_with = "FresnelArgs")]
         batch: Option<PathBuf>,
     },
-    /// Polarimetric BRDF Mueller matrix (seed Eqs. 3.4-3.19), sr^-1.
+    /// Polarimetric BRDF Mueller matrix (Meng (2012) Eqs. 3.4-3.19), sr^-1.
     Pbrdf {
         #[command(flatten)]
         args: commands::PbrdfArgs,
-        /// JSON-lines input file, `-` for stdin.
-        #[arg(long)]
+        /// JSON-lines input file, `-` for stdin (no other flag: each line gives its values).
+        #[arg(long, conflicts_with = "PbrdfArgs")]
         batch: Option<PathBuf>,
     },
     /// Least-squares Stokes vector, DoLP and AoP from analyzer intensities.
     Stokes {
         #[command(flatten)]
         args: commands::StokesArgs,
-        /// JSON-lines input file, `-` for stdin.
-        #[arg(long)]
+        /// JSON-lines input file, `-` for stdin (no other flag: each line gives its values).
+        #[arg(long, conflicts_with = "StokesArgs")]
         batch: Option<PathBuf>,
     },
     /// The sun's zenith and azimuth (NREL SPA) for a UTC time and site. Azimuth is clockwise from
@@ -472,8 +522,8 @@ enum ModelCommand {
     Sun {
         #[command(flatten)]
         args: commands::SunArgs,
-        /// JSON-lines input file, `-` for stdin.
-        #[arg(long)]
+        /// JSON-lines input file, `-` for stdin (no other flag: each line gives its values).
+        #[arg(long, conflicts_with = "SunArgs")]
         batch: Option<PathBuf>,
     },
     /// Sky Stokes radiance, DoLP and AoP of one sky direction (rayleigh, berry or a CSV table).
@@ -481,17 +531,17 @@ enum ModelCommand {
     Sky {
         #[command(flatten)]
         args: commands::SkyArgs,
-        /// JSON-lines input file, `-` for stdin.
-        #[arg(long)]
+        /// JSON-lines input file, `-` for stdin (no other flag: each line gives its values).
+        #[arg(long, conflicts_with = "SkyArgs")]
         batch: Option<PathBuf>,
     },
-    /// Per-tile sun and view geometry of a sensor above flat ground (seed Appendix A).
+    /// Per-tile sun and view geometry of a sensor above flat ground (Meng (2012) Appendix A).
     /// Azimuths are clockwise from north; ground_m is [east, north] of the nadir point.
     Geometry {
         #[command(flatten)]
         args: commands::GeometryArgs,
-        /// JSON-lines input file, `-` for stdin.
-        #[arg(long)]
+        /// JSON-lines input file, `-` for stdin (no other flag: each line gives its values).
+        #[arg(long, conflicts_with = "GeometryArgs")]
         batch: Option<PathBuf>,
     },
     /// Print a scene's band sky at the ground as a sky table (CSV: zenith_deg, azimuth_deg, S0,
@@ -501,7 +551,7 @@ enum ModelCommand {
         /// The scene (TOML).
         #[arg(long)]
         scene: PathBuf,
-        /// Grid step in zenith and azimuth, degrees, [1, 30] (the seed's MODTRAN-P grid: 10).
+        /// Grid step in zenith and azimuth, degrees, [1, 30] (Meng (2012)'s MODTRAN-P grid: 10).
         #[arg(long, default_value_t = 10.0)]
         step_deg: f64,
     },
@@ -518,8 +568,8 @@ enum ModelCommand {
     Polarimeter {
         #[command(flatten)]
         args: commands::PolarimeterArgs,
-        /// JSON-lines input file, `-` for stdin.
-        #[arg(long)]
+        /// JSON-lines input file, `-` for stdin (no other flag: each line gives its values).
+        #[arg(long, conflicts_with = "PolarimeterArgs")]
         batch: Option<PathBuf>,
     },
     /// The N frames' mean and covariance (DN) for a scene radiance through a camera behind
@@ -544,7 +594,7 @@ enum ModelCommand {
 
 #[derive(Debug, Subcommand)]
 enum ReportCommand {
-    /// Draw the seed's Figs. 2.1, 3.6 and 3.7 analogues (PNG + CSV).
+    /// Draw Meng (2012)'s Figs. 2.1, 3.6 and 3.7 analogues (PNG + CSV).
     Figures {
         /// Output directory.
         #[arg(long, default_value = "docs/figures")]
@@ -565,7 +615,8 @@ enum ReportCommand {
     },
 }
 
-/// A clap parse error as one line naming the flag, the value and what is allowed.
+/// A clap parse error as one line naming the flag, the value (cut when long) and what is
+/// allowed.
 fn one_line_error(e: &clap::Error) -> String {
     let arg = match e.get(ContextKind::InvalidArg) {
         Some(ContextValue::String(s)) => s.clone(),
@@ -575,22 +626,108 @@ fn one_line_error(e: &clap::Error) -> String {
         Some(ContextValue::String(s)) => s.clone(),
         _ => String::new(),
     };
+    if e.kind() == ErrorKind::ArgumentConflict {
+        let mut flags: Vec<String> = match e.get(ContextKind::PriorArg) {
+            Some(ContextValue::String(s)) => vec![s.clone()],
+            Some(ContextValue::Strings(v)) => v.clone(),
+            _ => Vec::new(),
+        };
+        flags.insert(0, arg.clone());
+        let flags: Vec<String> = flags
+            .iter()
+            .map(|f| f.split([' ', '=']).next().unwrap_or(f).to_string())
+            .collect();
+        if flags.iter().any(|f| f == "--batch") {
+            let others: Vec<&str> = flags
+                .iter()
+                .filter(|f| *f != "--batch")
+                .map(String::as_str)
+                .collect();
+            return format!(
+                "error: --batch cannot be used with {}: each batch line gives its own values \
+                 (allowed: --batch FILE alone, or the flags without --batch)",
+                others.join(", ")
+            );
+        }
+        return format!(
+            "error: {} cannot be used with {} (see --help)",
+            flags[0],
+            flags[1..].join(", ")
+        );
+    }
     let field = arg
         .trim_start_matches('-')
         .split([' ', '<', '='])
         .next()
         .unwrap_or("")
         .replace('-', "_");
-    let first = e
+    let mut first = e
         .to_string()
         .lines()
         .next()
         .unwrap_or("invalid arguments")
         .to_string();
+    let n = value.chars().count();
+    if n > commands::ECHO_MAX {
+        let head: String = value.chars().take(commands::ECHO_MAX).collect();
+        first = first.replacen(&value, &format!("{head}… ({n} characters)"), 1);
+    }
     match (batch::allowed(&field), value.is_empty()) {
-        (Some(allowed), false) => format!("error: {arg} = {value:?} is invalid: allowed {allowed}"),
+        (Some(allowed), false) => format!(
+            "error: {arg} = {} is invalid: allowed {allowed}",
+            commands::echo(&value)
+        ),
         (Some(allowed), true) => format!("{first}; allowed {allowed}"),
         (None, _) => format!("{first} (see --help)"),
+    }
+}
+
+/// The long flags of the subcommand the command line names (`model fresnel`: `n`, `k`,
+/// `theta-i-deg`, `batch`).
+fn command_flags() -> Vec<String> {
+    use clap::CommandFactory;
+    let mut cmd = Cli::command();
+    cmd.build();
+    let mut current = &cmd;
+    for arg in std::env::args_os().skip(1) {
+        if let Some(sub) = arg.to_str().and_then(|a| current.find_subcommand(a)) {
+            current = sub;
+        }
+    }
+    current
+        .get_arguments()
+        .filter_map(|a| a.get_long().map(str::to_string))
+        .collect()
+}
+
+/// A command's error as the user sees it: a leading field that is one of the command's flags
+/// spelled as the flag (`theta_i_deg = 95` -> `--theta-i-deg = 95`), long echoed text cut and
+/// long numbers compact.
+fn user_error(message: &str) -> String {
+    let message = commands::tidy(message);
+    let end = message
+        .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+        .unwrap_or(message.len());
+    let (token, rest) = message.split_at(end);
+    let named = [" = ", " is ", " has ", " contains ", ": ", "["]
+        .iter()
+        .any(|p| rest.starts_with(p));
+    let flag = token.replace('_', "-");
+    if !token.is_empty() && named && command_flags().contains(&flag) {
+        format!("--{flag}{rest}")
+    } else {
+        message
+    }
+}
+
+/// An error about a plan file's contents (`plan field ...`, `plan PATH: ...`) names the file.
+fn in_plan_file(file: &std::path::Path, e: commands::CommandError) -> commands::CommandError {
+    match e.0.strip_prefix("plan ") {
+        Some(rest) if !rest.starts_with("file ") => {
+            let rest = rest.strip_prefix("field ").unwrap_or(rest);
+            commands::CommandError(format!("plan {}: {rest}", file.display()))
+        }
+        _ => e,
     }
 }
 
@@ -626,7 +763,7 @@ fn print_files<E: std::fmt::Display>(result: Result<Vec<PathBuf>, E>) -> ExitCod
             ExitCode::SUCCESS
         }
         Err(e) => {
-            eprintln!("error: {e}");
+            eprintln!("error: {}", user_error(&e.to_string()));
             ExitCode::from(2)
         }
     }
@@ -634,6 +771,64 @@ fn print_files<E: std::fmt::Display>(result: Result<Vec<PathBuf>, E>) -> ExitCod
 
 /// Prints a command's JSON on stdout (and its `warnings` on stderr) and returns exit status 0,
 /// or prints `error: ...` on stderr and returns 2.
+/// `bench crash`: exit status 1 when a dataset failed a check.
+fn bench_crash(
+    kills_per_kind: u32,
+    seed: u64,
+    out: PathBuf,
+    python: Option<String>,
+    kinds: Vec<String>,
+    json: bool,
+) -> ExitCode {
+    use polar_cli::bench_crash::{campaign, markdown, CrashConfig, PLANS};
+    if !(1..=10_000).contains(&kills_per_kind) {
+        eprintln!("error: --kills-per-kind {kills_per_kind} is out of range: allowed 1..=10000");
+        return ExitCode::from(2);
+    }
+    if let Some(k) = kinds.iter().find(|k| !PLANS.iter().any(|(n, _)| n == k)) {
+        let names: Vec<&str> = PLANS.iter().map(|p| p.0).collect();
+        eprintln!("error: --kinds {k:?} is not a plan kind of the campaign: allowed {names:?}");
+        return ExitCode::from(2);
+    }
+    let binary = match std::env::current_exe() {
+        Ok(b) => b,
+        Err(e) => {
+            eprintln!("error: cannot find this program's path: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let script = PathBuf::from(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../scripts/check_run.py"
+    ));
+    let cfg = CrashConfig {
+        kills_per_kind,
+        seed,
+        binary,
+        base: out,
+        outside: python.map(|p| (p, script)),
+        kinds,
+    };
+    match campaign(&cfg) {
+        Ok(r) => {
+            if json {
+                println!("{}", serde_json::to_string(&r).unwrap_or_default());
+            } else {
+                print!("{}", markdown(&r));
+            }
+            if r.passed == r.datasets && r.kinds.iter().all(|k| k.failures.is_empty()) {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
+            }
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
 fn print_json<E: std::fmt::Display>(result: Result<serde_json::Value, E>) -> ExitCode {
     match result {
         Ok(v) => {
@@ -651,7 +846,7 @@ fn print_json<E: std::fmt::Display>(result: Result<serde_json::Value, E>) -> Exi
             }
         }
         Err(e) => {
-            eprintln!("error: {e}");
+            eprintln!("error: {}", user_error(&e.to_string()));
             ExitCode::from(2)
         }
     }
@@ -665,7 +860,7 @@ fn print_text(result: Result<String, polar_cli::commands::CommandError>) -> Exit
             ExitCode::SUCCESS
         }
         Err(e) => {
-            eprintln!("error: {e}");
+            eprintln!("error: {}", user_error(&e.to_string()));
             ExitCode::from(2)
         }
     }
@@ -682,7 +877,7 @@ fn print_run(
             ExitCode::from(u8::try_from(code).unwrap_or(1))
         }
         Err(e) => {
-            eprintln!("error: {e}");
+            eprintln!("error: {}", user_error(&e.to_string()));
             ExitCode::from(2)
         }
     }
@@ -699,7 +894,7 @@ fn print_device(result: Result<serde_json::Value, devices::DevicesError>, json: 
             ExitCode::SUCCESS
         }
         Err(e) => {
-            eprintln!("error: {e}");
+            eprintln!("error: {}", user_error(&e.to_string()));
             ExitCode::from(2)
         }
     }
@@ -788,12 +983,10 @@ fn main() -> ExitCode {
                 );
                 return ExitCode::from(2);
             }
-            Ok(print_run(polar_cli::acquire::run_cmd(
-                &plan,
-                hw,
-                out,
-                polar_cli::acquire::Ui::terminal(),
-            )))
+            Ok(print_run(
+                polar_cli::acquire::run_cmd(&plan, hw, out, polar_cli::acquire::Ui::terminal())
+                    .map_err(|e| in_plan_file(&plan, e)),
+            ))
         }
         Command::Resume { run_dir, hardware } => {
             let hw = match hardware.hardware() {
@@ -809,16 +1002,30 @@ fn main() -> ExitCode {
                 polar_cli::acquire::Ui::terminal(),
             )))
         }
+        Command::Check { run_dir } => Ok(print_run(polar_cli::acquire::check_cmd(&run_dir))),
         Command::Export {
             command: ExportCommand::Tiff { run_dir, out },
         } => Ok(print_json(polar_cli::acquire::export_tiff(&run_dir, out))),
         Command::Plan {
             command: Some(PlanCommand::Check { file }),
             ..
-        } => Ok(print_json(polar_cli::acquire::plan_check(&file))),
+        } => Ok(print_json(
+            polar_cli::acquire::plan_check(&file).map_err(|e| in_plan_file(&file, e)),
+        )),
         Command::Bench {
             command: BenchCommand::Run { sets, exposure_us },
         } => Ok(print_text(polar_cli::acquire::bench_run(sets, exposure_us))),
+        Command::Bench {
+            command:
+                BenchCommand::Crash {
+                    kills_per_kind,
+                    seed,
+                    out,
+                    python,
+                    kinds,
+                    json,
+                },
+        } => Ok(bench_crash(kills_per_kind, seed, out, python, kinds, json)),
         Command::Bench {
             command: BenchCommand::Faults { faults, seed },
         } => Ok(print_text(polar_cli::acquire::bench_faults(faults, seed))),

@@ -300,11 +300,16 @@ pub struct PlanSceneArgs {
     /// Time budget for one set, seconds (frames, moves and settling); none by default.
     #[arg(long)]
     pub time_budget_s: Option<f64>,
-    /// Smallest separation between two angles, degrees, [0, 90): 0 lets the SCR-optimal set
-    /// repeat an angle (then no Stokes image can be formed from it); 30 or more with 3
-    /// channels keeps the set a polarimeter.
-    #[arg(long, default_value_t = 0.0)]
-    pub min_separation_deg: f64,
+    /// Smallest separation between two angles, degrees. For a Stokes set (the default)
+    /// [30, 180 / channels], default 30; with --detection-only [0, 180 / channels], default 0
+    /// (0 lets the set repeat an angle).
+    #[arg(long)]
+    pub min_separation_deg: Option<f64>,
+    /// The detection-only optimum: the SCR-optimal set whatever it forms (repeats allowed, 1
+    /// or 2 channels allowed), with no Stokes image; by default the set forms a Stokes image
+    /// (3 or more angles, every two at least --min-separation-deg >= 30 apart).
+    #[arg(long)]
+    pub detection_only: bool,
     /// The SCR to reach, as a fraction of the clutter-limited SCR, (0, 1).
     #[arg(long, default_value_t = 0.9)]
     pub scr_fraction: f64,
@@ -405,44 +410,123 @@ fn saturation_limit_s(
     Ok(lo.exp())
 }
 
-/// The planner's contrast in radiance units at `t_int_s`: the class mean difference, the
-/// background clutter, and the per-frame sensor noise of the background's unpolarised mean
-/// frame (shot, dark, read and quantisation noise at the mean of 0 and 90 deg), converted to
-/// radiance by `1 / (K G)`.
+/// A Stokes set's smallest separation between two angles, degrees: with it every 3-angle set
+/// of the ideal analyzer has a measurement-matrix condition number of at most
+/// [`STOKES_MAX_CONDITION`] (the worst is 0/30/60; 0/45/90 has 2.41, 0/60/120 1.41, the best).
+pub const STOKES_MIN_SEPARATION_DEG: f64 = 30.0;
+
+/// The worst 2-norm condition number of the ideal analyzer's `W` over 3-angle sets whose
+/// angles are at least [`STOKES_MIN_SEPARATION_DEG`] apart (0/30/60): the bound that defines
+/// a well-conditioned Stokes set here.
+pub const STOKES_MAX_CONDITION: f64 = 6.21;
+
+/// The planner's contrast at `t_int_s` ([`Contrast::from_sensor`]: the camera's real rows and
+/// its noise at the background's light), whose SCR is the forecast's.
 fn contrast_at(
     sensor: &polar_model::sensor::SensorModel,
     t: &polar_model::scene::MaterialResult,
     b: &polar_model::scene::MaterialResult,
     t_int_s: f64,
 ) -> Result<Contrast, CommandError> {
-    let quiet = polar_model::scene::MaterialResult {
-        cov: nalgebra::Matrix3::zeros(),
-        ..b.clone()
+    Contrast::from_sensor(sensor, t_int_s, &t.mean.0, &b.mean.0, &b.cov).map_err(planner_error)
+}
+
+/// The forecast of one set at `t_int_s`: the matched filter on the frames of
+/// [`polar_model::sensor::SensorModel::signal`] (the real analyzer, the background's clutter,
+/// each class's noise).
+fn forecast_roc(
+    sensor: &polar_model::sensor::SensorModel,
+    angles_rad: &[f64],
+    t_int_s: f64,
+    t_class: &polar_model::scene::MaterialResult,
+    b_class: &polar_model::scene::MaterialResult,
+    pfa: f64,
+) -> Result<
+    (
+        polar_model::metrics::Roc,
+        polar_model::sensor::SensorSignal,
+        polar_model::sensor::SensorSignal,
+    ),
+    CommandError,
+> {
+    let st = frames(sensor, angles_rad, t_int_s, t_class)?;
+    let sb = frames(sensor, angles_rad, t_int_s, b_class)?;
+    let class = |field, s: &polar_model::sensor::SensorSignal| {
+        ClassStats::new(field, s.mean_dn.clone(), s.cov_dn.clone())
     };
-    let s = frames(sensor, &[0.0, std::f64::consts::FRAC_PI_2], t_int_s, &quiet)?;
-    let dn_per_radiance = sensor.camera().gain_dn_per_e * s.electrons_from_radiance;
-    let noise_dn2 = 0.5 * (s.cov_dn[(0, 0)] + s.cov_dn[(1, 1)]);
-    let noise_var = noise_dn2 / (dn_per_radiance * dn_per_radiance);
-    Contrast::new(
-        t.mean.0 - b.mean.0,
-        0.5 * (b.cov + b.cov.transpose()),
-        noise_var,
-    )
-    .map_err(planner_error)
+    let roc = matched_filter(&class("target", &st)?, &class("background", &sb)?, pfa)?;
+    Ok((roc, st, sb))
+}
+
+/// Degrees in `[0, 180)`, to 1e-6 deg (the optimiser's tolerance is 0.01 deg: readable, and
+/// an angle that rounds to 180 wraps to 0), sorted.
+fn degrees(angles_rad: &[f64]) -> Vec<f64> {
+    let mut d: Vec<f64> = angles_rad
+        .iter()
+        .map(|a| ((a.to_degrees() * 1e6).round() / 1e6).rem_euclid(180.0))
+        .collect();
+    d.sort_by(f64::total_cmp);
+    d
 }
 
 /// `plan --scene ...`.
+///
+/// The angles and the integration time are chosen jointly: the integration time is the
+/// shortest `t` (below the saturation limit and the time budget) at which the best set's SCR
+/// reaches the asked fraction of the clutter limit, `min t` subject to
+/// `max_set SCR(set, t) >= goal`, and the set is the SCR-optimal one at that `t`. The bisection
+/// on `t` is exact for this problem because every set's SCR rises with `t` (each frame's
+/// noise variance in radiance units, `(dark + read^2)/G^2 + 1/(12 K^2 G^2) + w.mu_b / G`, falls
+/// as `G` grows), so the best set's SCR does too. The saturation limit is the longest `t` at
+/// which neither class comes within `--saturation-sigma` of saturation at any analyzer angle,
+/// so it holds for every set the optimiser may choose.
+///
+/// The SCR the optimiser maximises is the forecast's ([`Contrast::from_sensor`]), so the
+/// printed `scr` is never below that of any set the constraints allow; the conventional sets'
+/// SCRs are printed at the same integration time, each with whether the constraints allow it.
 pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
     let scene_path = need(&args.scene, "scene", "a scene file")?;
     let camera_path = need(&args.camera, "camera", "a camera file")?;
     let target = need(&args.target, "target", "a material of the scene")?;
     let background = need(&args.background, "background", "a material of the scene")?;
-    if !(1..=MAX_CHANNELS).contains(&args.channels) {
+    let n = args.channels;
+    if !(1..=MAX_CHANNELS).contains(&n) {
         return Err(CommandError(format!(
-            "channels = {} is out of range: allowed 1 to {MAX_CHANNELS}",
-            args.channels
+            "--channels {n} is out of range: allowed 1 to {MAX_CHANNELS}"
         )));
     }
+    let stokes = !args.detection_only;
+    if stokes && n < 3 {
+        return Err(CommandError(format!(
+            "--channels {n} is out of range for a Stokes set: allowed 3 to {MAX_CHANNELS} (a \
+             linear Stokes vector has 3 unknowns), or add --detection-only for 1 or 2 channels"
+        )));
+    }
+    let widest = 180.0 / n as f64;
+    let min_separation_deg = match (args.min_separation_deg, stokes) {
+        (None, true) => STOKES_MIN_SEPARATION_DEG,
+        (None, false) => 0.0,
+        (Some(v), true) => {
+            if !(v.is_finite() && (STOKES_MIN_SEPARATION_DEG..=widest).contains(&v)) {
+                return Err(CommandError(format!(
+                    "--min-separation-deg {v} is out of range for a Stokes set of {n} angles: \
+                     allowed [{STOKES_MIN_SEPARATION_DEG}, {widest}] (below \
+                     {STOKES_MIN_SEPARATION_DEG} deg the measurement matrix's condition number \
+                     can exceed {STOKES_MAX_CONDITION}), or add --detection-only"
+                )));
+            }
+            v
+        }
+        (Some(v), false) => {
+            if !(v.is_finite() && (0.0..=widest).contains(&v) && v < 90.0) {
+                return Err(CommandError(format!(
+                    "--min-separation-deg {v} is out of range for {n} angles: allowed [0, {}]",
+                    widest.min(89.99)
+                )));
+            }
+            v
+        }
+    };
     check_range("scr_fraction", args.scr_fraction, 0.0, 0.999, true)?;
     check_range("saturation_sigma", args.saturation_sigma, 0.0, 10.0, false)?;
     check_range("stage_deg_per_s", args.stage_deg_per_s, 0.0, 1e4, true)?;
@@ -482,11 +566,10 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
     let sensor = polar_model::sensor::SensorModel::new(&camera, &scene.spec.band)?;
     let mut notes: Vec<String> = sensor.warnings().to_vec();
 
-    // Integration time: the shortest reaching the SCR fraction, below saturation and budget.
-    let n = args.channels;
+    // Integration time and angles jointly (see the doc comment).
     let tol_rad = 0.01f64.to_radians();
     let constraints = Constraints {
-        min_separation_rad: args.min_separation_deg.to_radians(),
+        min_separation_rad: min_separation_deg.to_radians(),
         ..Constraints::default()
     };
     let best_at = |t_int_s: f64| -> Result<(Contrast, Optimum), CommandError> {
@@ -496,8 +579,8 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
     };
     let t_sat = saturation_limit_s(&sensor, &[t_class, b_class], args.saturation_sigma)?;
     let (c_sat, _) = best_at(t_sat)?;
-    // Clutter limit: the optimum with the sensor noise removed (the planner's noise floor).
-    let quiet = Contrast::new(c_sat.d, c_sat.sigma_b, 0.0).map_err(planner_error)?;
+    // Clutter limit: the optimum of these rows with the sensor noise removed.
+    let quiet = c_sat.noise_free().map_err(planner_error)?;
     let limit = optimise(&quiet, n, &constraints, tol_rad)
         .map_err(planner_error)?
         .scr;
@@ -520,8 +603,8 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
         let t_budget = (budget - overhead) / n as f64;
         if t_budget < 1e-6 {
             return Err(CommandError(format!(
-                "time_budget_s = {budget} does not cover {n} moves and settles ({overhead:.3} s): \
-                 allowed more than that"
+                "--time-budget-s {budget} does not cover {n} moves and settles ({overhead:.3} \
+                 s): allowed more than that"
             )));
         }
         if t_budget < t_max {
@@ -544,7 +627,7 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
         ));
         t_max
     } else {
-        // SCR rises with t (the sensor noise falls relative to the signal): bisection on log t.
+        // The best set's SCR rises with t: bisection on log t.
         let (mut lo, mut hi) = (1e-6f64.ln().min(t_max.ln() - 1e-9), t_max.ln());
         if best_at(lo.exp())?.1.scr >= goal {
             hi = lo;
@@ -564,28 +647,91 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
     };
     let (contrast, opt) = best_at(t_int_s)?;
     notes.extend(contrast.notes.iter().cloned());
+
+    // The other kind of set at the same integration time: what the Stokes constraint costs.
+    let other = if stokes {
+        let c = Constraints {
+            min_separation_rad: 0.0,
+            ..Constraints::default()
+        };
+        Some(optimise(&contrast, n, &c, tol_rad).map_err(planner_error)?)
+    } else if n >= 3 && STOKES_MIN_SEPARATION_DEG * n as f64 <= 180.0 {
+        let c = Constraints {
+            min_separation_rad: STOKES_MIN_SEPARATION_DEG.to_radians(),
+            ..Constraints::default()
+        };
+        Some(optimise(&contrast, n, &c, tol_rad).map_err(planner_error)?)
+    } else {
+        None
+    };
     let distinct = {
         let mut a: Vec<f64> = opt.angles_rad.clone();
         a.dedup_by(|x, y| (*x - *y).abs() < 1e-9);
         a.len()
     };
-    if distinct < 3 {
+    let condition = contrast.condition_number(&opt.angles_rad);
+    let set_json = if stokes {
+        let o = other.as_ref().map_or(opt.scr, |o| o.scr);
+        json!({
+            "kind": "stokes",
+            "rule": format!(
+                "{n} angles, every two at least {min_separation_deg} deg apart (modulo 180): the \
+                 ideal analyzer's condition number is then at most {STOKES_MAX_CONDITION} for 3 \
+                 angles (condition_number: this camera's real rows)"
+            ),
+            "condition_number": condition,
+            "scr_detection_only": o,
+            "angles_detection_only_deg": other.as_ref().map(|o| degrees(&o.angles_rad)),
+            "stokes_cost_scr": (o - opt.scr).max(0.0),
+            "stokes_cost_percent": 100.0 * (o - opt.scr).max(0.0) / o.max(1e-300),
+        })
+    } else {
+        let mut v = json!({
+            "kind": "detection-only",
+            "rule": format!(
+                "{n} angles at least {min_separation_deg} deg apart, repeats allowed: \
+                 {distinct} distinct angle(s)"
+            ),
+            "condition_number": if condition.is_finite() { json!(condition) } else { Value::Null },
+        });
+        if let Some(o) = &other {
+            v["scr_stokes"] = json!(o.scr);
+            v["angles_stokes_deg"] = json!(degrees(&o.angles_rad));
+            v["stokes_cost_scr"] = json!((opt.scr - o.scr).max(0.0));
+            v["stokes_cost_percent"] =
+                json!(100.0 * (opt.scr - o.scr).max(0.0) / opt.scr.max(1e-300));
+        }
+        v
+    };
+    if !stokes && distinct < 3 {
         notes.push(format!(
-            "the SCR-optimal set has {distinct} distinct angle(s): it detects in the intensity \
-             frames but forms no Stokes image; --min-separation-deg (e.g. 30) keeps 3 distinct \
-             angles"
+            "detection only: the set has {distinct} distinct angle(s); it detects in the \
+             intensity frames but forms no Stokes image"
         ));
     }
 
-    // Forecast with the full sensor model (real analyzer, exact frame statistics).
-    let st = frames(&sensor, &opt.angles_rad, t_int_s, t_class)?;
-    let sb = frames(&sensor, &opt.angles_rad, t_int_s, b_class)?;
-    let class = |field, s: &polar_model::sensor::SensorSignal| {
-        ClassStats::new(field, s.mean_dn.clone(), s.cov_dn.clone())
-    };
-    let (ct, cb) = (class("target", &st)?, class("background", &sb)?);
-    let roc = matched_filter(&ct, &cb, args.pfa)?;
-    let pd_1e3 = matched_filter(&ct, &cb, 1e-3)?.pd;
+    // The forecast with the full sensor model: the same SCR as the optimiser's (checked).
+    let (roc, st, sb) = forecast_roc(
+        &sensor,
+        &opt.angles_rad,
+        t_int_s,
+        t_class,
+        b_class,
+        args.pfa,
+    )?;
+    let pd_1e3 = matched_filter(
+        &ClassStats::new("target", st.mean_dn.clone(), st.cov_dn.clone())?,
+        &ClassStats::new("background", sb.mean_dn.clone(), sb.cov_dn.clone())?,
+        1e-3,
+    )?
+    .pd;
+    if (roc.scr - opt.scr).abs() > 1e-6 * roc.scr.max(1e-300) {
+        notes.push(format!(
+            "the forecast's SCR {} differs from the optimiser's {} by more than 1e-6 relative \
+             (the forecast regularised a near-singular covariance?)",
+            roc.scr, opt.scr
+        ));
+    }
     let margin = |s: &polar_model::sensor::SensorSignal| -> f64 {
         (0..s.mean_dn.len())
             .map(|i| (s.saturation_dn - s.mean_dn[i]) / s.cov_dn[(i, i)].max(1e-300).sqrt())
@@ -604,16 +750,37 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
         }
     };
     let frame_s = n as f64 * (t_int_s + args.settle_s) + move_s(&opt.angles_rad);
-    let conv: serde_json::Map<String, Value> = conventional(&contrast)
-        .into_iter()
-        .map(|(name, scr)| (name.to_string(), json!(scr)))
+    // The conventional sets under the same forecast at the same integration time.
+    let mut conv = serde_json::Map::new();
+    for (name, deg) in polar_planner::optimize::CONVENTIONAL {
+        let rad: Vec<f64> = deg.iter().map(|d| d.to_radians()).collect();
+        let (r, _, _) = forecast_roc(&sensor, &rad, t_int_s, t_class, b_class, args.pfa)?;
+        let allowed = rad.len() == n && polar_planner::optimize::allowed(&rad, &constraints);
+        conv.insert(
+            name.to_string(),
+            json!({ "scr": r.scr, "pd_at_pfa": r.pd, "allowed": allowed }),
+        );
+    }
+    let sensor_sigma: Vec<f64> = (0..n)
+        .map(|i| {
+            (sb.cov_dn[(i, i)] - sb.variance.clutter_dn2[i])
+                .max(0.0)
+                .sqrt()
+        })
         .collect();
     Ok(json!({
-        "angles_deg": opt.angles_rad.iter().map(|a| a.to_degrees()).collect::<Vec<_>>(),
+        "angles_deg": degrees(&opt.angles_rad),
         "t_int_ms": t_int_s * 1e3,
+        "set": set_json,
         "forecast": {
             "scr": roc.scr,
-            "scr_planner": opt.scr,
+            "scr_terms": {
+                "definition": "matched filter over the set's frames: (mu_t - mu_b)^T Sigma_b^-1 (mu_t - mu_b), DN; Sigma_b = the background's clutter (off-diagonal too) plus its sensor noise",
+                "mean_difference_dn": (0..n).map(|i| st.mean_dn[i] - sb.mean_dn[i]).collect::<Vec<_>>(),
+                "background_sigma_dn": (0..n).map(|i| sb.cov_dn[(i, i)].max(0.0).sqrt()).collect::<Vec<_>>(),
+                "clutter_sigma_dn": sb.variance.clutter_dn2.iter().map(|v| v.max(0.0).sqrt()).collect::<Vec<_>>(),
+                "sensor_sigma_dn": sensor_sigma,
+            },
             "scr_clutter_limit": limit,
             "scr_conventional": conv,
             "pd_at_pfa_1e-3": pd_1e3,

@@ -1,4 +1,4 @@
-//! `polarimeter study`: the seed's Chapter 4 trade studies (Sec. 4.2), each a sweep of one
+//! `polarimeter study`: Meng (2012)'s Chapter 4 trade studies (Sec. 4.2), each a sweep of one
 //! parameter of the scene or the sensor through the whole analytical chain of MODEL.md:
 //!
 //! scene (Eqs. 3.21-3.31) -> sensor frames (Sec. 3.2, MODEL.md section 6) -> Stokes estimate and
@@ -19,14 +19,14 @@
 //! * the DoLP mean and standard deviation of that estimate ([`dolp_aop_stats`], Taylor or Rice
 //!   regime, reported).
 //!
-//! **DoLP SNR** (seed Sec. 4.1.1, "strength of polarimetric signature"; MODEL.md section 8):
+//! **DoLP SNR** (Meng (2012) Sec. 4.1.1, "strength of polarimetric signature"; MODEL.md section 8):
 //! `E[DoLP_hat] / sqrt(Var[DoLP_hat])` of one class, scene clutter (`Sigma_g + Sigma_v`) and
 //! sensor noise included. It is bounded by the clutter limit (the same with `F_n = 0`), which
 //! it approaches as the integration time grows. Beside it the study reports the **DoLP contrast
 //! SNR** `|E[DoLP_t] - E[DoLP_b]| / sqrt(Var[DoLP_t] + Var[DoLP_b])`, the separation of a target
 //! from the background in DoLP alone.
 //!
-//! **Detection** (seed Sec. 4.1.2; MODEL.md sections 8-9), each target against the background,
+//! **Detection** (Meng (2012) Sec. 4.1.2; MODEL.md sections 8-9), each target against the background,
 //! at the false-alarm rate `pfa` (default 1e-3):
 //! * SCR `d^T Sigma_b^-1 d` in the N frames (`d` the difference of the class means in DN,
 //!   `Sigma_b` the background's full frame covariance);
@@ -42,10 +42,10 @@
 //! from asphalt in brightness (in examples/study.toml's glint, glass has 14 times and paint 1.7
 //! times asphalt's S0), so the matched filter and RX, which work on the frames' intensities,
 //! detect them by brightness wherever the intensities differ (Pd near 1 in most rows of the CSV);
-//! the DoLP detector measures the polarimetric signature alone, which is what the seed's Ch. 4
+//! the DoLP detector measures the polarimetric signature alone, which is what Meng (2012)'s Ch. 4
 //! studies.
 //!
-//! The six studies (seed Sec. 4.2):
+//! The six studies (Meng (2012) Sec. 4.2):
 //! * `sources` (4.2.1): direct sun only, skylight only, sun + sky, sun + sky + path radiance
 //!   (Eq. 3.24 term by term, from [`polar_model::scene::Prepared::boresight_terms`] at the
 //!   boresight ray; the clutter of these rows is the texture `Sigma_v` rebuilt from the included
@@ -98,7 +98,7 @@ pub const DOLP_MAX_S0_REL_STD: f64 = 1.0 / 3.0;
 pub const RX_MAX_PD_ERROR: f64 = 1e-3;
 
 /// The roughness study's second view: the look azimuth turned this far from the specular plane,
-/// where a smooth surface's lobe does not reach and a rough one's does (the seed's Fig. 3.6
+/// where a smooth surface's lobe does not reach and a rough one's does (Meng (2012)'s Fig. 3.6
 /// "spreading"), degrees.
 pub const OFF_SPECULAR_AZIMUTH_DEG: f64 = 30.0;
 
@@ -162,24 +162,24 @@ fn at(context: impl Into<String>) -> impl FnOnce(ModelError) -> StudyError {
 /// One of the six trade studies.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum StudyKind {
-    /// Seed Sec. 4.2.1: which radiometric sources light the scene.
+    /// Meng (2012) Sec. 4.2.1: which radiometric sources light the scene.
     Sources,
-    /// Seed Sec. 4.2.2: sensor platform altitude.
+    /// Meng (2012) Sec. 4.2.2: sensor platform altitude.
     Altitude,
-    /// Seed Sec. 4.2.5: sun and view geometry in the specular plane.
+    /// Meng (2012) Sec. 4.2.5: sun and view geometry in the specular plane.
     Geometry,
-    /// Seed Sec. 4.2.4: surface roughness of the targets.
+    /// Meng (2012) Sec. 4.2.4: surface roughness of the targets.
     Roughness,
-    /// Seed Sec. 4.2.6: sensor noise factor.
+    /// Meng (2012) Sec. 4.2.6: sensor noise factor.
     NoiseFactor,
-    /// Seed Sec. 4.2.7: integration time.
+    /// Meng (2012) Sec. 4.2.7: integration time.
     IntegrationTime,
 }
 
 /// The command line's choice: one study or all.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum StudySelection {
-    /// Direct sun, skylight and path radiance, alone and together (seed Sec. 4.2.1).
+    /// Direct sun, skylight and path radiance, alone and together (Meng (2012) Sec. 4.2.1).
     Sources,
     /// Sensor altitude, 10 m to 10 km (Sec. 4.2.2).
     Altitude,
@@ -193,7 +193,7 @@ pub enum StudySelection {
     IntegrationTime,
     /// All six.
     All,
-    /// Adaptive polarimetric target detection against conventional sets (the seed's Table 5.2;
+    /// Adaptive polarimetric target detection against conventional sets (Meng (2012)'s Table 5.2;
     /// `study_aptd`).
     Aptd,
 }
@@ -327,7 +327,7 @@ impl NoiseScaling {
     }
 }
 
-/// `polarimeter study KIND`: the seed's Ch. 4 trade studies (see the module docs).
+/// `polarimeter study KIND`: Meng (2012)'s Ch. 4 trade studies (see the module docs).
 #[derive(Debug, Clone, Args)]
 pub struct StudyArgs {
     /// Which study (or all).

@@ -1,5 +1,5 @@
 //! `polarimeter study aptd`: adaptive polarimetric target detection against conventional
-//! analyzer sets. It is our analogue of the seed's Table 5.2 and Figs. 5.4-5.6, whose numbers
+//! analyzer sets. It is our analogue of Meng (2012)'s Table 5.2 and Figs. 5.4-5.6, whose numbers
 //! are lost (MODEL.md section 9).
 //!
 //! **Cases.** The scene file's materials are laid out as panels on the ground

@@ -1,15 +1,13 @@
-//! Crash safety: `polarimeter run --simulate` is killed with SIGKILL at random moments (at
-//! least 20 times, the first kill in the first run and the rest in `polarimeter resume`s),
-//! then resumed to the end. The frame set must be exact: every planned step has exactly one
-//! accepted frame, frame indices run 0..N without a gap, and every stored frame hashes to its
-//! journaled hash. A demo run is also checked end to end through the binary.
+//! Crash safety through the binary: the crash campaign (`polarimeter bench crash`) kills
+//! (SIGKILL) and pauses (Ctrl-C) runs of every plan kind at random moments, in first runs and
+//! in resumes, resumes them to the end, and checks every dataset with the engine's check and
+//! from the outside with zarr-python and xarray (`scripts/check_run.py`). Also: `plan check`
+//! forecasts without running.
 #![allow(clippy::unwrap_used)]
 
-use polar_engine::journal::replay;
-use polar_engine::store::RunStore;
-use std::path::Path;
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use polar_cli::bench_crash::{campaign, markdown, CrashConfig, PLANS};
+use std::path::{Path, PathBuf};
+use std::process::Command;
 
 const BIN: &str = env!("CARGO_BIN_EXE_polarimeter");
 
@@ -29,120 +27,52 @@ seed = 9
 "#;
 const PLANNED: u64 = 23;
 
-fn spawn(args: &[&str]) -> Child {
-    Command::new(BIN)
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap()
+/// The Python with zarr, xarray and xxhash (`POLARIMETER_PYTHON`, else the venv of
+/// `scripts/test.sh`), or `None` with `POLARIMETER_SKIP_PYTHON=1`.
+fn python() -> Option<String> {
+    let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../target/py-venv/bin/python");
+    let py = std::env::var("POLARIMETER_PYTHON").unwrap_or_else(|_| venv.display().to_string());
+    let ok = Command::new(&py)
+        .args(["-c", "import zarr, xarray, xxhash"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if ok {
+        return Some(py);
+    }
+    assert!(
+        std::env::var("POLARIMETER_SKIP_PYTHON").as_deref() == Ok("1"),
+        "{py} cannot import zarr, xarray and xxhash: run `bash scripts/test.sh` (it makes the \
+         venv), or set POLARIMETER_SKIP_PYTHON=1"
+    );
+    None
 }
 
-fn journal_frames(dir: &Path) -> usize {
-    std::fs::read_to_string(dir.join("journal.jsonl"))
-        .map(|t| {
-            t.lines()
-                .filter(|l| l.contains("\"event\":\"frame\""))
-                .count()
-        })
-        .unwrap_or(0)
-}
-
+/// 9 SIGKILLs per plan kind (54 in all, over 6 kinds), plus Ctrl-C pauses: every dataset
+/// finishes and passes every check. The full campaign is `polarimeter bench crash`.
 #[test]
-fn kill_nine_at_random_steps_then_resume_exactly() {
+fn crash_campaign_over_every_plan_kind() {
     let base = std::env::temp_dir().join(format!("polar-crash-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&base);
-    std::fs::create_dir_all(&base).unwrap();
-    let plan = base.join("plan.toml");
-    std::fs::write(&plan, PLAN).unwrap();
-    let dir = base.join("run");
-    let (plan_s, dir_s) = (plan.to_str().unwrap(), dir.to_str().unwrap());
-    let mut rng = polar_hil_mocks::faults::Dice::new(20_261_121);
-    let mut kills = 0;
-    let mut started = false;
-    let deadline = Instant::now() + Duration::from_secs(600);
-    let mut finished = false;
-    while kills < 20 && Instant::now() < deadline {
-        // A kill before the journal's first entry leaves nothing to resume: run again.
-        let resumable = replay(&dir).is_ok_and(|r| r.run_started().is_some());
-        let mut child = if started && resumable {
-            spawn(&["resume", dir_s])
-        } else {
-            started = true;
-            spawn(&["run", plan_s, "--simulate", "--out", dir_s])
-        };
-        // Kill after a random number of further frames (0..3) plus a random 0-60 ms, so that
-        // kills land before, during and after a frame's write and journal line.
-        let before = journal_frames(&dir);
-        let more = rng.index(3);
-        let extra_ms = rng.index(60) as u64;
-        let t0 = Instant::now();
-        loop {
-            if let Some(_status) = child.try_wait().unwrap() {
-                break;
-            }
-            if journal_frames(&dir) >= before + more || t0.elapsed() > Duration::from_secs(20) {
-                std::thread::sleep(Duration::from_millis(extra_ms));
-                let _ = child.kill();
-                let _ = child.wait();
-                kills += 1;
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(2));
-        }
-        if polar_engine::run::is_finished(&dir) {
-            finished = true;
-            // Start over in a new directory: at least 20 kills are asked.
-            let _ = std::fs::remove_dir_all(&dir);
-            started = false;
-        }
+    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../scripts/check_run.py");
+    let cfg = CrashConfig {
+        kills_per_kind: 9,
+        seed: 20_261_127,
+        binary: PathBuf::from(BIN),
+        base: base.clone(),
+        outside: python().map(|p| (p, script)),
+        kinds: Vec::new(),
+    };
+    let r = campaign(&cfg).unwrap();
+    let text = markdown(&r);
+    println!("{text}");
+    assert_eq!(r.kinds.len(), PLANS.len());
+    assert!(r.kills >= 50, "only {} kills\n{text}", r.kills);
+    for k in &r.kinds {
+        assert!(k.kills_in_run > 0 && k.kills_in_resume > 0, "{text}");
+        assert!(k.failures.is_empty(), "{text}");
+        assert_eq!(k.passed, k.datasets, "{text}");
+        assert!(k.datasets > 0, "{text}");
     }
-    assert!(kills >= 20, "only {kills} kills");
-    if !started {
-        return;
-    }
-    // Resume to the end (a crash may have left the run at any point).
-    if !polar_engine::run::is_finished(&dir) {
-        let resumable = replay(&dir).is_ok_and(|r| r.run_started().is_some());
-        let args: Vec<&str> = if resumable {
-            vec!["resume", dir_s]
-        } else {
-            vec!["run", plan_s, "--simulate", "--out", dir_s]
-        };
-        let out = Command::new(BIN).args(&args).output().unwrap();
-        assert!(
-            out.status.success(),
-            "resume: {}\n{}",
-            String::from_utf8_lossy(&out.stdout),
-            String::from_utf8_lossy(&out.stderr)
-        );
-    }
-    let _ = finished;
-    let r = replay(&dir).unwrap();
-    assert!(r.is_finished());
-    let frames = r.frames();
-    let n = frames.len() as u64;
-    assert_eq!(
-        frames.keys().copied().collect::<Vec<_>>(),
-        (0..n).collect::<Vec<_>>()
-    );
-    let rejected = r.rejected_frames();
-    let mut per_step = std::collections::BTreeMap::<u64, u32>::new();
-    for f in frames.values().filter(|f| !rejected.contains(&f.index)) {
-        *per_step.entry(f.step).or_default() += 1;
-    }
-    assert_eq!(per_step.len() as u64, PLANNED, "{per_step:?}");
-    assert!(
-        per_step.values().all(|&c| c == 1),
-        "a step with two frames: {per_step:?}"
-    );
-    let store = RunStore::open(&dir).unwrap();
-    for f in frames.values() {
-        let px = store.read_frame(f.index).unwrap();
-        assert_eq!(polar_engine::pixel_hash(&px), f.hash, "frame {}", f.index);
-    }
-    println!("{kills} kills; {n} frames stored for {PLANNED} planned steps, exact");
     let _ = std::fs::remove_dir_all(&base);
 }
 

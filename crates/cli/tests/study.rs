@@ -1,5 +1,5 @@
-//! The seed's Ch. 4 trade studies (`polarimeter study`) run through the library at coarse
-//! sweeps on examples/study.toml: each test asserts the physical trend behind one of the seed's
+//! Meng (2012)'s Ch. 4 trade studies (`polarimeter study`) run through the library at coarse
+//! sweeps on examples/study.toml: each test asserts the physical trend behind one of Meng (2012)'s
 //! findings, with the reason and the tolerance, plus the errors that name a bad input.
 #![allow(clippy::unwrap_used)] // tests panic on failure by design
 
@@ -59,7 +59,7 @@ fn snr(r: &StudyResult, k: usize) -> Vec<f64> {
         .collect()
 }
 
-/// Noise factor (seed Sec. 4.2.6). `F_n` multiplies the sensor-noise variance, so the frames'
+/// Noise factor (Meng (2012) Sec. 4.2.6). `F_n` multiplies the sensor-noise variance, so the frames'
 /// covariance is `Sigma_clutter + F Sigma_sensor`. The GLS Stokes covariance is then
 /// `Sigma_LS + F (W^T D^-1 W)^-1` (Woodbury), and the first-order DoLP variance is exactly
 /// affine in F: `var(9) - var(1) = 4 (var(3) - var(1))` (to 1e-6). Without clutter it is
@@ -105,7 +105,7 @@ fn dolp_snr_falls_with_the_noise_factor() {
     }
 }
 
-/// Integration time (seed Sec. 4.2.7). Without clutter the DoLP variance is
+/// Integration time (Meng (2012) Sec. 4.2.7). Without clutter the DoLP variance is
 /// `(a t + r) / t^2` (shot noise `a t`, read, dark and quantisation noise `r`, about 108 e-^2
 /// per frame), so quadrupling t multiplies the SNR by `4 sqrt((a t + r) / (4 a t + r))`:
 /// between 2 (shot-noise limit) and 4 (read-noise limit), falling towards 2 as t grows. These
@@ -156,7 +156,7 @@ fn dolp_snr_rises_with_integration_time() {
     }
 }
 
-/// Geometry (seed Sec. 4.2.5). In the specular plane the facets that reflect the sun into the
+/// Geometry (Meng (2012) Sec. 4.2.5). In the specular plane the facets that reflect the sun into the
 /// camera lie flat, so their half angle equals the sun zenith, and Fresnel's `Rp` vanishes at
 /// Brewster's angle (56.66 deg for n = 1.52, MODEL.md section 2): glass's DoLP peaks there.
 /// Diffuse light and skylight dilute it without moving the peak by more than a few degrees
@@ -181,7 +181,7 @@ fn glass_dolp_peaks_at_brewster() {
     assert!((values[i] - GLASS_BREWSTER_DEG).abs() <= 3.0, "{s:?}");
 }
 
-/// Roughness (seed Sec. 4.2.4, Fig. 3.6). In the specular direction a rougher surface spreads
+/// Roughness (Meng (2012) Sec. 4.2.4, Fig. 3.6). In the specular direction a rougher surface spreads
 /// its facets' light over the hemisphere (the slope density's peak falls as `1 / sigma^2`),
 /// so the polarised specular part loses against the unpolarised diffuse part: DoLP falls for
 /// both targets from sigma 0.05 to 0.7 (glass from above 0.99 to below 0.6). A view 30 deg out
@@ -204,7 +204,7 @@ fn roughness_lowers_and_spreads_dolp() {
     assert!(off(1) > off(0) + 0.05, "{} vs {}", off(1), off(0));
 }
 
-/// Altitude (seed Sec. 4.2.2). Path radiance grows with the air column (from under 1 % of
+/// Altitude (Meng (2012) Sec. 4.2.2). Path radiance grows with the air column (from under 1 % of
 /// the paint's S0 at 10 m to over 20 % at 10 km) and is less polarised than these glints, so
 /// every class's DoLP falls, and the paint-asphalt DoLP contrast falls with it. The same path
 /// radiance dilutes a bright class less: glass's glint is over ten times brighter than asphalt,
@@ -244,7 +244,7 @@ fn altitude_lowers_dolp_contrast() {
     assert!(glass < asphalt, "{glass} vs {asphalt}");
 }
 
-/// Sources (seed Sec. 4.2.1): the boresight terms of Eq. 3.24 add up to the scene model's
+/// Sources (Meng (2012) Sec. 4.2.1): the boresight terms of Eq. 3.24 add up to the scene model's
 /// answer. The sun + sky + path row's S0 is within 2 % of the full scene model's field mean
 /// (a 2-degree field around the glint: the field mean differs from the centre ray by the lobe's
 /// curvature), and the direct sun carries most of the glass glint (over 90 % of S0).

@@ -1,6 +1,6 @@
 //! A blocking camera SDK on its own named thread, as an async [`Camera`]
-//! (`../shared/design/SYSTEM.md`, "Blocking SDKs run on a named thread and feed a bounded async
-//! channel").
+//! (`ARCHITECTURE.md`, "Device abstraction": blocking SDKs run on a named thread and feed a
+//! bounded channel).
 //!
 //! The thread owns the [`BlockingCamera`]. It runs the caller's settings in order. While
 //! streaming, it waits on the SDK in short slices, so a setting never waits longer than one

@@ -1,5 +1,5 @@
 //! Thorlabs Elliptec ELLx: ELL14 and ELL18 rotation mounts ([`ElliptecRotator`]) and ELL6 and
-//! ELL9 sliders ([`ElliptecSlider`]), written from `../shared/design/DEVICES.md` section 1.1
+//! ELL9 sliders ([`ElliptecSlider`]), written from `docs/DEVICES.md` section 1.1
 //! (the ELL18K manual, pylablib, roesel/elliptec and rwpeterson/elliptec).
 //!
 //! * Requests are `A cc data` without terminator, upper-case hex; replies are `A CC data\r\n`
@@ -10,6 +10,8 @@
 //!   the status is read once more to clear the latched error (pylablib).
 //! * The counts per turn are read from `in` (PULSES) at every connect, never assumed: ELL14
 //!   units report 143360, not the manual's 262144.
+//! * Homing is `ho0` on every model, sliders included (`ho` takes its direction digit on every
+//!   model; a slider homes to slot 0 either way).
 //! * Moves wait at least 100 ms after the previous one (an earlier move can "move to 0"), go
 //!   the short way round, are absolute (so they can be repeated), and are judged by the
 //!   position read back with `gp`: a `GS02` mechanical timeout or a lost `PO` is not a verdict.
@@ -55,7 +57,8 @@ pub struct ElliptecInfo {
     pub hardware: u8,
     /// Travel, degrees or mm.
     pub travel: u16,
-    /// PULSES: counts per turn (rotators) or per unit of travel.
+    /// PULSES: counts per turn (rotators) or per unit of travel; 0 on the indexed sliders
+    /// (ELL6, ELL9), whose slots are known by model instead ([`slider_positions`]).
     pub pulses: u32,
 }
 
@@ -416,12 +419,11 @@ impl ElliptecSession {
         self.home().await
     }
 
-    /// Homes (clockwise on rotators) and records the position.
+    /// Homes (`ho0`: clockwise on rotators, slot 0 on sliders) and records the position.
     async fn home(&mut self) -> Result<(), DeviceError> {
         self.pre_move_delay().await;
-        let data = if self.rotary { "0" } else { "" };
         let result = self
-            .exchange("ho", data, &["PO"], self.policy.home_timeout)
+            .exchange("ho", "0", &["PO"], self.policy.home_timeout)
             .await;
         self.last_move_end = Some(Instant::now());
         // Homing counts only with its `PO`: without it the counter may read 0 without a datum

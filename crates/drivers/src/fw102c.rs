@@ -1,5 +1,5 @@
 //! Thorlabs FW102C (6 positions) and FW212C (12 positions) filter wheels, written from
-//! `../shared/design/DEVICES.md` section 1.2 (ISIS IBEX manual, pylablib, the Simond and
+//! `docs/DEVICES.md` section 1.2 (ISIS IBEX manual, pylablib, the Simond and
 //! Pazdzior drivers).
 //!
 //! * Commands are ASCII lines ending `\r`. The wheel echoes the command, sends the answer line

@@ -1,5 +1,5 @@
 //! Serial drivers for the polarimeter's rotation stages and filter wheels, on tokio
-//! (`../shared/design/SYSTEM.md`, `../shared/design/DEVICES.md`).
+//! (`ARCHITECTURE.md`, `docs/DEVICES.md`).
 //!
 //! | dialect | module | devices |
 //! |---|---|---|

@@ -4,7 +4,7 @@
 //! the device goes away.
 //!
 //! Disconnects are what tokio reports for an unplugged tty: end of file on read, or an I/O
-//! error (`EIO`, `BrokenPipe`) on read or write (`../shared/design/DEVICES.md` section 5.1).
+//! error (`EIO`, `BrokenPipe`) on read or write (`docs/DEVICES.md` section 5.1).
 
 use polar_hal::{DeviceError, ErrorKind};
 use std::future::Future;

@@ -71,7 +71,7 @@ pub struct NativeSession {
     tolerance_counts: i32,
     /// The position last read or verified, counts, while nothing can have moved the axis since:
     /// cleared by a reset, a reopen and the start of every move. It saves a status round trip
-    /// per move (issue 8: the run's wall time against the devices' own time).
+    /// per move (docs/design/acquisition-timing.md).
     known_position: Option<i32>,
     /// Velocity and acceleration set by the user, counts/s and counts/s^2: applied again after
     /// every reset (the controller boots with its defaults).

@@ -27,7 +27,7 @@
 //!   a = 0.25 I0 (k1 + k2)(q1 + q2),     b = 0.25 I0 (k1 - k2)(q1 - q2),
 //! ```
 //!
-//! the seed's Malus law (Eq. 2.17 with a real analyzer) on the dark-subtracted signal.
+//! Meng (2012)'s Malus law (Eq. 2.17 with a real analyzer) on the dark-subtracted signal.
 //!
 //! # Extinction ratio of the pair
 //!

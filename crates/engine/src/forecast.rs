@@ -272,35 +272,22 @@ fn check_material(scene: &Scene, field: &str, name: &str) -> Result<(), Forecast
     }
 }
 
-/// The planner's contrast in radiance units at `t_int_s` (MODEL.md section 9, as `plan
-/// --scene`): `d = mu_t - mu_b`, the background's clutter `Sigma_b`, and the per-frame sensor
-/// noise variance of the background's unpolarised mean frame (the mean of the 0 and 90 deg
-/// frames' variances) converted to radiance by `1 / (K G)^2`.
+/// The planner's contrast at `t_int_s` (MODEL.md section 9, as `plan --scene`):
+/// [`Contrast::from_sensor`], the camera's real analyzer rows and its noise at the background's
+/// light, so that the SCR the planner maximises is the matched-filter SCR of the frames this
+/// forecast describes.
 fn contrast_at(
     sensor: &SensorModel,
     target: &MaterialResult,
     background: &MaterialResult,
     t_int_s: f64,
 ) -> Result<Contrast, ForecastError> {
-    let s = sensor
-        .signal(
-            &[0.0, std::f64::consts::FRAC_PI_2],
-            &Exposure::new(t_int_s, background.mean),
-        )
-        .map_err(model_err(format!("material {}", background.name)))?;
-    let dn_per_radiance = sensor.camera().gain_dn_per_e * s.electrons_from_radiance;
-    if !(dn_per_radiance.is_finite() && dn_per_radiance > 0.0) {
-        return Err(ForecastError::Invalid {
-            field: "camera".into(),
-            value: format!("K G = {dn_per_radiance} DN per W m^-2 sr^-1"),
-            allowed: "a camera that responds in the scene's band".into(),
-        });
-    }
-    let noise_var = 0.5 * (s.cov_dn[(0, 0)] + s.cov_dn[(1, 1)]) / dn_per_radiance.powi(2);
-    Contrast::new(
-        target.mean.0 - background.mean.0,
-        0.5 * (background.cov + background.cov.transpose()),
-        noise_var,
+    Contrast::from_sensor(
+        sensor,
+        t_int_s,
+        &target.mean.0,
+        &background.mean.0,
+        &background.cov,
     )
     .map_err(|e| ForecastError::Model {
         field: "capture.from_planner".into(),
@@ -332,12 +319,13 @@ fn planner_choice(
         PLANNER_TOL_DEG.to_radians(),
     )
     .map_err(planner)?;
-    let angles_deg: Vec<f64> = opt
+    let mut angles_deg: Vec<f64> = opt
         .angles_rad
         .iter()
         // To 1e-6 deg (the optimiser's tolerance is 0.01 deg): readable, and 180 wraps to 0.
         .map(|a| ((a.to_degrees() * 1e6).round() / 1e6).rem_euclid(180.0))
         .collect();
+    angles_deg.sort_by(f64::total_cmp);
     if opt.scr <= 0.0 {
         return Err(ForecastError::Invalid {
             field: "capture.from_planner".into(),
@@ -373,6 +361,7 @@ fn planner_choice(
         "scr_conventional": conv,
         "scr_clutter_limit": if limit.is_finite() { json!(limit) } else { Value::Null },
         "noise_var_w2_m4_sr2": contrast.noise_var,
+        "shot_noise_var_per_w_m2_sr": contrast.instrument.shot_var_per_radiance,
         "notes": contrast.notes,
     });
     Ok((angles_deg, why))
@@ -786,10 +775,30 @@ darks_after = 1
     /// The planner's set scores at least the conventional sets of as many channels (it
     /// maximises the SCR over all sets that respect the 30-degree separation, which those
     /// do), to 1e-9 relative; with 4 channels also the 3-angle sets (a 4th angle only adds
-    /// information).
+    /// information). Its SCR is the matched-filter SCR of the frames this forecast describes
+    /// (`SensorModel::signal` with the background's clutter), to 1e-9 relative (the same
+    /// number by two algebraic routes), not an ideal-analyzer figure.
     #[test]
     fn planner_beats_conventional_sets() {
         let (scene, camera) = models();
+        let results = evaluate_materials(&scene, &["panel", "asphalt"]).expect("classes");
+        let sensor = SensorModel::new(&camera, &scene.spec.band).expect("sensor");
+        let forecast_scr = |angles_deg: &[f64]| {
+            let rad: Vec<f64> = angles_deg.iter().map(|a| a.to_radians()).collect();
+            let frames = |r: &MaterialResult, field| {
+                let mut e = Exposure::new(2000e-6, r.mean);
+                e.radiance_cov_w2_m4_sr2 = 0.5 * (results[1].cov + results[1].cov.transpose());
+                let s = sensor.signal(&rad, &e).expect("frames");
+                polar_model::metrics::ClassStats::new(field, s.mean_dn, s.cov_dn).expect("class")
+            };
+            let (t, b) = (
+                frames(&results[0], "target"),
+                frames(&results[1], "background"),
+            );
+            polar_model::metrics::matched_filter(&t, &b, 1e-3)
+                .expect("roc")
+                .scr
+        };
         for channels in [3usize, 4] {
             let from = FromPlanner {
                 target: "panel".into(),
@@ -801,6 +810,11 @@ darks_after = 1
             assert_eq!(angles.len(), channels);
             assert!(distinct_angles(&angles) == channels, "{angles:?}");
             let scr = why["scr"].as_f64().expect("scr");
+            let forecast = forecast_scr(&angles);
+            assert!(
+                (scr - forecast).abs() <= 1e-9 * forecast,
+                "planner {scr} against the forecast's {forecast}"
+            );
             let conv = why["scr_conventional"].as_object().expect("conventional");
             eprintln!("{channels} channels: {angles:.2?} SCR {scr:.6}; conventional {conv:?}");
             for (name, v) in conv {

@@ -68,6 +68,34 @@ pub enum Entry {
         /// Why it was refused.
         reason: String,
     },
+    /// A recorded frame found damaged (its chunk missing, unreadable or hashing to another
+    /// value) when a run was resumed: the chunk is kept aside under `kept_as`, the frame no
+    /// longer counts and its step is taken again (its set too, if it was done).
+    FrameDamaged {
+        /// The frame (index).
+        index: u64,
+        /// Its plan step.
+        step: u64,
+        /// The chunk file, relative to the run directory.
+        chunk: String,
+        /// Where the damaged chunk was moved (relative to the run directory); empty when
+        /// there was no file to keep.
+        kept_as: String,
+        /// What was found.
+        finding: String,
+    },
+    /// A time-lapse set that was late (its start time passed by more than half an interval)
+    /// and what the plan's `late` policy did with it.
+    SetLate {
+        /// The set number.
+        set: u64,
+        /// When it was due, nanoseconds since the Unix epoch.
+        due_unix_ns: i64,
+        /// How late it was when its turn came, seconds.
+        late_s: f64,
+        /// `"taken"` (at once) or `"skipped"`.
+        action: String,
+    },
     /// One round of the planner's decision log.
     Decision {
         /// The planner's round.
@@ -123,6 +151,8 @@ impl Entry {
             Entry::Frame(_) => "frame",
             Entry::SetDone { .. } => "set-done",
             Entry::SetRejected { .. } => "set-rejected",
+            Entry::FrameDamaged { .. } => "frame-damaged",
+            Entry::SetLate { .. } => "set-late",
             Entry::Decision { .. } => "decision",
             Entry::Checkpoint { .. } => "checkpoint",
             Entry::Paused { .. } => "paused",
@@ -542,6 +572,17 @@ impl Replay {
                     verdict: None,
                     reason: Some(reason),
                 }),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Frames found damaged on a resume (kept aside, superseded).
+    pub fn damaged_frames(&self) -> BTreeSet<u64> {
+        self.entries
+            .iter()
+            .filter_map(|e| match e {
+                Entry::FrameDamaged { index, .. } => Some(*index),
                 _ => None,
             })
             .collect()

@@ -1,4 +1,4 @@
-//! The acquisition engine (SYSTEM.md, "Engine, storage, products").
+//! The acquisition engine (`ARCHITECTURE.md`, "Engine, storage, products").
 //!
 //! - [`plan`]: plans as data (TOML or YAML), validated with errors that name the field, and
 //!   compiled to the steps a run takes; forecasts without running.
@@ -15,7 +15,9 @@
 #![warn(missing_docs)]
 
 pub mod analyzer_cal;
+pub mod check;
 pub mod export;
+pub mod flags;
 pub mod forecast;
 pub mod journal;
 pub mod plan;

@@ -203,6 +203,22 @@ pub struct TimeLapse {
     /// Analog gain, dB, [0, 48].
     #[serde(default)]
     pub gain_db: f64,
+    /// What to do with a set whose start time has passed by more than half an interval (a
+    /// run resumed late, a long pause): `"take"` it at once (default) or `"skip"` it. Either
+    /// is recorded in the journal and in the store's `late_sets` attribute.
+    #[serde(default)]
+    pub late: LatePolicy,
+}
+
+/// What a time-lapse does with a set that is late (see [`TimeLapse::late`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LatePolicy {
+    /// Take the late set at once (the sets then run back to back until on time again).
+    #[default]
+    Take,
+    /// Skip the late set: it is not taken and not counted as planned.
+    Skip,
 }
 
 /// How the adaptive loop knows the target.
@@ -390,7 +406,8 @@ impl Default for Simulation {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Plan {
-    /// A name for people.
+    /// A name for people. A plan read from a file without one (or with a blank one) is named
+    /// by the file's stem ([`Plan::from_path`]).
     #[serde(default)]
     pub name: String,
     /// What it does.
@@ -526,8 +543,19 @@ impl Plan {
         Ok(plan)
     }
 
-    /// Reads a plan file: `.yaml`/`.yml` as YAML, anything else as TOML.
+    /// Reads a plan file: `.yaml`/`.yml` as YAML, anything else as TOML. A plan without a
+    /// name (or with a blank one) is named by the file's stem: `capture.toml` is `capture`.
     pub fn from_path(path: &Path) -> Result<Plan, PlanError> {
+        let mut plan = Plan::from_path_as_written(path)?;
+        if plan.name.trim().is_empty() {
+            if let Some(stem) = path.file_stem() {
+                plan.name = stem.to_string_lossy().into_owned();
+            }
+        }
+        Ok(plan)
+    }
+
+    fn from_path_as_written(path: &Path) -> Result<Plan, PlanError> {
         let text = std::fs::read_to_string(path).map_err(|e| PlanError::Io {
             path: path.display().to_string(),
             message: e.to_string(),
@@ -665,11 +693,12 @@ impl Plan {
             gain("capture.gain_db", c.gain_db)?;
         }
         if let Some(c) = &self.calibrate_noise {
-            if !(4..=200).contains(&c.exposure_us.len()) {
+            if !(5..=200).contains(&c.exposure_us.len()) {
                 return Err(invalid(
                     "calibrate-noise.exposure_us",
                     format!("{} exposures", c.exposure_us.len()),
-                    "4..=200 exposures",
+                    "5..=200 exposures (the photon transfer fit needs 3 in the linear range, \
+                     the saturation point and one beyond it)",
                 ));
             }
             check_exposures("calibrate-noise.exposure_us", &c.exposure_us)?;
@@ -782,6 +811,22 @@ impl Plan {
         check_angles("capture.angles_deg", &angles, 3, 16)?;
         c.angles_deg = Some(angles);
         c.from_planner = None;
+        Ok(())
+    }
+
+    /// Checks what depends on the camera's frame size (`width x height` pixels): the
+    /// adaptive target rectangle must lie inside the frame. `run` checks it against the
+    /// camera it opens, `plan check` against the simulated frame.
+    pub fn check_frame(&self, width: u32, height: u32) -> Result<(), PlanError> {
+        if let Some([x0, y0, x1, y1]) = self.adaptive.as_ref().and_then(|a| a.target.rect) {
+            if x1 > width || y1 > height {
+                return Err(invalid(
+                    "adaptive.target.rect",
+                    format!("[{x0}, {y0}, {x1}, {y1}]"),
+                    format!("inside the {width}x{height} frame"),
+                ));
+            }
+        }
         Ok(())
     }
 
@@ -998,6 +1043,31 @@ darks_after = 3
             Plan::from_yaml_str(yaml).expect("yaml"),
             Plan::from_toml_str(CAPTURE).expect("toml")
         );
+    }
+
+    /// A plan file without a name (or with a blank one) is named by its stem.
+    #[test]
+    fn a_plan_without_a_name_is_named_by_its_file() {
+        let dir = std::env::temp_dir().join(format!("polar-plan-name-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let body = "kind = \"capture\"\n[capture]\nangles_deg = [0, 60, 120]\n\
+                    exposure_us = [300]\nrepeats = 1\n";
+        for (file, text) in [
+            ("night-sky.toml", body.to_string()),
+            ("blank.toml", format!("name = \" \"\n{body}")),
+            ("kept.toml", format!("name = \"roof\"\n{body}")),
+        ] {
+            let path = dir.join(file);
+            std::fs::write(&path, text).unwrap();
+            let plan = Plan::from_path(&path).unwrap();
+            let want = if file == "kept.toml" {
+                "roof"
+            } else {
+                file.trim_end_matches(".toml")
+            };
+            assert_eq!(plan.name, want);
+        }
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// Errors name the field and the allowed range.

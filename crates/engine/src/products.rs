@@ -9,8 +9,7 @@
 //!
 //! # Model
 //!
-//! Conventions and statistics are those of `MODEL.md` sections 0, 6 and 7 (the design
-//! documents of the workspace).
+//! Conventions and statistics are those of `docs/MODEL.md` sections 0, 6 and 7.
 //!
 //! - **Measurement.** Frame `i`'s pixel value is `y_i = a_i . S + dark_dn + noise`, with `a_i`
 //!   the analyzer's row (`A` is the `N x 3` matrix of rows). An ideal polarizer at `psi` has

@@ -103,7 +103,68 @@ fn uniform(
     }
 }
 
+/// The plan's simulated stage and camera fault profiles, checked (unknown knobs, rates
+/// outside `[0, 1]`).
+fn fault_profiles(plan: &Plan) -> Result<(FaultProfile, CameraFaults), SimError> {
+    let sim = &plan.simulation;
+    let stage = match &sim.stage_faults {
+        Some(t) => {
+            let text = toml::to_string(t)
+                .map_err(|e| SimError::Input(format!("simulation.stage_faults: {e}")))?;
+            FaultProfile::from_toml_str(&text)
+                .map_err(|e| SimError::Input(format!("simulation.stage_faults: {e}")))?
+        }
+        None => FaultProfile::default(),
+    };
+    let camera: CameraFaults = match &sim.camera_faults {
+        Some(t) => {
+            let f: CameraFaults = t
+                .clone()
+                .try_into()
+                .map_err(|e| SimError::Input(format!("simulation.camera_faults: {e}")))?;
+            f.validate()
+                .map_err(|e| SimError::Input(format!("simulation.camera_faults: {e}")))?;
+            f
+        }
+        None => CameraFaults::default(),
+    };
+    Ok((stage, camera))
+}
+
+/// The adaptive target's material as a mask of the simulated scene (row-major), if the plan
+/// names one; an error naming `adaptive.target.material` if the scene has no such material.
+pub fn target_mask(plan: &Plan, scene: &SimScene) -> Result<Option<Vec<bool>>, SimError> {
+    let Some(m) = plan
+        .adaptive
+        .as_ref()
+        .and_then(|a| a.target.material.as_deref())
+    else {
+        return Ok(None);
+    };
+    let k = scene.materials.iter().position(|x| x == m).ok_or_else(|| {
+        SimError::Input(format!(
+            "adaptive.target.material = {m:?} is not in the simulated scene: allowed one of {:?}",
+            scene.materials
+        ))
+    })?;
+    Ok(Some(
+        scene.region.iter().map(|&r| usize::from(r) == k).collect(),
+    ))
+}
+
 impl SimRig {
+    /// Checks everything a simulated run of `plan` would refuse before it acquires anything
+    /// (the scene and camera files, the fault profiles, the adaptive target's material),
+    /// with the messages the run gives; [`Plan::check_frame`] checks the rest against the
+    /// simulated frame. `plan check` calls it;
+    /// [`SimRig::start_rig`] goes through the same functions.
+    pub fn validate(plan: &Plan, plan_dir: &Path) -> Result<(), SimError> {
+        fault_profiles(plan)?;
+        let world = SimRig::world(plan, plan_dir)?;
+        target_mask(plan, &world.scene)?;
+        Ok(())
+    }
+
     /// What the simulated camera sees for `plan` (files relative to `plan_dir`): the scene,
     /// the camera model and the sensor model, without starting anything.
     pub fn world(plan: &Plan, plan_dir: &Path) -> Result<SimWorld, SimError> {
@@ -199,12 +260,15 @@ impl SimRig {
     }
 
     /// Starts the stage simulator on a pseudo-terminal at `link_dir/stage` and builds the
-    /// camera for `plan` (files relative to `plan_dir`). Returns the rig and the camera,
+    /// camera for `plan` (files relative to `plan_dir`), drawing its noise from
+    /// `noise_stream` ([`crate::run::noise_stream`] of the run directory, so that a resumed
+    /// process never repeats an earlier process's draws). Returns the rig and the camera,
     /// running on its own thread.
     pub fn start(
         plan: &Plan,
         plan_dir: &Path,
         link_dir: &Path,
+        noise_stream: u64,
     ) -> Result<(SimRig, ThreadedCamera), SimError> {
         let sim = &plan.simulation;
         let SimWorld {
@@ -213,27 +277,7 @@ impl SimRig {
             sensor: _,
             scene_file,
         } = SimRig::world(plan, plan_dir)?;
-        let stage_faults = match &sim.stage_faults {
-            Some(t) => {
-                let text = toml::to_string(t)
-                    .map_err(|e| SimError::Input(format!("simulation.stage_faults: {e}")))?;
-                FaultProfile::from_toml_str(&text)
-                    .map_err(|e| SimError::Input(format!("simulation.stage_faults: {e}")))?
-            }
-            None => FaultProfile::default(),
-        };
-        let camera_faults: CameraFaults = match &sim.camera_faults {
-            Some(t) => {
-                let f: CameraFaults = t
-                    .clone()
-                    .try_into()
-                    .map_err(|e| SimError::Input(format!("simulation.camera_faults: {e}")))?;
-                f.validate()
-                    .map_err(|e| SimError::Input(format!("simulation.camera_faults: {e}")))?;
-                f
-            }
-            None => CameraFaults::default(),
-        };
+        let (stage_faults, camera_faults) = fault_profiles(plan)?;
         let mut config = NativeConfig::rotator();
         let v = (sim.stage_deg_per_s * COUNTS_PER_TURN / 360.0).round();
         config.velocity_counts_per_s = v.clamp(1.0, f64::from(u32::MAX)) as u32;
@@ -253,6 +297,7 @@ impl SimRig {
                 max_frame_rate_hz: 200.0,
                 faults: camera_faults,
                 seed: sim.seed,
+                noise_stream,
             },
             server.truth_handle().angle_source(),
         )
@@ -294,6 +339,7 @@ impl SimRig {
         plan: &Plan,
         plan_dir: &Path,
         link_dir: &Path,
+        noise_stream: u64,
     ) -> Result<
         (
             SimRig,
@@ -301,7 +347,7 @@ impl SimRig {
         ),
         SimError,
     > {
-        let (rig, camera) = SimRig::start(plan, plan_dir, link_dir)?;
+        let (rig, camera) = SimRig::start(plan, plan_dir, link_dir, noise_stream)?;
         // The link may be faulty (an unplug during the handshake): a few tries, as a person
         // would replug and retry.
         let mut tries = 0;
@@ -316,20 +362,7 @@ impl SimRig {
                 Err(e) => return Err(SimError::Stage(e.to_string())),
             }
         };
-        let target_mask = match plan
-            .adaptive
-            .as_ref()
-            .and_then(|a| a.target.material.as_deref())
-        {
-            Some(m) => Some(rig.material_mask(m).ok_or_else(|| {
-                SimError::Input(format!(
-                    "adaptive.target.material = {m:?} is not in the simulated scene: allowed \
-                     one of {:?}",
-                    rig.scene.materials
-                ))
-            })?),
-            None => None,
-        };
+        let target_mask = target_mask(plan, &rig.scene)?;
         let devices = serde_json::json!({
             "kind": "simulated",
             "plan_dir": plan_dir.display().to_string(),
@@ -357,6 +390,7 @@ impl SimRig {
             sensor: rig.sensor.clone(),
             illumination: Some(rig.illumination.clone()),
             target_mask,
+            sun_deg: rig.sun_deg(plan),
             devices,
         };
         Ok((rig, engine_rig))
@@ -373,6 +407,18 @@ impl SimRig {
                 .map(|&r| usize::from(r) == k)
                 .collect(),
         )
+    }
+
+    /// The sun of the simulated scene (zenith, azimuth, degrees), which its frames record;
+    /// `None` for the calibration sources (a uniform light has no sun).
+    pub fn sun_deg(&self, plan: &Plan) -> Option<(f64, f64)> {
+        match plan.kind {
+            PlanKind::CalibrateNoise | PlanKind::CalibrateAnalyzer => None,
+            _ => self
+                .scene_file
+                .as_ref()
+                .map(|s| (s.spec.sun_zenith_deg, s.spec.sun_azimuth_deg)),
+        }
     }
 
     /// The full frame.

@@ -6,137 +6,14 @@
 
 use polar_engine::journal::{replay, Entry};
 use polar_engine::plan::Plan;
-use polar_engine::run::{self, Control, Event, Outcome, RunState, Summary};
+use polar_engine::run::{self, Event, Outcome, RunState};
 use polar_engine::sim::SimRig;
 use polar_engine::store::RunStore;
 use polar_engine::FrameKind;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-fn temp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("polar-engine-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
-}
-
-/// What a test does with the controller while the run goes.
-#[derive(Clone, Copy, PartialEq)]
-enum Script {
-    /// Nothing.
-    Watch,
-    /// Pause (at the next safe point) after `n` frames, then resume.
-    PauseResume(u64),
-    /// Pause now after `n` frames, then resume.
-    PauseNowResume(u64),
-    /// Pause after `n` frames, then abort.
-    PauseAbort(u64),
-    /// Pause after `n` frames, then detach.
-    PauseDetach(u64),
-}
-
-/// Runs `plan` on a new simulated rig; returns the outcome, the states seen and the events.
-fn go(
-    plan: &Plan,
-    dir: &Path,
-    resume: bool,
-    script: Script,
-) -> (Outcome, Vec<RunState>, Vec<Event>) {
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    let local = tokio::task::LocalSet::new();
-    local.block_on(&rt, async {
-        let (rig, engine_rig) = SimRig::start_rig(plan, Path::new("."), &dir.join(".sim"))
-            .await
-            .unwrap();
-        let (ctl, link) = run::link();
-        let run::Controller {
-            control,
-            state,
-            mut events,
-        } = ctl;
-        let watcher = tokio::task::spawn_local(async move {
-            let mut states = Vec::new();
-            let mut seen = Vec::new();
-            let mut paused_once = false;
-            while let Some(e) = events.recv().await {
-                match &e {
-                    Event::Progress { done, .. } => {
-                        let trigger = match script {
-                            Script::PauseResume(n)
-                            | Script::PauseAbort(n)
-                            | Script::PauseDetach(n) => Some((n, Control::Pause)),
-                            Script::PauseNowResume(n) => Some((n, Control::PauseNow)),
-                            Script::Watch => None,
-                        };
-                        if let Some((n, c)) = trigger {
-                            if *done == n && !paused_once {
-                                paused_once = true;
-                                control.send(c).await.unwrap();
-                            }
-                        }
-                    }
-                    Event::State(s) => {
-                        states.push(s.clone());
-                        if let RunState::Paused(reason) = s {
-                            let c = match script {
-                                Script::PauseAbort(_) => Control::Abort,
-                                Script::PauseDetach(_) => Control::Detach,
-                                _ if reason.starts_with("paused by the user") => Control::Resume,
-                                _ => Control::Resume,
-                            };
-                            control.send(c).await.unwrap();
-                        }
-                    }
-                    _ => {}
-                }
-                seen.push(e);
-            }
-            (states, seen)
-        });
-        let outcome = run::run(plan, engine_rig, dir, resume, link).await.unwrap();
-        drop(state);
-        let (states, seen) = watcher.await.unwrap();
-        rig.shutdown().await;
-        (outcome, states, seen)
-    })
-}
-
-fn done(o: &Outcome) -> &Summary {
-    match o {
-        Outcome::Done(s) => s,
-        other => panic!("not done: {other:?}"),
-    }
-}
-
-/// The exact frame set: every planned step has one accepted frame, frame indices are
-/// 0..N without gaps, and the stored pixels hash to the journaled hashes (the engine's own
-/// end check, repeated here from the outside).
-fn check_frame_set(dir: &Path, planned_steps: u64) {
-    let r = replay(dir).unwrap();
-    assert!(r.is_finished(), "journal has no finished entry");
-    let frames = r.frames();
-    let n = frames.len() as u64;
-    assert_eq!(
-        frames.keys().copied().collect::<Vec<_>>(),
-        (0..n).collect::<Vec<_>>()
-    );
-    let rejected = r.rejected_frames();
-    let mut steps: Vec<u64> = frames
-        .values()
-        .filter(|f| !rejected.contains(&f.index))
-        .map(|f| f.step)
-        .collect();
-    steps.sort_unstable();
-    steps.dedup();
-    assert_eq!(steps, (0..planned_steps).collect::<Vec<_>>());
-    let store = RunStore::open(dir).unwrap();
-    assert_eq!(store.frame_count(), n);
-    for f in frames.values() {
-        let px = store.read_frame(f.index).unwrap();
-        assert_eq!(polar_engine::pixel_hash(&px), f.hash, "frame {}", f.index);
-    }
-}
+mod common;
+use common::{check_frame_set, done, go, temp_dir, Script};
 
 const CAPTURE: &str = r#"
 name = "capture"
@@ -281,9 +158,14 @@ fn abort_keeps_what_was_acquired() {
         .unwrap();
     let local = tokio::task::LocalSet::new();
     let again = local.block_on(&rt, async {
-        let (rig, engine_rig) = SimRig::start_rig(&plan, Path::new("."), &dir.join(".sim2"))
-            .await
-            .unwrap();
+        let (rig, engine_rig) = SimRig::start_rig(
+            &plan,
+            Path::new("."),
+            &dir.join(".sim2"),
+            run::noise_stream(&dir),
+        )
+        .await
+        .unwrap();
         let (_ctl, link) = run::link();
         let r = run::run(&plan, engine_rig, &dir, true, link).await;
         rig.shutdown().await;

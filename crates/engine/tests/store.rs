@@ -10,6 +10,8 @@ use serde_json::{json, Map, Value};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+mod common;
+
 const W: u32 = 64;
 const H: u32 = 48;
 const N: u64 = 6;
@@ -142,9 +144,10 @@ fn write_run(dir: &Path) -> RunStore {
             .map(|(k, n)| (*n, product(slot as f32 * 10.0 + k as f32)))
             .collect();
         let refs: Vec<(&str, &[f32])> = images.iter().map(|(n, v)| (*n, v.as_slice())).collect();
-        store
-            .write_products(slot, slot + 3, &slot_angles(slot), &refs)
+        let written = store
+            .write_products(slot + 3, &slot_angles(slot), &refs)
             .unwrap();
+        assert_eq!(written, slot, "a new set takes the next slot");
     }
     store.write_dark_mean(&dark_mean()).unwrap();
     store.set_attribute("state", json!("done")).unwrap();
@@ -217,7 +220,7 @@ fn store_round_trip() {
     let e = store.write_frame(0, &[1, 2, 3]).unwrap_err();
     assert!(e.to_string().contains("frame 0: 3 values"), "{e}");
     let e = store
-        .write_products(2, 9, &[0.0], &[("set", &product(0.0))])
+        .write_products(9, &[0.0], &[("set", &product(0.0))])
         .unwrap_err();
     assert!(e.to_string().contains("\"set\""), "{e}");
     assert!(matches!(
@@ -558,30 +561,11 @@ fn expected_for_python(store: &RunStore) -> Value {
     })
 }
 
-fn python_has_zarr() -> bool {
-    std::process::Command::new("python3")
-        .args([
-            "-c",
-            "import zarr, sys; sys.exit(0 if int(zarr.__version__.split('.')[0]) >= 3 else 1)",
-        ])
-        .output()
-        .map(|o| o.status.success())
-        .unwrap_or(false)
-}
-
 #[test]
 fn python_zarr_reads_the_store() {
-    if !python_has_zarr() {
-        if std::env::var("POLARIMETER_SKIP_PYTHON").as_deref() == Ok("1") {
-            println!("skipped: python3 with zarr>=3 is not available (POLARIMETER_SKIP_PYTHON=1)");
-            return;
-        }
-        panic!(
-            "python3 cannot `import zarr` (v3): run the tests with `bash scripts/test.sh`, which \
-             installs it, or `pip install 'zarr>=3'`; set POLARIMETER_SKIP_PYTHON=1 to skip \
-             this test"
-        );
-    }
+    let Some(python) = common::python() else {
+        return;
+    };
     let tmp = TempDir::new("python");
     let store = write_run(tmp.path());
     let expected = expected_for_python(&store);
@@ -592,7 +576,7 @@ fn python_zarr_reads_the_store() {
     )
     .unwrap();
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scripts/zarr_interop.py");
-    let out = std::process::Command::new("python3")
+    let out = std::process::Command::new(&python)
         .arg(&script)
         .arg(tmp.path())
         .arg(&expected_path)
@@ -613,7 +597,7 @@ fn python_zarr_reads_the_store() {
     wrong["arrays"]["frames/kind"]["values"][0] = json!(1);
     wrong["attributes"]["plan"]["name"] = json!("other");
     std::fs::write(&expected_path, serde_json::to_vec(&wrong).unwrap()).unwrap();
-    let out = std::process::Command::new("python3")
+    let out = std::process::Command::new(&python)
         .arg(&script)
         .arg(tmp.path())
         .arg(&expected_path)

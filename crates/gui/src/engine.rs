@@ -418,7 +418,9 @@ async fn connect(
             })
         }
         Devices::Simulated => {
-            let (sim, r) = SimRig::start_rig(plan, plan_dir, link_dir)
+            // The GUI starts new runs only (noise stream 0); one connection's frame ids
+            // keep counting over its runs, so no draw repeats.
+            let (sim, r) = SimRig::start_rig(plan, plan_dir, link_dir, 0)
                 .await
                 .map_err(|e| format!("simulated rig: {e}"))?;
             let rig = Rig {
@@ -433,6 +435,7 @@ async fn connect(
                 sensor: r.sensor,
                 illumination: r.illumination,
                 target_mask: r.target_mask,
+                sun_deg: r.sun_deg,
                 devices: r.devices,
             };
             Ok(Connected {

@@ -1,4 +1,4 @@
-//! The planner panel (issue 9): the SCR-optimal analyzer set for a target against a background
+//! The planner panel: the SCR-optimal analyzer set for a target against a background
 //! of the simulated scene, beside the conventional sets, with each set's matched-filter
 //! detection probability and ROC curve.
 //!

@@ -1,4 +1,4 @@
-//! The rooftop panel (issue 9): the sun's position and the sky's DoLP/AoP map for a site and a
+//! The rooftop panel: the sun's position and the sky's DoLP/AoP map for a site and a
 //! UTC time.
 //!
 //! - Sun: the NREL Solar Position Algorithm through [`polar_model::sun::sun_position`] (MODEL.md
@@ -9,7 +9,7 @@
 //!   (MODEL.md section 10; DoLP `-P12 / P11` with molecular depolarisation 0.0279, maximum
 //!   0.9457 at 90 deg from the sun), the Stokes vector in each ray's frame with its x axis
 //!   horizontal (MODEL.md section 0: `S1 > 0` is a horizontal E-vector,
-//!   `AoP = 0.5 atan2(S2, S1)` in (-90, 90] deg, seed Eq. 2.15).
+//!   `AoP = 0.5 atan2(S2, S1)` in (-90, 90] deg, Meng (2012) Eq. 2.15).
 //! - The plane-parallel single-scattering model has no radiance when the sun is below the
 //!   horizon (it returns an error naming `sun_zenith_deg`). The map then shows that error and
 //!   draws the *twilight geometry*: the same single-scattering polarisation pattern (DoLP

@@ -270,7 +270,7 @@ fn hardware_flags_path_on_a_simulated_stage() {
     let plan = Plan::from_toml_str(polar_gui::DEFAULT_PLAN).unwrap();
     let (stage, camera) = {
         let _g = rt.enter();
-        SimRig::start(&plan, std::path::Path::new("."), &dir.join("stage")).unwrap()
+        SimRig::start(&plan, std::path::Path::new("."), &dir.join("stage"), 0).unwrap()
     };
     drop(camera); // the stage's server is what this test needs
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");

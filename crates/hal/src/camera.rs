@@ -1,4 +1,4 @@
-//! The camera trait and its frame (`../shared/design/SYSTEM.md`, "Device abstraction").
+//! The camera trait and its frame (`ARCHITECTURE.md`, "Device abstraction").
 //!
 //! A [`Camera`] is configured (exposure, gain, pixel format, region of interest, trigger),
 //! started, and grabbed from with a deadline. Every [`Frame`] carries its pixels widened to

@@ -1,5 +1,5 @@
 //! Device traits of the polarimeter and the error kinds every device shares
-//! (`../shared/design/SYSTEM.md`, "Device abstraction").
+//! (`ARCHITECTURE.md`, "Device abstraction").
 //!
 //! * [`Rotator`]: a rotation stage (home, move to an absolute angle, read the position back).
 //! * [`FilterWheel`]: a wheel (or slider) of labelled slots.

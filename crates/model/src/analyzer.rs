@@ -1,11 +1,11 @@
 //! Analyzer sets: measurement matrices, Stokes reconstruction, conditioning and noise gains
-//! (seed Sec. 2.4, MODEL.md sections 1 and 6).
+//! (Meng (2012) Sec. 2.4, MODEL.md sections 1 and 6).
 //!
 //! `N` frames taken through analyzers at angles `psi_1..psi_N` measure `I = W S` with `W` the
 //! `N x 3` matrix whose rows are `m(psi_k)^T` (`intensities_from_stokes`). The least-squares
 //! reconstruction is `S_hat = W^+ I` with `W^+ = (W^T W)^-1 W^T` (`stokes_from_intensities`),
 //! computed here from the singular value decomposition for numerical stability. The classic
-//! three- and four-angle formulas of seed Sec. 2.4 are special cases (see the tests).
+//! three- and four-angle formulas of Meng (2012) Sec. 2.4 are special cases (see the tests).
 
 use crate::error::ModelError;
 use crate::polarization::Stokes;
@@ -217,13 +217,13 @@ impl AnalyzerSet {
     }
 }
 
-/// Pickering's 0/45/90 method (seed Sec. 2.4): `S0 = I0 + I90`, `S1 = I0 - I90`,
+/// Pickering's 0/45/90 method (Meng (2012) Sec. 2.4): `S0 = I0 + I90`, `S1 = I0 - I90`,
 /// `S2 = 2 I45 - I0 - I90`.
 pub fn pickering(i0: f64, i45: f64, i90: f64) -> Stokes {
     Stokes::new(i0 + i90, i0 - i90, 2.0 * i45 - i0 - i90)
 }
 
-/// The 0/60/120 method (seed Sec. 2.4, sign of `S2` derived from `W^+`):
+/// The 0/60/120 method (Meng (2012) Sec. 2.4, sign of `S2` derived from `W^+`):
 /// `S0 = 2/3 (I0 + I60 + I120)`, `S1 = 2/3 (2 I0 - I60 - I120)`, `S2 = 2/sqrt(3) (I60 - I120)`.
 pub fn three_angle_0_60_120(i0: f64, i60: f64, i120: f64) -> Stokes {
     Stokes::new(
@@ -233,7 +233,7 @@ pub fn three_angle_0_60_120(i0: f64, i60: f64, i120: f64) -> Stokes {
     )
 }
 
-/// The modified Pickering 0/45/90/135 method (seed Sec. 2.4): `S0 = 0.5 (I0 + I45 + I90 + I135)`,
+/// The modified Pickering 0/45/90/135 method (Meng (2012) Sec. 2.4): `S0 = 0.5 (I0 + I45 + I90 + I135)`,
 /// `S1 = I0 - I90`, `S2 = I45 - I135`.
 pub fn modified_pickering(i0: f64, i45: f64, i90: f64, i135: f64) -> Stokes {
     Stokes::new(0.5 * (i0 + i45 + i90 + i135), i0 - i90, i45 - i135)

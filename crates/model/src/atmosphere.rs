@@ -7,6 +7,7 @@
 //! weighted mean wavelength); [`Atmosphere::effective_wavelength_error`] reports what that
 //! approximation costs against the full spectral integral for the direct beam.
 
+use crate::air_mass::{air_mass, slant_mu0};
 use crate::error::ModelError;
 use crate::polarization::Stokes;
 use crate::sky::{
@@ -180,29 +181,6 @@ impl Band {
             }
         }
         (0..=m).map(|i| (node(i), weights[i])).collect()
-    }
-}
-
-/// Kasten & Young (Appl. Opt. 28, 4735 (1989)) relative air mass at zenith angle (degrees):
-/// `1 / (cos z + 0.50572 (96.07995 - z)^-1.6364)`; 1 at the zenith, 37.92 at the horizon.
-pub fn air_mass(zenith_deg: f64) -> f64 {
-    let z = zenith_deg.clamp(0.0, 90.0);
-    1.0 / (z.to_radians().cos() + 0.50572 * (96.07995 - z).powf(-1.6364))
-}
-
-/// The pseudo-spherical solar cosine `1 / m(z)`, `m` the Kasten-Young air mass: the sun beam's
-/// attenuation along its slant path through the layer uses it in place of `mu0` (the
-/// pseudo-spherical approximation, Dahlback & Stamnes, Planet. Space Sci. 39, 671 (1991)), so
-/// the sky and the path radiance stay lit with the sun at the horizon, consistently with the
-/// direct beam's air mass. Normalised to be exactly 1 at the zenith (the fit gives
-/// `m(0) = 0.99971`); within 0.3 % of `mu0` up to 60 deg zenith, 3 % at 80 deg, and 0.026
-/// instead of 0 at the horizon, where the plane-parallel layer fails. 0 for the sun below the
-/// horizon.
-pub fn slant_mu0(mu0: f64) -> f64 {
-    if mu0 < 0.0 || !mu0.is_finite() {
-        0.0
-    } else {
-        air_mass(0.0) / air_mass(mu0.min(1.0).acos().to_degrees())
     }
 }
 
@@ -499,7 +477,7 @@ impl ClearSky {
     }
 }
 
-impl crate::skylight::SkyRadiance for ClearSky {
+impl crate::sky::SkyRadiance for ClearSky {
     /// Downwelling single-scattering radiance per unit TOA irradiance (the formula of
     /// [`RayleighSky::stokes`] with the mixture's source).
     fn stokes_from(&self, towards: &Vector3<f64>) -> Stokes {
@@ -516,8 +494,8 @@ impl crate::skylight::SkyRadiance for ClearSky {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sky::direction_from_deg;
-    use crate::skylight::SkyRadiance;
+    use crate::angles::direction_from_deg;
+    use crate::sky::SkyRadiance;
 
     #[test]
     fn spectrum_table_is_complete() {

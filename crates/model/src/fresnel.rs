@@ -1,16 +1,16 @@
-//! Fresnel reflection at a planar interface (seed Sec. 2.5, MODEL.md section 2).
+//! Fresnel reflection at a planar interface (Meng (2012) Sec. 2.5, MODEL.md section 2).
 //!
 //! The incidence medium is air (index 1). The second medium has complex index `N = n + ik`
 //! (`k = 0` for a dielectric). Amplitudes follow the convention of MODEL.md:
 //!
 //! * `rs = (cos ti - w) / (cos ti + w)`, `rp = (N^2 cos ti - w) / (N^2 cos ti + w)`,
-//!   `w = sqrt(N^2 - sin^2 ti)` (principal branch, `Re w >= 0`, `Im w >= 0`), seed Eqs. 2.27-2.28
+//!   `w = sqrt(N^2 - sin^2 ti)` (principal branch, `Re w >= 0`, `Im w >= 0`), Meng (2012) Eqs. 2.27-2.28
 //!   written for complex `N`;
 //! * at normal incidence `rp = -rs`: the p basis vector of each ray is `k × s`, so it flips with
 //!   the propagation direction. The Mueller element `M22 = Re(rs rp*)` is then `-R` at normal
 //!   incidence, consistent with the mirror-image frame of the reflected ray.
 //!
-//! The complex form has no `tan ti` and is exact at grazing incidence (`rs = rp = -1`). The seed's
+//! The complex form has no `tan ti` and is exact at grazing incidence (`rs = rp = -1`). Meng (2012)'s
 //! real-valued conductor formulas (Eqs. 2.31-2.36) are used only as a test oracle.
 
 use crate::error::ModelError;

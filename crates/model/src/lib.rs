@@ -1,7 +1,7 @@
 //! End-to-end analytical model of polarimetric imaging.
 //!
 //! This crate is pure physics: no I/O, no async, no clock, no device types. It follows the
-//! conventions of `shared/design/MODEL.md` section 0 (binding for the whole workspace):
+//! conventions of `docs/MODEL.md` section 0 (binding for the whole workspace):
 //!
 //! * linear Stokes vectors `S = [S0, S1, S2]`, `S1 > 0` along the frame's x axis, `S2 > 0` at +45 deg;
 //! * an ideal analyzer at `psi` transmits `I = m(psi)^T S`, `m = 0.5 [1, cos 2psi, sin 2psi]`;
@@ -11,15 +11,19 @@
 //!
 //! Modules, in the order of the imaging chain:
 //!
+//! * [`angles`]: degree trigonometry exact at the quadrants, and directions from zenith and azimuth.
 //! * [`polarization`]: Stokes and Mueller types, DoLP, AoP, polarizer, frame rotation.
 //! * [`fresnel`]: dielectric and conductor Fresnel amplitudes and reflectances.
-//! * [`pbrdf`]: the microfacet polarimetric BRDF (seed Eqs. 3.4-3.18) and the vegetation model (Eq. 3.19).
+//! * [`geometry`]: the scattering geometry: ray pair, surface frames, the reflecting microfacet.
+//! * [`pbrdf`]: the microfacet polarimetric BRDF (Meng (2012) Eqs. 3.4-3.18) and the vegetation model (Eq. 3.19).
 //! * [`material`]: a small library of materials at 550 nm, TOML in and out.
 //! * [`analyzer`]: measurement matrices of analyzer sets, reconstruction, conditioning and noise gains.
+//! * [`air_mass`]: the relative air mass of the sun's slant path; the pseudo-spherical cosine.
 //! * [`atmosphere`]: TOA spectrum, band, Beer-Lambert transmittance, clear sky with aerosol, path radiance.
 //! * [`sky`]: Rayleigh single-scattering sky radiance and polarisation.
 //! * [`sky_table`]: a tabulated sky from a radiative-transfer code (CSV), interpolated with its error.
-//! * [`skylight`]: skylight reflected by a surface (Eq. 3.22), slope-space quadrature with error.
+//! * [`slope`]: a microfacet's specular lobe against a sky, integrated in facet-slope space.
+//! * [`skylight`]: skylight reflected by a surface (Eq. 3.22), with its error.
 //! * [`sun`]: the sun's position from UTC time and site (NREL SPA).
 //! * [`scene`]: a scene's mean and covariance at the aperture, to a tolerance, with its error and the terms it skipped.
 //! * [`scene_file`]: the TOML scene format.
@@ -27,11 +31,14 @@
 //! * [`quadrature`]: the adaptive Gauss-Kronrod rule the model's integrals use, with error estimates.
 #![warn(missing_docs)]
 
+pub mod air_mass;
 pub mod analyzer;
+pub mod angles;
 pub mod atmosphere;
 pub mod calibration;
 pub mod error;
 pub mod fresnel;
+pub mod geometry;
 pub mod material;
 pub mod metrics;
 pub mod montecarlo;
@@ -44,6 +51,7 @@ pub mod sensor;
 pub mod sky;
 pub mod sky_table;
 pub mod skylight;
+pub mod slope;
 pub mod stats;
 pub mod sun;
 pub mod tiles;

@@ -17,7 +17,7 @@ pub const BUILTIN_TOML: &str = include_str!("../data/materials.toml");
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum MaterialModel {
-    /// Microfacet specular lobe plus Lambertian diffuse from the DHR (seed Eqs. 3.4-3.18);
+    /// Microfacet specular lobe plus Lambertian diffuse from the DHR (Meng (2012) Eqs. 3.4-3.18);
     /// needs `sigma` and `dhr`.
     Microfacet,
     /// Vegetation canopy (Eq. 3.19) plus an unpolarised diffuse term; needs `f00_diffuse`.

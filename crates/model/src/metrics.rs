@@ -1,4 +1,4 @@
-//! Detection metrics (MODEL.md section 8, a reconstruction of the seed's Ch. 4 after FASSP):
+//! Detection metrics (MODEL.md section 8, a reconstruction of Meng (2012)'s Ch. 4 after FASSP):
 //! signal-to-clutter ratio, and analytic ROC curves of the linear matched filter, the RX
 //! (quadratic) detector and the DoLP threshold detector, for two classes (target, background)
 //! described by their means and covariances after full propagation, in intensity or Stokes space.
@@ -555,7 +555,7 @@ mod tests {
     /// The Chernoff lower-tail bound holds: it is above Ruben's CDF wherever both apply
     /// (CDFs from 4e-2 down to 1e-26, bounds 3 to 7 times above them). For a well-separated target (SCR 1e5, where
     /// the series' first weight underflows) the CDF is 0 with an error under 1e-12, and RX's Pd
-    /// is 1 with `pd_error` under 1e-12 (it was 1 with an error of 1 before the bound).
+    /// is 1 with `pd_error` under 1e-12 (without the bound, the error would be 1).
     #[test]
     fn chernoff_bound_covers_far_lower_tail() {
         let lambdas = [0.3, 1.0, 4.0];

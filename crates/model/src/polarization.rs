@@ -40,7 +40,7 @@ impl Stokes {
         self.0[1].hypot(self.0[2])
     }
 
-    /// Degree of linear polarisation `sqrt(S1^2 + S2^2) / S0` (seed Eq. 2.14).
+    /// Degree of linear polarisation `sqrt(S1^2 + S2^2) / S0` (Meng (2012) Eq. 2.14).
     ///
     /// `None` when `S0` is not positive and normal (below `f64::MIN_POSITIVE` a subnormal
     /// `S0` has lost its relative precision: effectively dark) or a component is not finite (a
@@ -52,7 +52,7 @@ impl Stokes {
         (s0 >= f64::MIN_POSITIVE && s0.is_finite() && p.is_finite()).then(|| p / s0)
     }
 
-    /// Angle of linear polarisation `0.5 atan2(S2, S1)` in `(-pi/2, pi/2]` (seed Eq. 2.15).
+    /// Angle of linear polarisation `0.5 atan2(S2, S1)` in `(-pi/2, pi/2]` (Meng (2012) Eq. 2.15).
     ///
     /// `None` when `S1 = S2 = 0` (unpolarised light has no AoP) or a component is not finite.
     pub fn aop_rad(&self) -> Option<f64> {
@@ -96,7 +96,7 @@ impl Mueller {
         Stokes(self.0.column(0).into_owned())
     }
 
-    /// DoLP of the output for unpolarised input, `sqrt(M10^2 + M20^2) / M00` (seed Eq. 3.20).
+    /// DoLP of the output for unpolarised input, `sqrt(M10^2 + M20^2) / M00` (Meng (2012) Eq. 3.20).
     /// `None` when `M00 <= 0`.
     pub fn dolp_unpolarized(&self) -> Option<f64> {
         self.response_to_unpolarized().dolp()
@@ -104,14 +104,14 @@ impl Mueller {
 }
 
 /// The analyzer row `m(psi) = 0.5 [1, cos 2psi, sin 2psi]` of an ideal linear analyzer
-/// (seed Eq. 1.32 / 3.32): the transmitted intensity is `m^T S`.
+/// (Meng (2012) Eq. 1.32 / 3.32): the transmitted intensity is `m^T S`.
 pub fn analyzer_row(psi_rad: f64) -> Vector3<f64> {
     let (s, c) = (2.0 * psi_rad).sin_cos();
     Vector3::new(0.5, 0.5 * c, 0.5 * s)
 }
 
 /// Mueller matrix of an ideal linear polarizer with its axis at `psi` from the x axis
-/// (seed Eq. 2.17): `0.5 [[1, c, s], [c, c^2, cs], [s, cs, s^2]]`, `c = cos 2psi`, `s = sin 2psi`.
+/// (Meng (2012) Eq. 2.17): `0.5 [[1, c, s], [c, c^2, cs], [s, cs, s^2]]`, `c = cos 2psi`, `s = sin 2psi`.
 pub fn linear_polarizer(psi_rad: f64) -> Mueller {
     let (s, c) = (2.0 * psi_rad).sin_cos();
     Mueller(
@@ -129,7 +129,7 @@ pub fn linear_polarizer(psi_rad: f64) -> Mueller {
     )
 }
 
-/// Rotation of the reference frame by `eta` about the propagation direction (seed Eq. 3.8 with the
+/// Rotation of the reference frame by `eta` about the propagation direction (Meng (2012) Eq. 3.8 with the
 /// sign typo fixed): `[[1, 0, 0], [0, cos 2eta, sin 2eta], [0, -sin 2eta, cos 2eta]]`.
 ///
 /// If `S_old` is expressed in frame `(x, y)` and the new frame's x axis is `x` turned by `eta`
@@ -153,7 +153,7 @@ pub fn rotation_from_cos_sin_2eta(cos_2eta: f64, sin_2eta: f64) -> Mueller {
 /// vector `to_x` about the unit propagation direction `k` (both transverse to `k`).
 ///
 /// Uses `cos eta = from·to`, `sin eta = (from × to)·k`, then the double-angle identities, so the
-/// sign of the rotation is kept (the seed's arc-cosine Eqs. 3.9-3.10 lose it).
+/// sign of the rotation is kept (Meng (2012)'s arc-cosine Eqs. 3.9-3.10 lose it).
 pub fn cos_sin_2eta(from_x: &Vector3<f64>, to_x: &Vector3<f64>, k: &Vector3<f64>) -> (f64, f64) {
     let c = from_x.dot(to_x);
     let s = from_x.cross(to_x).dot(k);

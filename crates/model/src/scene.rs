@@ -1,4 +1,4 @@
-//! Scene statistics at the aperture (seed Eqs. 3.21-3.31, MODEL.md sections 4, 5 and 11): the
+//! Scene statistics at the aperture (Meng (2012) Eqs. 3.21-3.31, MODEL.md sections 4, 5 and 11): the
 //! Stokes radiance `L_S = T_up (Lr + Ld) + Lu` of each material seen through the camera, its mean
 //! over the field of view and its covariance `Sigma_LS = Sigma_g + Sigma_v`, band-integrated, with
 //! an error estimate, and with the fidelity chosen from a tolerance.
@@ -23,14 +23,14 @@
 //!   last change is reported and added to the error). A probe of the field's corners decides
 //!   whether one ray suffices (a 1-degree field of view: `Sigma_g` skipped); when the cheap
 //!   terms (direct, path) alone vary by `tol / 4` it does not integrate the skylight.
-//! * **Skylight over the field**: a tensor polynomial through Chebyshev-Lobatto rays (3 x 3, then
-//!   5 points in one direction, the other, both; the probe's rays reused) replaces the
+//! * **Skylight over the field**: a polynomial through Chebyshev-Lobatto rays (a sparse grid
+//!   grown from the cross up to 5 x 5; the probe's rays reused) replaces the
 //!   hemisphere integral at every field ray once the four order-2 Gauss-Legendre rays show
 //!   that the field mean and spread it gives are within its budget (below; to leading order,
 //!   with a margin of 1.7-3.9; `fit_moment_errors`) and that it predicts them within four
 //!   times that; the larger of the mean's and the spread's errors and its rays' quadrature
 //!   errors are reported (`Prepared::lobatto_sky`). If it never does, every field ray
-//!   integrates its own skylight as before. Once the cross's four edge rays are accepted as a
+//!   integrates its own skylight. Once the cross's four edge rays are accepted as a
 //!   batch of level pairs, every later ray (checks, corners, 5-point nodes) computes the
 //!   batch's upper level only and carries its error (`skylight::certified_level`).
 //! * **Error budget** (`SkyBudget`): the errors known before the field is sampled (spectral,
@@ -64,23 +64,25 @@
 //!
 //! [`SkyModel`]: single scattering (above), Berry-Dennis-Lee polarisation on single-scattering
 //! radiance, or a table from a radiative-transfer code ([`crate::sky_table`]). The sun beam's
-//! attenuation uses the pseudo-spherical cosine ([`crate::atmosphere::slant_mu0`]), so a sun at
+//! attenuation uses the pseudo-spherical cosine ([`crate::air_mass::slant_mu0`]), so a sun at
 //! the horizon still lights the sky.
 
-use crate::atmosphere::{air_mass, slant_mu0, Atmosphere, Band, ClearSky, OpticalDepths};
+use crate::air_mass::{air_mass, slant_mu0};
+use crate::atmosphere::{Atmosphere, Band, ClearSky, OpticalDepths};
 use crate::error::ModelError;
 use crate::pbrdf::Surface;
 use crate::polarization::{rotation_from_cos_sin_2eta, Stokes};
 use crate::quadrature::{gauss_legendre_table, integrate, Tolerance};
 use crate::sky::{
-    downward_path, downward_path_beam, e_vector_in_frame, BerrySky, RayleighSky, AIR_DEPOLARIZATION,
+    downward_path, downward_path_beam, e_vector_in_frame, surface_to_frame, BerrySky, RayleighSky,
+    SkyRadiance, AIR_DEPOLARIZATION,
 };
 use crate::sky_table::SkyTable;
 use crate::skylight::{
     batch_error, certified_level, level_pair, next_pair, pair_rule, reflected_skylight,
-    reflected_skylight_at, sky_irradiance, surface_to_frame, Certificate, LevelPair, SkyRadiance,
-    Start, StokesIntegral, DIRECT_PRODUCT_MIN_COS_VIEW,
+    reflected_skylight_at, sky_irradiance, Certificate, DIRECT_PRODUCT_MIN_COS_VIEW,
 };
+use crate::slope::{LevelPair, Start, StokesIntegral};
 use crate::tiles::{Field, Pointing, Tile};
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
@@ -394,7 +396,7 @@ fn stencil_dot(w: &[f64; 4], v: &[f64]) -> f64 {
 fn lagrange4_stencil(len: usize, x: f64) -> (usize, [f64; 4]) {
     let m = len - 1;
     let t = x.clamp(0.0, 1.0) * m as f64;
-    // t >= 0, so the truncating cast is the floor (a NaN gives 0, as NaN.floor() did) without
+    // t >= 0, so the truncating cast is the floor (a NaN gives 0, as NaN.floor() would) without
     // the software floor of the x86-64 baseline (2 % of a scene's instructions).
     let j = (t as usize).clamp(1, m.saturating_sub(2).max(1));
     let s = t - j as f64; // stencil j-1, j, j+1, j+2 at -1, 0, 1, 2
@@ -681,7 +683,7 @@ impl SkyRadiance for BandSky<'_> {
         out: [&mut [f64]; 3],
     ) {
         if !matches!(self.prepared.sky, Sky::SingleScattering) {
-            crate::skylight::stokes_in_frame_each(self, towards, frame_x, out);
+            crate::sky::stokes_in_frame_each(self, towards, frame_x, out);
             return;
         }
         let scattering = self.prepared.scattering();
@@ -1015,8 +1017,7 @@ struct Lambertian {
 impl Lambertian {
     /// A microfacet's `(DHR - specular albedo) / pi` (Eq. 3.18), the albedo to the absolute
     /// tolerance `tol_abs`; vegetation's is given, and its specular albedo, which does not
-    /// enter it, is not computed (it was, with its error in the budget: 2 % of the rooftop's
-    /// instructions at 1e-4).
+    /// enter it, is neither computed nor budgeted.
     fn at(surface: &Surface, theta_i_rad: f64, tol_abs: f64) -> Result<Lambertian, ModelError> {
         match *surface {
             Surface::Vegetation { f00_diffuse, .. } => Ok(Lambertian {
@@ -1229,9 +1230,9 @@ impl Prepared {
                 .collect::<Vec<NodeTables>>()
         };
         // From 256 intervals on, the table's error falls as the fourth power of the interval
-        // (fourth-order interpolation: 256 -> 1024 took the rooftop's estimate from 2.6e-5 to
-        // 1.1e-7, 230x for 4^4 = 256; from 128 it was not yet in that regime, 128 -> 246 gained
-        // 5.5x for 13.6): a table short of tol/8 is rebuilt at the size that law asks for with a
+        // (fourth-order interpolation; measured on the rooftop: a factor 4 in intervals gives
+        // about 230x, against 4^4 = 256, while below 256 intervals the error falls more slowly):
+        // a table short of tol/8 is rebuilt at the size that law asks for with a
         // factor 2 to spare, and checked again. The first size is probed on the nodes of least
         // and greatest optical depth alone, where the error is largest (the horizon's
         // transition lies at `mu ~ tau`: sharpest for the least, and the greatest has the
@@ -1768,8 +1769,7 @@ impl Prepared {
     /// directions (the `u v` term nothing else resolves), else 5 points
     /// (`{-1, -1/sqrt 2, 0, 1/sqrt 2, 1}`) in the direction whose odd part is the larger; up to
     /// the 5 x 5 grid. A field whose skylight is nearly additive in `u` and `v` then needs 5
-    /// or 7 rays instead of 9 or 15 (measured: rooftop 1e-4 232 k -> 212 k evaluations,
-    /// 1e-6 924 k -> 735 k).
+    /// or 7 rays instead of the tensor grid's 9 or 15.
     ///
     /// The interpolant serves the field's mean and covariance, so it is checked on their
     /// errors ([`fit_moment_errors`]): both below `target`. It must also predict the check rays
@@ -2163,9 +2163,8 @@ impl Prepared {
             // as batches of level pairs where the surface's `pair_rule` admits that level. On
             // vegetation a level it does not admit hints nothing: the centre ray, in the sun's
             // plane there, can need three levels more than its neighbours, whose own ladders
-            // then started needlessly high (up to 2.1x the cost). As pairs, the first rays
-            // cost less even so (rooftop grass at 1e-4: 55.5 k -> 32.7 k evaluations, airborne
-            // field 35.4 k -> 26.3 k; at 1e-6, 194.6 k -> 198.2 k and unchanged).
+            // would then start needlessly high (up to 2.1x the cost). As pairs, the first rays
+            // cost less even so (docs/design/scene-quadrature.md).
             let coarse_hint = coarse.level.filter(|&l| {
                 l <= pair_rule(surface).max_hint && coarse.sky_error <= ray_tol * s0_direct
             });
@@ -2643,7 +2642,7 @@ mod tests {
             (85.0, 10.0),
             (89.5, 180.0),
         ] {
-            let d = crate::sky::direction_from_deg(z, az);
+            let d = crate::angles::direction_from_deg(z, az);
             let mut exact = Vector3::zeros();
             for n in &p.nodes {
                 let sky = s.atmosphere.sky(n.nm, p.sun).unwrap();
@@ -2682,7 +2681,7 @@ mod tests {
             (60.0, 250.0),
             (89.9, 75.0),
         ] {
-            let d = crate::sky::direction_from_deg(z, az);
+            let d = crate::angles::direction_from_deg(z, az);
             let k = -d;
             // A transverse basis of the ray, then frames at 36 angles (and two lengths).
             let u = k.cross(&Vector3::new(0.3, -0.2, 0.9)).normalize();
@@ -2717,7 +2716,7 @@ mod tests {
         let (mut towards, mut frame) = (Vec::new(), Vec::new());
         for i in 0..61 {
             let z = -5.0 + i as f64 * 1.6;
-            let d = crate::sky::direction_from_deg(z, i as f64 * 37.0);
+            let d = crate::angles::direction_from_deg(z, i as f64 * 37.0);
             let u = d.cross(&Vector3::new(0.3, -0.2, 0.9)) * (0.5 + i as f64);
             towards.push(d);
             frame.push(u);
@@ -2918,9 +2917,9 @@ mod tests {
     /// term has a kink over the field (the shadowing function's branch switch: the field's
     /// Gauss-Legendre means then converge algebraically, and one change between orders can be
     /// small by a coincidence of two orders' errors). Three fields found by a sweep of 40
-    /// random scenes and five materials, where the estimate had fallen short by up to 1.5x
-    /// while the field's orders were accepted on one change; they are now accepted on the larger
-    /// of the last two, as the hemisphere rule's levels are.
+    /// random scenes and five materials, where an estimate from one change between orders
+    /// falls short by up to 1.5x; the field's orders are accepted on the larger of the last
+    /// two changes, as the hemisphere rule's levels are.
     #[test]
     fn error_estimate_covers_the_truth_on_kinked_fields() {
         let cases = [
@@ -2960,7 +2959,7 @@ mod tests {
         }
     }
 
-    /// A scene lit by its own band sky exported as a 10-degree table (the seed's MODTRAN-P
+    /// A scene lit by its own band sky exported as a 10-degree table (Meng (2012)'s MODTRAN-P
     /// grid) agrees with the analytic scene within the table's reported interpolation error,
     /// and that error is reported (below 2 %: the grid is coarse, not wrong).
     #[test]
@@ -2973,7 +2972,7 @@ mod tests {
             for j in 0..36 {
                 let (z, a) = (i as f64 * 10.0, j as f64 * 10.0);
                 let v = sky
-                    .stokes_from(&crate::sky::direction_from_deg(z.max(1e-7), a))
+                    .stokes_from(&crate::angles::direction_from_deg(z.max(1e-7), a))
                     .0;
                 csv += &format!("{z},{a},{:e},{:e},{:e}\n", v[0], v[1], v[2]);
             }
@@ -3013,7 +3012,7 @@ mod tests {
         let p = Prepared::new(&s, 1e-5).unwrap();
         let sky = p.ground_sky();
         for (z, az) in [(10.0, 0.0), (50.0, 90.0), (80.0, 270.0), (40.0, 180.0)] {
-            let d = crate::sky::direction_from_deg(z, az);
+            let d = crate::angles::direction_from_deg(z, az);
             let air = RayleighSky {
                 optical_depth: 0.0,
                 depolarization: AIR_DEPOLARIZATION,
@@ -3044,7 +3043,7 @@ mod tests {
         let b30 = Prepared::new(&berry(30.0), 1e-5).unwrap();
         let (sky_ss, sky_b0, sky_b30) = (ss.ground_sky(), b0.ground_sky(), b30.ground_sky());
         for (z, az) in [(10.0, 0.0), (50.0, 90.0), (80.0, 270.0), (60.0, 10.0)] {
-            let d = crate::sky::direction_from_deg(z, az);
+            let d = crate::angles::direction_from_deg(z, az);
             let (a, b) = (sky_ss.stokes_from(&d).0, sky_b0.stokes_from(&d).0);
             assert!((a[0] - b[0]).abs() < 1e-12 * a[0], "{z},{az}");
             let (pa, pb) = (a[1].hypot(a[2]), b[1].hypot(b[2]));
@@ -3056,7 +3055,7 @@ mod tests {
         }
         // Sun at zenith 40, azimuth 180: the neutral points are at zenith 25 and 55.
         for z in [25.0, 55.0] {
-            let d = crate::sky::direction_from_deg(z, 180.0);
+            let d = crate::angles::direction_from_deg(z, 180.0);
             let dolp = sky_b30.stokes_from(&d).dolp().unwrap_or(0.0);
             assert!(dolp < 1e-6, "zenith {z}: {dolp}");
         }
@@ -3310,9 +3309,8 @@ mod tests {
         /// paint, asphalt, aluminium, vegetation), at 1e-3 and 1e-4: the mean's actual error
         /// never exceeds its estimate. Prints the largest ratio of actual error to estimate,
         /// for the mean and for the spread `sqrt |Cov|_F` (not part of the estimate's
-        /// contract; reported for a later change), and the evaluations per tolerance.
-        /// Measured (session 13, about 80 s): mean 0.84 at worst, spread 1.06 (one glass
-        /// field at 1 km); before the field's orders took the larger of two changes, mean 1.48.
+        /// contract), and the evaluations per tolerance. About 80 s; it reports a mean ratio
+        /// of 0.84 at worst and a spread ratio of 1.06 (one glass field at 1 km).
         #[test]
         #[ignore]
         fn estimate_sweep() {

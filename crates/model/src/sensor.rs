@@ -1,4 +1,4 @@
-//! The sensor model (MODEL.md section 6, the seed's Sec. 3.2 *reconstructed*): a camera file,
+//! The sensor model (MODEL.md section 6, Meng (2012)'s Sec. 3.2 *reconstructed*): a camera file,
 //! the camera equation from band radiance to electrons, and the EMVA 1288 linear model from
 //! electrons to digital numbers, with the mean and covariance of `N` frames taken through a
 //! rotating analyzer.
@@ -450,8 +450,8 @@ impl Camera {
     }
 }
 
-/// The seed's sensor noise factor `F_n` (its Ch. 4 sweeps it). Whether it scaled the variance
-/// or the standard deviation of the sensor noise is not recoverable from the seed (MODEL.md
+/// Meng (2012)'s sensor noise factor `F_n` (its Ch. 4 sweeps it). Whether it scaled the variance
+/// or the standard deviation of the sensor noise is not recoverable from Meng (2012) (MODEL.md
 /// section 6), so both are offered: `Variance(f)` multiplies `Sigma_n` by `f`, `StdDev(f)`
 /// multiplies every sensor-noise standard deviation by `f`, that is `Sigma_n` by `f^2`. Scene
 /// clutter and drift are not scaled. Default `Variance(1.0)` (the plain EMVA 1288 model).

@@ -1,4 +1,7 @@
-//! Clear-sky polarised radiance by Rayleigh single scattering (MODEL.md section 10).
+//! Skies as the reflection integrals see them: the [`SkyRadiance`] trait (the Stokes radiance
+//! arriving from each direction of the upper hemisphere), an unpolarised uniform sky, and the
+//! clear sky's polarised radiance by Rayleigh single scattering (MODEL.md section 10), with the
+//! Berry neutral-point form.
 //!
 //! Directions on the sky are given by zenith angle and azimuth **clockwise from north** (x east,
 //! y north, z up). The Stokes vector of light arriving from sky direction `d` is expressed in
@@ -7,9 +10,123 @@
 //! So `S1 > 0` is a horizontal E-vector, and the same Stokes vector is the incident state the
 //! pBRDF expects for that direction.
 
+pub use crate::angles::direction_from_deg;
 use crate::error::ModelError;
-use crate::polarization::Stokes;
+use crate::polarization::{cos_sin_2eta, Stokes};
 use nalgebra::Vector3;
+
+/// A sky: the Stokes radiance arriving from each direction of the upper hemisphere, in that
+/// ray's surface frame (`x ∝ k × z`, `k` the propagation direction; world `+y` at the zenith).
+pub trait SkyRadiance {
+    /// Stokes radiance arriving from unit direction `towards` (`z >= 0`).
+    fn stokes_from(&self, towards: &Vector3<f64>) -> Stokes;
+
+    /// A direction near which the radiance varies fastest, if there is one (the sun, whose
+    /// aureole the aerosol's forward scattering makes): quadrature rules split there.
+    fn peak(&self) -> Option<Vector3<f64>> {
+        None
+    }
+
+    /// [`SkyRadiance::stokes_from`] in another transverse frame of the same ray: `frame_x`
+    /// (non-zero, perpendicular to `towards`, any length) and `y = k × frame_x`, `k = -towards`
+    /// the propagation direction. By default the surface frame's Stokes vector rotated by
+    /// [`cos_sin_2eta`] (the rotation [`FacetGeometry`](crate::geometry::FacetGeometry) applies into a facet frame); a sky that
+    /// knows its E-vector may compute the angle in `frame_x` directly, which is what the
+    /// facet-slope integrand asks for.
+    fn stokes_in_frame(&self, towards: &Vector3<f64>, frame_x: &Vector3<f64>) -> Stokes {
+        surface_to_frame(self.stokes_from(towards), towards, frame_x)
+    }
+
+    /// [`SkyRadiance::stokes_in_frame`] for a batch of rays in structure-of-arrays form: ray
+    /// `i` arrives from `(towards[0][i], towards[1][i], towards[2][i])` and its frame is
+    /// `frame_x[..][i]`; its Stokes vector goes to `out[..][i]`, for `i < out[0].len()` (every
+    /// slice at least that long). By default one [`SkyRadiance::stokes_in_frame`] per ray; a
+    /// sky whose radiance is arithmetic may compute the batch in vector loops, which the
+    /// facet-slope integrand's product rule asks for, one piece of a line at a time.
+    fn stokes_in_frame_batch(
+        &self,
+        towards: [&[f64]; 3],
+        frame_x: [&[f64]; 3],
+        out: [&mut [f64]; 3],
+    ) {
+        stokes_in_frame_each(self, towards, frame_x, out);
+    }
+}
+
+/// [`SkyRadiance::stokes_in_frame_batch`] one ray at a time.
+pub(crate) fn stokes_in_frame_each<S: SkyRadiance + ?Sized>(
+    sky: &S,
+    towards: [&[f64]; 3],
+    frame_x: [&[f64]; 3],
+    out: [&mut [f64]; 3],
+) {
+    let [o0, o1, o2] = out;
+    for (i, ((o0, o1), o2)) in o0.iter_mut().zip(o1.iter_mut()).zip(o2).enumerate() {
+        let k = Vector3::new(towards[0][i], towards[1][i], towards[2][i]);
+        let f = Vector3::new(frame_x[0][i], frame_x[1][i], frame_x[2][i]);
+        let s = sky.stokes_in_frame(&k, &f);
+        (*o0, *o1, *o2) = (s.0[0], s.0[1], s.0[2]);
+    }
+}
+
+/// A Stokes vector of a ray arriving from `towards`, given in its surface frame
+/// ([`surface_frame_x`]), in the transverse frame `frame_x` instead (the rotation
+/// [`FacetGeometry`](crate::geometry::FacetGeometry) applies into a facet frame).
+#[inline]
+pub(crate) fn surface_to_frame(
+    s: Stokes,
+    towards: &Vector3<f64>,
+    frame_x: &Vector3<f64>,
+) -> Stokes {
+    let (c, sn) = cos_sin_2eta(&surface_frame_x(towards), frame_x, &-towards);
+    Stokes::new(s.0[0], c * s.0[1] + sn * s.0[2], c * s.0[2] - sn * s.0[1])
+}
+
+/// The (unnormalised) `x` axis of the surface frame of a ray arriving from `towards`: `k × z`
+/// for `k = -towards`, world `+y` when the ray is vertical (as [`FacetGeometry`](crate::geometry::FacetGeometry) takes it).
+#[inline]
+fn surface_frame_x(towards: &Vector3<f64>) -> Vector3<f64> {
+    if towards.x != 0.0 || towards.y != 0.0 {
+        Vector3::new(-towards.y, towards.x, 0.0)
+    } else {
+        Vector3::new(0.0, 1.0, 0.0)
+    }
+}
+
+/// A Rayleigh sky lit by the sun in a given direction.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SunlitRayleigh {
+    /// The sky model.
+    pub sky: RayleighSky,
+    /// Unit vector towards the sun (`z >= 0`).
+    pub sun: Vector3<f64>,
+}
+
+impl SkyRadiance for SunlitRayleigh {
+    fn stokes_from(&self, towards: &Vector3<f64>) -> Stokes {
+        let t = Vector3::new(towards.x, towards.y, towards.z.max(0.0));
+        self.sky
+            .stokes(&self.sun, &t)
+            .unwrap_or(Stokes::new(0.0, 0.0, 0.0))
+    }
+
+    fn peak(&self) -> Option<Vector3<f64>> {
+        Some(self.sun)
+    }
+}
+
+/// An unpolarised sky of uniform radiance (a test case with closed forms, and an overcast sky).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct UniformSky {
+    /// Radiance.
+    pub radiance: f64,
+}
+
+impl SkyRadiance for UniformSky {
+    fn stokes_from(&self, _towards: &Vector3<f64>) -> Stokes {
+        Stokes::unpolarized(self.radiance)
+    }
+}
 
 /// Rayleigh optical depth of the whole atmosphere at sea level (standard pressure),
 /// `tau_R = 0.008569 l^-4 (1 + 0.0113 l^-2 + 0.00013 l^-4)`, `l` in micrometres
@@ -28,13 +145,6 @@ pub fn rayleigh_optical_depth(wavelength_um: f64) -> Result<f64, ModelError> {
 
 /// Molecular depolarisation factor of air (Young, Appl. Opt. 19, 3427 (1980); MODEL.md).
 pub const AIR_DEPOLARIZATION: f64 = 0.0279;
-
-/// Unit vector towards a sky direction, zenith angle and azimuth clockwise from north, degrees.
-pub fn direction_from_deg(zenith_deg: f64, azimuth_deg: f64) -> Vector3<f64> {
-    let (sz, cz) = crate::pbrdf::sin_cos_deg(zenith_deg);
-    let (sa, ca) = crate::pbrdf::sin_cos_deg(azimuth_deg);
-    Vector3::new(sz * sa, sz * ca, cz)
-}
 
 /// A Rayleigh (molecular) single-scattering sky over a plane-parallel, homogeneous layer.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -105,7 +215,7 @@ impl RayleighSky {
             p12,
             downward_path(
                 self.optical_depth,
-                crate::atmosphere::slant_mu0(sun.z),
+                crate::air_mass::slant_mu0(sun.z),
                 view.z,
             ),
             sun,
@@ -119,7 +229,7 @@ impl RayleighSky {
 /// Atmospheric Radiation*): `mu0 / (mu0 - mu) (e^{-tau/mu0} - e^{-tau/mu})`, evaluated with
 /// `expm1` so that `mu = mu0` and the horizon are exact limits. `mu0` enters only through the
 /// sun beam's attenuation, so callers pass the pseudo-spherical
-/// [`crate::atmosphere::slant_mu0`].
+/// [`crate::air_mass::slant_mu0`].
 pub(crate) fn downward_path(tau: f64, mu0: f64, mu: f64) -> f64 {
     if mu0 <= 0.0 || tau == 0.0 {
         0.0

@@ -38,7 +38,7 @@
 //! percent near the sun, which no quadrature can improve; the scene adds it to its error.
 
 use crate::polarization::Stokes;
-use crate::skylight::SkyRadiance;
+use crate::sky::SkyRadiance;
 use nalgebra::Vector3;
 
 /// Which axis the table's `S1 > 0` refers to.
@@ -491,9 +491,11 @@ impl SkyRadiance for SkyTable {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::angles::direction_from_deg;
     use crate::quadrature::Tolerance;
-    use crate::sky::{direction_from_deg, RayleighSky};
-    use crate::skylight::{sky_irradiance, SunlitRayleigh};
+    use crate::sky::RayleighSky;
+    use crate::sky::SunlitRayleigh;
+    use crate::skylight::sky_irradiance;
 
     /// A table of `sky` on a `step`-degree grid (zenith 0..=90, azimuth 0..360 or ..=360).
     fn tabulate(sky: &dyn SkyRadiance, dz: f64, da: f64, with_360: bool) -> String {

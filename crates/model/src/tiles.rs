@@ -1,4 +1,4 @@
-//! Per-tile viewing geometry of a sensor above flat ground (MODEL.md section 11, the seed's
+//! Per-tile viewing geometry of a sensor above flat ground (MODEL.md section 11, Meng (2012)'s
 //! Appendix A, reconstructed): a pinhole camera at height `H` looks down with its boresight
 //! `theta_v0` off nadir towards azimuth `phi_l`; its field of view is split into `nx x ny` tiles;
 //! the ray through each tile centre is intersected with the ground. For each tile the scene
@@ -12,8 +12,10 @@
 //! a ray arriving at the camera has `x` = `right` made transverse to the ray, `y = k × x`, so an
 //! analyzer at `psi = 0` passes light polarised along the image rows.
 
+use crate::angles::{direction_from_deg, sin_cos_deg};
 use crate::error::ModelError;
-use crate::pbrdf::Geometry;
+pub use crate::geometry::reflected_frame_x;
+use crate::geometry::Geometry;
 use crate::polarization::cos_sin_2eta;
 use nalgebra::Vector3;
 
@@ -52,33 +54,6 @@ pub struct Tile {
     /// `(cos 2eta, sin 2eta)` of the rotation camera frame <- reflected surface frame:
     /// `S_camera = rotation_from_cos_sin_2eta(c, s) S_surface`.
     pub camera_from_surface: (f64, f64),
-}
-
-/// Unit vector towards zenith angle / azimuth (clockwise from north), degrees.
-fn enu(zenith_deg: f64, azimuth_deg: f64) -> Vector3<f64> {
-    crate::sky::direction_from_deg(zenith_deg, azimuth_deg)
-}
-
-/// The reflected ray's surface-frame `x` (s vector) in world coordinates, with the degenerate
-/// cases resolved exactly as [`Geometry::from_directions`] does: at normal view the relative
-/// azimuth is 0, so `s_r` is minus the turned frame's y axis (world `-y` turned by the sun's
-/// horizontal direction; world `(0, -1, 0)` with the sun at the zenith too).
-pub fn reflected_frame_x(omega_sun: &Vector3<f64>, omega_view: &Vector3<f64>) -> Vector3<f64> {
-    let c = omega_view.cross(&Vector3::z());
-    let n = c.norm();
-    if n > 0.0 {
-        return c / n;
-    }
-    // Normal view. from_directions turns the pair so omega_i has azimuth 0 about z, with
-    // (ca, sa) the unit horizontal of omega_i (or (1, 0)), and uses phi = 0: s_r = (0, -1, 0) in
-    // the turned frame, whose y axis in world coordinates is (-sa, ca, 0).
-    let h = (omega_sun.x * omega_sun.x + omega_sun.y * omega_sun.y).sqrt();
-    let (ca, sa) = if h > 0.0 {
-        (omega_sun.x / h, omega_sun.y / h)
-    } else {
-        (1.0, 0.0)
-    };
-    Vector3::new(sa, -ca, 0.0)
 }
 
 /// A validated sensor view of flat ground under the sun: computes the geometry of the ray through
@@ -135,8 +110,8 @@ impl Field {
             360.0,
             "[-360, 360]",
         )?;
-        let boresight = -enu(p.off_nadir_deg, p.look_azimuth_deg + 180.0); // from sensor, downwards
-        let (sl, cl) = crate::pbrdf::sin_cos_deg(p.look_azimuth_deg);
+        let boresight = -direction_from_deg(p.off_nadir_deg, p.look_azimuth_deg + 180.0); // from sensor, downwards
+        let (sl, cl) = sin_cos_deg(p.look_azimuth_deg);
         let right = Vector3::new(cl, -sl, 0.0);
         Ok(Field {
             altitude_m: p.altitude_m,
@@ -147,7 +122,7 @@ impl Field {
                 (0.5 * p.fov_deg.0).to_radians().tan(),
                 (0.5 * p.fov_deg.1).to_radians().tan(),
             ),
-            omega_sun: enu(sun_zenith_deg, sun_azimuth_deg),
+            omega_sun: direction_from_deg(sun_zenith_deg, sun_azimuth_deg),
             sun_zenith_deg,
         })
     }

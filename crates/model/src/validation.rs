@@ -1,5 +1,5 @@
 //! Whole-chain validation of the analytic statistics (MODEL.md section 7, "Monte Carlo
-//! validation", the seed's Sec. 3.3.2 *reconstructed*): a seeded, parallel Monte Carlo of the
+//! validation", Meng (2012)'s Sec. 3.3.2 *reconstructed*): a seeded, parallel Monte Carlo of the
 //! processed products (Stokes estimate, DoLP, AoP) drawn frame by frame through the sensor chain
 //! of [`crate::montecarlo`], the analytic counterpart in one call, and their comparison.
 //!

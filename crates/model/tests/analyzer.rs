@@ -1,4 +1,4 @@
-//! The classic reconstruction methods of seed Sec. 2.4 are special cases of `W^+`; noise gains
+//! The classic reconstruction methods of Meng (2012) Sec. 2.4 are special cases of `W^+`; noise gains
 //! and the real-analyzer model.
 
 #![allow(clippy::unwrap_used)] // tests panic on failure by design

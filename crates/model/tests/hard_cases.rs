@@ -344,7 +344,7 @@ fn out_of_domain_inputs_name_the_field() {
 /// Degree trigonometry is exact at multiples of 90 deg and agrees with radians elsewhere (1e-15).
 #[test]
 fn degree_trigonometry_is_exact_at_quadrants() {
-    use polar_model::pbrdf::sin_cos_deg;
+    use polar_model::angles::sin_cos_deg;
     for (d, s, c) in [
         (0.0, 0.0, 1.0),
         (90.0, 1.0, 0.0),

@@ -1,4 +1,4 @@
-//! Independent oracles: the seed's real-valued conductor formulas (Eqs. 2.31-2.36), the seed's
+//! Independent oracles: Meng (2012)'s real-valued conductor formulas (Eqs. 2.31-2.36), its
 //! arc-cosine rotation angles (Eqs. 3.9-3.10) in the interior of the domain, and a 3-D Jones
 //! calculation of the facet reflection that shares no code with the Mueller path.
 
@@ -9,7 +9,7 @@ use num_complex::Complex64 as C;
 use polar_model::fresnel::{amplitudes, amplitudes_eps, RefractiveIndex};
 use polar_model::pbrdf::{FacetGeometry, Geometry};
 
-/// Seed Eqs. 2.31-2.36 with the square root in 2.35, exactly as printed in MODEL.md section 2.
+/// Meng (2012) Eqs. 2.31-2.36 with the square root in 2.35, exactly as printed in MODEL.md section 2.
 fn seed_conductor(n: f64, k: f64, ti: f64) -> (f64, f64) {
     let (s, c) = ti.sin_cos();
     let d = n * n - k * k - s * s;
@@ -39,7 +39,7 @@ fn complex_fresnel_agrees_with_seed_real_formulas_to_1e12() {
     for (n, k) in materials {
         let idx = RefractiveIndex::new(n, k).unwrap();
         for step in 0..=890 {
-            // Up to 89 deg: beyond, the seed's sin*tan form loses digits to cancellation (its
+            // Up to 89 deg: beyond, Meng (2012)'s sin*tan form loses digits to cancellation (its
             // own weakness, which the complex form does not share).
             let ti = (step as f64 * 0.1).to_radians();
             let (rs, rp) = seed_conductor(n, k, ti);
@@ -66,7 +66,7 @@ fn dielectric_limit_of_conductor_is_continuous() {
     }
 }
 
-/// The seed's Eqs. 3.9-3.10 (3.10 with its denominator typo fixed), and Eq. 3.11.
+/// Meng (2012)'s Eqs. 3.9-3.10 (3.10 with its denominator typo fixed), and Eq. 3.11.
 fn seed_cos_eta(ti: f64, tr: f64, phi: f64) -> (f64, f64) {
     let cos_2b = ti.cos() * tr.cos() + ti.sin() * tr.sin() * phi.cos();
     let beta = 0.5 * cos_2b.acos();

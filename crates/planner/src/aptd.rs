@@ -1,4 +1,4 @@
-//! Adaptive polarimetric target detection (APTD; MODEL.md section 9, the seed's Fig. 5.3,
+//! Adaptive polarimetric target detection (APTD; MODEL.md section 9, Meng (2012)'s Fig. 5.3,
 //! reconstructed) as a state machine that an acquisition engine drives, or that runs offline
 //! over an image stack: frames in, the next analyzer angles out, with a decision record
 //! saying why.

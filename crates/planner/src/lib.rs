@@ -1,8 +1,10 @@
 //! The planner: which analyzer angles (and, later, which integration time) best separate a
-//! target from its background, from the model alone (MODEL.md section 9; the seed's Chapter 5,
+//! target from its background, from the model alone (MODEL.md section 9; Meng (2012)'s Chapter 5,
 //! reconstructed). Pure: it depends on the model's maths, never on devices.
 //!
-//! * [`scr`]: the signal-to-clutter ratio of an analyzer set and its gradient.
+//! * [`scr`]: the signal-to-clutter ratio of an analyzer set and its gradient, for the ideal
+//!   analyzer or a camera's real rows and noise ([`Contrast::from_sensor`]: the SCR the
+//!   forecast of a plan reports).
 //! * [`aptd`]: adaptive polarimetric target detection as a state machine (frames in, the next
 //!   set out, with a decision record).
 //! * [`optimize`]: the SCR-optimal set of `N = 1..6` angles under a rotator's or a wheel's
@@ -14,7 +16,7 @@ pub mod optimize;
 pub mod scr;
 
 pub use optimize::{conventional, optimise, Constraints, Optimum};
-pub use scr::Contrast;
+pub use scr::{Contrast, Instrument};
 
 /// Errors of the planner: the field, the value and what is allowed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

@@ -79,6 +79,10 @@
 //! mutexes), and several `RunStore`s may be open on one run (one writer, any readers: readers
 //! see frames written after they opened the store).
 
+mod schema;
+
+pub use schema::{conventions, HASH_ALGORITHM, KIND_CODES};
+
 use crate::{pixel_hash, FrameKind, FrameRecord};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Map, Value};
@@ -89,10 +93,8 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use zarrs::array::builder::ArrayBuilderFillValue;
-use zarrs::array::codec::Crc32cCodec;
 use zarrs::array::{
-    data_type, Array, ArrayBuilder, BytesToBytesCodecTraits, CodecOptions, DataType, Element,
-    ElementOwned, ZARR_NAN_F32, ZARR_NAN_F64,
+    data_type, Array, CodecOptions, DataType, Element, ElementOwned, ZARR_NAN_F32, ZARR_NAN_F64,
 };
 use zarrs::filesystem::FilesystemStore;
 use zarrs::group::{Group, GroupBuilder};
@@ -309,8 +311,25 @@ fn codec_options() -> CodecOptions {
     CodecOptions::default().with_store_empty_chunks(true)
 }
 
-fn checksum() -> Vec<Arc<dyn BytesToBytesCodecTraits>> {
-    vec![Arc::new(Crc32cCodec::new())]
+/// `frames/pixels` with `frames` frames of `width x height`, one chunk per frame.
+fn pixels_array(
+    store: &Arc<DurableStore>,
+    frames: u64,
+    width: u32,
+    height: u32,
+) -> Result<Array<DurableStore>, zarrs::array::ArrayCreateError> {
+    schema::image_stack(store.clone(), PIXELS, frames, width, height)
+}
+
+/// `products/<name>` with `slots` slots of `width x height`, one chunk per slot.
+fn product_array(
+    store: &Arc<DurableStore>,
+    node: &str,
+    slots: u64,
+    width: u32,
+    height: u32,
+) -> Result<Array<DurableStore>, zarrs::array::ArrayCreateError> {
+    schema::image_stack(store.clone(), node, slots, width, height)
 }
 
 impl RunStore {
@@ -345,10 +364,12 @@ impl RunStore {
             ("state", json!("created")),
             ("calibration", json!({})),
             ("decisions", json!([])),
+            ("late_sets", json!([])),
             ("summary", json!({})),
         ] {
             attrs.entry(k).or_insert(v);
         }
+        attrs.insert("conventions".into(), conventions());
         let mut root = GroupBuilder::new()
             .build(store.clone(), "/")
             .map_err(zarr_err(p(""), "creating the root group"))?;
@@ -369,16 +390,8 @@ impl RunStore {
             g.store_metadata()
                 .map_err(zarr_err(p(group), "writing the group"))?;
         }
-        let pixels = ArrayBuilder::new(
-            vec![0, u64::from(height), u64::from(width)],
-            vec![1, u64::from(height), u64::from(width)],
-            data_type::uint16(),
-            0u16,
-        )
-        .dimension_names(Some(["frame", "y", "x"]))
-        .bytes_to_bytes_codecs(checksum())
-        .build(store.clone(), PIXELS)
-        .map_err(zarr_err(p(PIXELS), "creating the array"))?;
+        let pixels = pixels_array(&store, 0, width, height)
+            .map_err(zarr_err(p(PIXELS), "creating the array"))?;
         pixels
             .store_metadata()
             .map_err(zarr_err(p(PIXELS), "writing the array metadata"))?;
@@ -481,35 +494,33 @@ impl RunStore {
         self.check_image(|| format!("frame {index}"), pixels.len())?;
         let mut array = lock(&self.pixels);
         let count = array.shape().first().copied().unwrap_or(0);
-        let grow = index >= count;
-        let shape = |n: u64| vec![n, u64::from(self.height), u64::from(self.width)];
-        if grow {
-            array
-                .set_shape(shape(index + 1))
-                .map_err(zarr_err(self.node(PIXELS), "growing"))?;
+        if index < count {
+            return self.store_frame_chunk(&array, index, pixels);
         }
-        let stored = array
+        // The chunk first, then the larger shape: a crash in between leaves the frame
+        // invisible, never a visible frame without its pixels.
+        let grown = pixels_array(&self.store, index + 1, self.width, self.height)
+            .map_err(zarr_err(self.node(PIXELS), "growing"))?;
+        self.store_frame_chunk(&grown, index, pixels)?;
+        grown
+            .store_metadata()
+            .map_err(zarr_err(self.node(PIXELS), "writing the array metadata"))?;
+        *array = grown;
+        Ok(())
+    }
+
+    fn store_frame_chunk(
+        &self,
+        array: &Array<DurableStore>,
+        index: u64,
+        pixels: &[u16],
+    ) -> Result<(), StoreError> {
+        array
             .store_chunk_opt(&[index, 0, 0], pixels, &codec_options())
             .map_err(zarr_err(
-                self.chunk_path(&array, &[index, 0, 0])
-                    .display()
-                    .to_string(),
+                self.chunk_path(array, &[index, 0, 0]).display().to_string(),
                 "writing frame chunk",
             ))
-            .and_then(|()| {
-                if grow {
-                    array
-                        .store_metadata()
-                        .map_err(zarr_err(self.node(PIXELS), "writing the array metadata"))
-                } else {
-                    Ok(())
-                }
-            });
-        if stored.is_err() && grow {
-            // Keep the in-memory shape as on disk.
-            let _ = array.set_shape(shape(count));
-        }
-        stored
     }
 
     /// Re-reads `frames/pixels` metadata if `index` is past the shape this instance knows
@@ -719,12 +730,12 @@ impl RunStore {
         let mut array = lock(&self.pixels);
         let count = array.shape().first().copied().unwrap_or(0);
         if count != n {
-            array
-                .set_shape(vec![n, u64::from(self.height), u64::from(self.width)])
+            let resized = pixels_array(&self.store, n, self.width, self.height)
                 .map_err(zarr_err(self.node(PIXELS), "resizing"))?;
-            array
+            resized
                 .store_metadata()
                 .map_err(zarr_err(self.node(PIXELS), "writing the array metadata"))?;
+            *array = resized;
         }
         Ok(())
     }
@@ -742,11 +753,16 @@ impl RunStore {
     ) -> Result<(), StoreError> {
         let chunk: Vec<u64> = shape.iter().map(|&s| s.max(1)).collect();
         let empty = shape.contains(&0);
-        let array = ArrayBuilder::new(shape, chunk, data_type, fill)
-            .dimension_names(Some(dims.iter().copied()))
-            .bytes_to_bytes_codecs(checksum())
-            .build(self.store.clone(), node)
-            .map_err(zarr_err(self.node(node), "creating the array"))?;
+        let array = schema::array(
+            self.store.clone(),
+            node,
+            shape,
+            chunk,
+            data_type,
+            fill,
+            dims,
+        )
+        .map_err(zarr_err(self.node(node), "creating the array"))?;
         if !empty {
             let origin = vec![0u64; dims.len()];
             array
@@ -878,16 +894,11 @@ impl RunStore {
                 .map(|row| row.iter().copied().filter(|a| !a.is_nan()).collect())
                 .collect()
         };
-        if angles.len() != sets.len() {
-            return Err(StoreError::Layout {
-                path: self.node(PRODUCT_ANGLES),
-                message: format!(
-                    "{} rows, but products/set has {} slots",
-                    angles.len(),
-                    sets.len()
-                ),
-            });
-        }
+        // `products/set` is written last ([`Self::write_product_index`]): a process that
+        // stopped between the two leaves `angles_deg` a row ahead; the set's products are
+        // written again when it is processed again.
+        let mut angles = angles;
+        angles.resize(sets.len(), Vec::new());
         let names = self.product_names()?;
         let mut arrays = HashMap::new();
         let mut slots = sets.len() as u64;
@@ -907,7 +918,8 @@ impl RunStore {
         })
     }
 
-    /// Rewrites `products/set` and `products/angles_deg`.
+    /// Rewrites `products/angles_deg`, then `products/set`: a slot counts for readers once
+    /// its set is in `products/set`, which is written after the slot's images and angles.
     fn write_product_index(&self, sets: &[i64], angles: &[Vec<f64>]) -> Result<(), StoreError> {
         let m = sets.len() as u64;
         let k = angles.iter().map(Vec::len).max().unwrap_or(0);
@@ -917,34 +929,35 @@ impl RunStore {
             flat.extend(std::iter::repeat_n(f64::NAN, k - row.len()));
         }
         self.write_whole(
-            PRODUCT_SET,
-            vec![m],
-            &["slot"],
-            data_type::int64(),
-            -1i64,
-            sets,
-        )?;
-        self.write_whole(
             PRODUCT_ANGLES,
             vec![m, k as u64],
             &["slot", "channel"],
             data_type::float64(),
             ZARR_NAN_F64,
             &flat,
+        )?;
+        self.write_whole(
+            PRODUCT_SET,
+            vec![m],
+            &["slot"],
+            data_type::int64(),
+            -1i64,
+            sets,
         )
     }
 
-    /// Stores the products of angle `set` in `slot` (the index in the products arrays): one
-    /// `[H, W]` image per `(name, values)`, and the set's analyzer angles. Product arrays are
-    /// created on first use; every product array grows to the same number of slots. Writing
-    /// a slot again replaces it.
+    /// Stores the products of angle `set`: one `[H, W]` image per `(name, values)`, and the
+    /// set's analyzer angles. Products are keyed by set: the set's slot (the index in the
+    /// products arrays) is the one already holding it (written again, e.g. by a process that
+    /// crashed before its journal recorded the set), else a new slot at the end. Product
+    /// arrays are created on first use; every product array grows to the same number of
+    /// slots. Returns the slot.
     pub fn write_products(
         &self,
-        slot: u64,
         set: u64,
         angles_deg: &[f64],
         images: &[(&str, &[f32])],
-    ) -> Result<(), StoreError> {
+    ) -> Result<u64, StoreError> {
         let mut seen = BTreeSet::new();
         for (name, values) in images {
             check_product_name(name)?;
@@ -960,10 +973,6 @@ impl RunStore {
             name: "set".into(),
             message: format!("set number {set} is larger than the int64 array can hold"),
         })?;
-        let slot_usize = usize::try_from(slot).map_err(|_| StoreError::Product {
-            name: "set".into(),
-            message: format!("slot {slot} is too large"),
-        })?;
         let mut guard = lock(&self.products);
         if guard.is_none() {
             *guard = Some(self.load_products()?);
@@ -974,17 +983,24 @@ impl RunStore {
                 message: "products state not loaded".into(),
             });
         };
+        let slot_usize = state
+            .sets
+            .iter()
+            .position(|&s| s == set_i64)
+            .unwrap_or(state.sets.len());
+        let slot = slot_usize as u64;
         let slots = state.slots.max(slot + 1);
-        let (h, w) = (u64::from(self.height), u64::from(self.width));
         // Grow existing arrays, create new ones.
         for name in state.names.clone() {
             if let Some(a) = state.arrays.get_mut(&name) {
                 if a.shape().first().copied().unwrap_or(0) < slots {
                     let node = format!("{PRODUCTS}/{name}");
-                    a.set_shape(vec![slots, h, w])
+                    let grown = product_array(&self.store, &node, slots, self.width, self.height)
                         .map_err(zarr_err(self.node(&node), "growing"))?;
-                    a.store_metadata()
+                    grown
+                        .store_metadata()
                         .map_err(zarr_err(self.node(&node), "writing the array metadata"))?;
+                    *a = grown;
                 }
             }
         }
@@ -992,16 +1008,8 @@ impl RunStore {
         for (name, _) in images {
             if !state.arrays.contains_key(*name) {
                 let node = format!("{PRODUCTS}/{name}");
-                let a = ArrayBuilder::new(
-                    vec![slots, h, w],
-                    vec![1, h, w],
-                    data_type::float32(),
-                    ZARR_NAN_F32,
-                )
-                .dimension_names(Some(["slot", "y", "x"]))
-                .bytes_to_bytes_codecs(checksum())
-                .build(self.store.clone(), &node)
-                .map_err(zarr_err(self.node(&node), "creating the array"))?;
+                let a = product_array(&self.store, &node, slots, self.width, self.height)
+                    .map_err(zarr_err(self.node(&node), "creating the array"))?;
                 a.store_metadata()
                     .map_err(zarr_err(self.node(&node), "writing the array metadata"))?;
                 state.arrays.insert((*name).to_string(), a);
@@ -1028,7 +1036,24 @@ impl RunStore {
         state.angles.resize(m, Vec::new());
         state.sets[slot_usize] = set_i64;
         state.angles[slot_usize] = angles_deg.to_vec();
-        self.write_product_index(&state.sets, &state.angles)
+        self.write_product_index(&state.sets, &state.angles)?;
+        Ok(slot)
+    }
+
+    /// Records which dark level set `set`'s products subtract (the `dark` attribute of
+    /// `products/`, an object by set number).
+    pub fn set_product_dark(&self, set: u64, description: &str) -> Result<(), StoreError> {
+        self.modify_group_attributes(PRODUCTS, |attrs| {
+            let d = attrs
+                .entry("dark")
+                .or_insert_with(|| Value::Object(Map::new()));
+            if !d.is_object() {
+                *d = Value::Object(Map::new());
+            }
+            if let Value::Object(m) = d {
+                m.insert(set.to_string(), json!(description));
+            }
+        })
     }
 
     /// Reads product `name` of `slot`.
@@ -1186,9 +1211,55 @@ impl RunStore {
         })
     }
 
+    /// Appends a late time-lapse set (what the plan's policy did with it) to the root
+    /// `late_sets` attribute.
+    pub fn push_late_set(&self, late: Value) -> Result<(), StoreError> {
+        self.modify_group_attributes("/", |attrs| {
+            let d = attrs
+                .entry("late_sets")
+                .or_insert_with(|| Value::Array(Vec::new()));
+            if !d.is_array() {
+                *d = Value::Array(Vec::new());
+            }
+            if let Value::Array(a) = d {
+                a.push(late);
+            }
+        })
+    }
+
     /// The root attributes.
     pub fn attributes(&self) -> Result<Map<String, Value>, StoreError> {
         self.group_attributes("/")
+    }
+
+    /// The chunk file of frame `index`.
+    pub fn frame_chunk_path(&self, index: u64) -> PathBuf {
+        let a = lock(&self.pixels);
+        self.chunk_path(&a, &[index, 0, 0])
+    }
+
+    /// Moves frame `index`'s chunk aside (renamed to `<chunk>.damaged-<n>`, the first `n`
+    /// not taken; never deleted), durably. Returns the new path, or `None` when there is no
+    /// chunk file.
+    pub fn set_aside_frame(&self, index: u64) -> Result<Option<PathBuf>, StoreError> {
+        let chunk = self.frame_chunk_path(index);
+        if !chunk.is_file() {
+            return Ok(None);
+        }
+        let name = chunk
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let dir = chunk.parent().unwrap_or(Path::new("."));
+        let aside = (0u32..)
+            .map(|n| dir.join(format!("{name}.damaged-{n}")))
+            .find(|p| !p.exists())
+            .unwrap_or_else(|| dir.join(format!("{name}.damaged")));
+        std::fs::rename(&chunk, &aside).map_err(io_err(&chunk, "moving a damaged chunk aside"))?;
+        File::open(dir)
+            .and_then(|d| d.sync_all())
+            .map_err(io_err(dir, "syncing the directory"))?;
+        Ok(Some(aside))
     }
 
     /// Re-reads every recorded frame, recomputes its [`pixel_hash`] and reports frames that

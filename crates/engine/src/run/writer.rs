@@ -1,0 +1,489 @@
+//! The storage thread: it owns the journal and the store, writes frames, computes each
+//! set's products and the suspender's verdict, and finishes the run.
+
+use super::*;
+
+// ---------------------------------------------------------------------------------------
+// The storage thread.
+
+pub(super) enum ToStore {
+    Frame {
+        record: FrameRecord,
+        pixels: Vec<u16>,
+    },
+    Entry(Entry),
+    ProcessSet(SetJob),
+    /// Mirror the journal's frame records into the store's metadata arrays (at pauses and
+    /// the end; the journal is the truth in between).
+    SyncMetadata,
+    Attribute {
+        key: String,
+        value: Value,
+        reply: std::sync::mpsc::Sender<Result<(), String>>,
+    },
+    Finish {
+        reply: std::sync::mpsc::Sender<Result<Value, String>>,
+        summary: Value,
+        checks: FinishChecks,
+    },
+}
+
+pub(super) struct SetJob {
+    pub(super) set: u64,
+    /// Frame indices in step order.
+    pub(super) frames: Vec<u64>,
+    pub(super) measured_deg: Vec<f64>,
+    pub(super) commanded_deg: Vec<f64>,
+    pub(super) exposure_us: f64,
+    pub(super) gain_db: f64,
+}
+
+pub(super) struct FinishChecks {
+    /// Planned steps that must each have an accepted frame.
+    pub(super) planned_steps: BTreeSet<u64>,
+    /// Accepted frame per step.
+    pub(super) accepted: BTreeMap<u64, u64>,
+    /// Frames found damaged and kept aside: recorded, not verified.
+    pub(super) damaged: BTreeSet<u64>,
+}
+
+pub(super) enum FromStore {
+    Durable {
+        index: u64,
+        label: String,
+    },
+    SetChecked {
+        set: u64,
+        verdict: Verdict,
+        mean_dolp: f64,
+    },
+    Failed(String),
+}
+
+pub(super) struct Writer {
+    pub(super) store: RunStore,
+    pub(super) journal: Journal,
+    pub(super) sensor: SensorModel,
+    pub(super) camera_model: CameraModel,
+    pub(super) suspender: crate::plan::Suspender,
+    pub(super) records: BTreeMap<u64, FrameRecord>,
+    pub(super) cache: HashMap<u64, Vec<u16>>,
+    pub(super) products: Products,
+    /// The last accepted set's mean S0 by (exposure, gain) (bits of the f64s): a set is
+    /// compared with the last one taken at its own exposure and gain only.
+    pub(super) last_s0: HashMap<(u64, u64), f64>,
+    pub(super) threads: usize,
+    /// Sum and count of dark frames by exposure (bits of the f64).
+    pub(super) darks: HashMap<u64, (Vec<f64>, u32)>,
+}
+
+impl Writer {
+    pub(super) fn pixels(&mut self, index: u64) -> Result<Vec<u16>, String> {
+        if let Some(p) = self.cache.get(&index) {
+            return Ok(p.clone());
+        }
+        self.store.read_frame(index).map_err(|e| e.to_string())
+    }
+
+    pub(super) fn frame(&mut self, record: FrameRecord, pixels: Vec<u16>) -> Result<(), String> {
+        self.store
+            .write_frame(record.index, &pixels)
+            .map_err(|e| format!("writing frame {}: {e}", record.index))?;
+        self.journal
+            .append(&Entry::Frame(record.clone()))
+            .map_err(|e| format!("journal: {e}"))?;
+        if record.kind == FrameKind::Dark {
+            let (sum, n) = self
+                .darks
+                .entry(record.exposure_us.to_bits())
+                .or_insert_with(|| (vec![0.0; pixels.len()], 0));
+            if sum.len() == pixels.len() {
+                sum.iter_mut()
+                    .zip(&pixels)
+                    .for_each(|(s, &p)| *s += f64::from(p));
+                *n += 1;
+            }
+        } else {
+            self.cache.insert(record.index, pixels);
+        }
+        self.records.insert(record.index, record);
+        Ok(())
+    }
+
+    pub(super) fn noise(&self, gain_db: f64) -> (NoiseModel, f64) {
+        let c = &self.camera_model;
+        let k = c.gain_dn_per_e * 10f64.powf(gain_db / 20.0);
+        let noise = NoiseModel {
+            gain_dn_per_e: k,
+            offset_dn: c.offset_dn,
+            read_var_dn2: k * k * c.read_noise_e * c.read_noise_e + 1.0 / 12.0,
+            // A full pixel reads the full well plus read noise: 3 sigma below the level
+            // counts as saturated (a pixel there is clipped or nonlinear).
+            saturation_dn: ((k * c.full_well_e + c.offset_dn).min(c.adc_max_dn())
+                - 3.0 * k * c.read_noise_e)
+                .clamp(0.0, 65535.0) as u16,
+        };
+        (noise, k)
+    }
+
+    pub(super) fn process(&mut self, job: SetJob) -> Result<(Verdict, f64), String> {
+        let mut frames = Vec::with_capacity(job.frames.len());
+        for &i in &job.frames {
+            frames.push(self.pixels(i)?);
+        }
+        let (w, h) = (self.store.width(), self.store.height());
+        let angles_rad: Vec<f64> = job.measured_deg.iter().map(|d| d.to_radians()).collect();
+        let rows_m = self
+            .sensor
+            .intensities_from_stokes(&angles_rad)
+            .map_err(|e| format!("analyzer rows: {e}"))?;
+        let rows: Vec<[f64; 3]> = (0..rows_m.nrows())
+            .map(|i| [rows_m[(i, 0)], rows_m[(i, 1)], rows_m[(i, 2)]])
+            .collect();
+        let geometry = SetGeometry::new(&rows).map_err(|e| e.to_string())?;
+        let (noise, k) = self.noise(job.gain_db);
+        let dark_scalar = self.camera_model.offset_dn
+            + k * self.camera_model.dark_current_e_per_s * job.exposure_us * 1e-6;
+        let dark = match self.darks.get(&job.exposure_us.to_bits()) {
+            // A dark map only from enough darks that its own noise is small (16 frames:
+            // a quarter of one frame's temporal noise); otherwise the calibrated level.
+            Some((sum, n)) if *n >= 16 && sum.len() == (w as usize * h as usize) => {
+                Dark::Map(sum.iter().map(|s| (s / f64::from(*n)) as f32).collect())
+            }
+            _ => Dark::Scalar(dark_scalar as f32),
+        };
+        let refs: Vec<&[u16]> = frames.iter().map(Vec::as_slice).collect();
+        products::compute_into(
+            &mut self.products,
+            &refs,
+            w,
+            h,
+            &geometry,
+            &dark,
+            &noise,
+            self.threads,
+        )
+        .map_err(|e| e.to_string())?;
+        let verdict = self.verdict(&job, &refs, &rows, &dark, &noise);
+        let mean_dolp = finite_mean(&self.products.dolp);
+        if verdict.accepted {
+            let names = Products::names();
+            let flags = crate::flags::pixel_flags(&self.products);
+            let mut images: Vec<(&str, &[f32])> = names
+                .iter()
+                .filter_map(|n| self.products.image(n).map(|img| (*n, img)))
+                .collect();
+            images.push(("flags", &flags));
+            self.store
+                .write_products(job.set, &job.measured_deg, &images)
+                .map_err(|e| format!("products of set {}: {e}", job.set))?;
+            let dark_text = match &dark {
+                Dark::Map(_) => format!(
+                    "the mean of the run's dark frames at {} us",
+                    job.exposure_us
+                ),
+                Dark::Scalar(level) => format!(
+                    "{level:.3} DN: the camera model's offset plus its dark current over {} us \
+                     (fewer than 16 measured darks at this exposure)",
+                    job.exposure_us
+                ),
+            };
+            self.store
+                .set_product_dark(job.set, &dark_text)
+                .map_err(|e| format!("products of set {}: {e}", job.set))?;
+            self.last_s0.insert(
+                (job.exposure_us.to_bits(), job.gain_db.to_bits()),
+                verdict.mean_s0_dn,
+            );
+            self.journal
+                .append(&Entry::SetDone {
+                    set: job.set,
+                    frames: job.frames.clone(),
+                    verdict: serde_json::to_value(&verdict).unwrap_or(Value::Null),
+                })
+                .map_err(|e| format!("journal: {e}"))?;
+        } else {
+            self.journal
+                .append(&Entry::SetRejected {
+                    set: job.set,
+                    frames: job.frames.clone(),
+                    reason: verdict.reason.clone(),
+                })
+                .map_err(|e| format!("journal: {e}"))?;
+        }
+        for i in &job.frames {
+            self.cache.remove(i);
+        }
+        Ok((verdict, mean_dolp))
+    }
+
+    /// The suspender (module doc): Malus residuals, S0 drift, analyzer readback, repeats.
+    pub(super) fn verdict(
+        &self,
+        job: &SetJob,
+        frames: &[&[u16]],
+        rows: &[[f64; 3]],
+        dark: &Dark,
+        noise: &NoiseModel,
+    ) -> Verdict {
+        let p = &self.products;
+        let mean_s0 = finite_mean(&p.s0);
+        let max_angle_error_deg = job
+            .commanded_deg
+            .iter()
+            .zip(&job.measured_deg)
+            .map(|(c, m)| {
+                let d = (c - m).rem_euclid(180.0);
+                d.min(180.0 - d)
+            })
+            .fold(0.0, f64::max);
+        // Mean reduced chi-square over unsaturated pixels (every 1 in `stride`).
+        let n = frames.len();
+        let mut chi2 = f64::NAN;
+        if n > 3 {
+            let px = p.s0.len();
+            let stride = (px / 200_000).max(1);
+            let (mut sum, mut count) = (0.0f64, 0u64);
+            let mut i = 0;
+            while i < px {
+                if p.s0[i].is_finite() {
+                    let s = [f64::from(p.s0[i]), f64::from(p.s1[i]), f64::from(p.s2[i])];
+                    let d = match dark {
+                        Dark::Scalar(v) => f64::from(*v),
+                        Dark::Map(m) => f64::from(m[i]),
+                    };
+                    let mut c = 0.0;
+                    for (f, r) in frames.iter().zip(rows) {
+                        let y = f64::from(f[i]);
+                        let model = r[0] * s[0] + r[1] * s[1] + r[2] * s[2];
+                        let var = noise.gain_dn_per_e * (y - noise.offset_dn).max(0.0)
+                            + noise.read_var_dn2;
+                        c += (y - d - model).powi(2) / var;
+                    }
+                    sum += c / (n - 3) as f64;
+                    count += 1;
+                }
+                i += stride;
+            }
+            if count > 0 {
+                chi2 = sum / count as f64;
+            }
+        }
+        let cfg = &self.suspender;
+        let mut reasons = Vec::new();
+        for a in 0..frames.len() {
+            for b in a + 1..frames.len() {
+                if frames[a] == frames[b] {
+                    reasons.push(format!(
+                        "frames {} and {} are identical (a stuck camera)",
+                        job.frames[a], job.frames[b]
+                    ));
+                }
+            }
+        }
+        if max_angle_error_deg > cfg.max_angle_error_deg {
+            reasons.push(format!(
+                "the analyzer is {max_angle_error_deg:.3} deg from where it was commanded \
+                 (allowed {} deg): an analyzer slip",
+                cfg.max_angle_error_deg
+            ));
+        }
+        if chi2.is_finite() && chi2 > cfg.max_reduced_chi2 {
+            reasons.push(format!(
+                "the intensities do not follow Malus's law: mean reduced chi-square {chi2:.2} \
+                 (allowed {}); the light changed during the set (a cloud?) or a frame is bad",
+                cfg.max_reduced_chi2
+            ));
+        }
+        if n == 3 {
+            let key = (job.exposure_us.to_bits(), job.gain_db.to_bits());
+            if let Some(&last) = self.last_s0.get(&key) {
+                let change = (mean_s0 - last).abs() / last.abs().max(1e-9);
+                if change > cfg.max_s0_change {
+                    reasons.push(format!(
+                        "the mean S0 changed by {:.1} % from the last set (allowed {:.1} %): \
+                         the light changed",
+                        100.0 * change,
+                        100.0 * cfg.max_s0_change
+                    ));
+                }
+            }
+        }
+        if !mean_s0.is_finite() {
+            reasons.push("every pixel of the set is saturated or dark".into());
+        }
+        let accepted = !cfg.enabled || reasons.is_empty();
+        Verdict {
+            accepted,
+            reason: reasons.join("; "),
+            reduced_chi2: chi2,
+            mean_s0_dn: mean_s0,
+            max_angle_error_deg,
+        }
+    }
+
+    pub(super) fn finish(
+        &mut self,
+        summary: Value,
+        checks: &FinishChecks,
+    ) -> Result<Value, String> {
+        let records: Vec<FrameRecord> = self.records.values().cloned().collect();
+        self.store
+            .write_frame_metadata(&records)
+            .map_err(|e| format!("frame metadata: {e}"))?;
+        // Planned against written.
+        let missing: Vec<u64> = checks
+            .planned_steps
+            .iter()
+            .filter(|s| !checks.accepted.contains_key(s))
+            .copied()
+            .collect();
+        let extra: Vec<u64> = checks
+            .accepted
+            .keys()
+            .filter(|s| !checks.planned_steps.contains(s))
+            .copied()
+            .collect();
+        if !missing.is_empty() || !extra.is_empty() {
+            return Err(format!(
+                "frames written do not match frames planned: steps missing {missing:?}, \
+                 steps not planned {extra:?}"
+            ));
+        }
+        let intact: Vec<FrameRecord> = records
+            .iter()
+            .filter(|r| !checks.damaged.contains(&r.index))
+            .cloned()
+            .collect();
+        let v = self
+            .store
+            .verify(&intact)
+            .map_err(|e| format!("verify: {e}"))?;
+        let v = serde_json::to_value(&v).unwrap_or(Value::Null);
+        let bad = ["missing", "mismatched"].iter().any(|k| {
+            v.get(*k)
+                .and_then(Value::as_array)
+                .is_some_and(|a| !a.is_empty())
+        });
+        if bad {
+            return Err(format!("stored frames do not match the journal: {v}"));
+        }
+        // Dark means.
+        if let Some((sum, n)) = self.darks.values().next() {
+            if *n > 0 {
+                let mean: Vec<f32> = sum.iter().map(|s| (s / f64::from(*n)) as f32).collect();
+                self.store
+                    .write_dark_mean(&mean)
+                    .map_err(|e| format!("dark mean: {e}"))?;
+            }
+        }
+        self.store
+            .set_attribute("summary", summary.clone())
+            .map_err(|e| format!("summary: {e}"))?;
+        self.store
+            .set_attribute("state", json!("done"))
+            .map_err(|e| format!("state: {e}"))?;
+        let frames = records.len() as u64;
+        self.journal
+            .append(&Entry::Finished { frames })
+            .map_err(|e| format!("journal: {e}"))?;
+        Ok(json!({ "verification": v, "frames": frames }))
+    }
+}
+
+pub(super) fn finite_mean(v: &[f32]) -> f64 {
+    let (mut s, mut n) = (0.0f64, 0u64);
+    for x in v {
+        if x.is_finite() {
+            s += f64::from(*x);
+            n += 1;
+        }
+    }
+    if n == 0 {
+        f64::NAN
+    } else {
+        s / n as f64
+    }
+}
+
+/// The storage thread's ends: commands in, results out, and its handle.
+pub(super) type WriterEnds = (
+    std::sync::mpsc::SyncSender<ToStore>,
+    mpsc::UnboundedReceiver<FromStore>,
+    std::thread::JoinHandle<()>,
+);
+
+pub(super) fn spawn_writer(mut writer: Writer) -> Result<WriterEnds, RunError> {
+    // Two frames in flight at most: the grab loop never runs far ahead of the disk.
+    let (tx, rx) = std::sync::mpsc::sync_channel::<ToStore>(2);
+    let (back, back_rx) = mpsc::unbounded_channel();
+    let handle = std::thread::Builder::new()
+        .name("run-storage".into())
+        .spawn(move || {
+            let _span = info_span!("storage").entered();
+            while let Ok(msg) = rx.recv() {
+                match msg {
+                    ToStore::Frame { record, pixels } => {
+                        let (index, label) = (record.index, record.label.clone());
+                        match writer.frame(record, pixels) {
+                            Ok(()) => {
+                                let _ = back.send(FromStore::Durable { index, label });
+                            }
+                            Err(e) => {
+                                let _ = back.send(FromStore::Failed(e));
+                            }
+                        }
+                    }
+                    ToStore::Entry(e) => {
+                        if let Err(e) = writer.journal.append(&e) {
+                            let _ = back.send(FromStore::Failed(format!("journal: {e}")));
+                        } else if let Entry::SetLate { .. } = &e {
+                            let v = serde_json::to_value(&e).unwrap_or(Value::Null);
+                            if let Err(e) = writer.store.push_late_set(v) {
+                                let _ = back.send(FromStore::Failed(format!("late_sets: {e}")));
+                            }
+                        }
+                    }
+                    ToStore::ProcessSet(job) => {
+                        let set = job.set;
+                        let _s = info_span!("products", set).entered();
+                        match writer.process(job) {
+                            Ok((verdict, mean_dolp)) => {
+                                let _ = back.send(FromStore::SetChecked {
+                                    set,
+                                    verdict,
+                                    mean_dolp,
+                                });
+                            }
+                            Err(e) => {
+                                let _ = back.send(FromStore::Failed(e));
+                            }
+                        }
+                    }
+                    ToStore::SyncMetadata => {
+                        let records: Vec<FrameRecord> = writer.records.values().cloned().collect();
+                        if let Err(e) = writer.store.write_frame_metadata(&records) {
+                            let _ = back.send(FromStore::Failed(format!("frame metadata: {e}")));
+                        }
+                    }
+                    ToStore::Attribute { key, value, reply } => {
+                        let _ = reply.send(
+                            writer
+                                .store
+                                .set_attribute(&key, value)
+                                .map_err(|e| format!("attribute {key}: {e}")),
+                        );
+                    }
+                    ToStore::Finish {
+                        reply,
+                        summary,
+                        checks,
+                    } => {
+                        let _ = reply.send(writer.finish(summary, &checks));
+                    }
+                }
+            }
+        })
+        .map_err(|e| RunError::Storage(format!("cannot start the storage thread: {e}")))?;
+    Ok((tx, back_rx, handle))
+}

@@ -1,0 +1,173 @@
+#!/usr/bin/env python3
+"""Check a run directory from the outside, with zarr-python 3, xarray and xxhash.
+
+Usage: python3 scripts/check_run.py RUN_DIR [--finished]
+
+What a reader of the dataset is promised, checked without any of our code:
+- every array of RUN_DIR/run.zarr opens and reads whole (every chunk passes its crc32c; a
+  frame the journal records as damaged was kept aside and reads as the fill value);
+- `xarray.open_zarr` opens the `frames` and `products` groups with named dimensions, and
+  every array carries a `long_name` (and `units` where it has one);
+- the journal's frame records (RUN_DIR/journal.jsonl) are frames 0..N-1, each once, and the
+  store holds exactly those N frames, each with its metadata (step, kind, hash) equal to the
+  journal's and its pixels hashing (XXH3-64 of the little-endian bytes) to the recorded hash;
+- no set has two product slots, and every set the journal records as done has one;
+- with --finished: the journal ends the run, every plan step between 0 and the last has
+  exactly one accepted frame (but the steps of late time-lapse sets the plan skipped), and
+  the summary counts the sets in the store.
+
+Prints one JSON line {"ok": bool, "problems": [...], ...}; exits 0 when ok, 1 otherwise,
+2 on a usage error or a missing package.
+"""
+
+import json
+import sys
+
+
+def main(argv):
+    if len(argv) < 2 or argv[1].startswith("-"):
+        print(__doc__, file=sys.stderr)
+        return 2
+    run_dir = argv[1]
+    finished_required = "--finished" in argv[2:]
+    try:
+        import numpy as np
+        import xarray as xr
+        import xxhash
+        import zarr
+    except ImportError as e:
+        print(f"check_run: {e}: run `bash scripts/test.sh`, which installs zarr, xarray and "
+              "xxhash", file=sys.stderr)
+        return 2
+
+    problems = []
+    journal = []
+    with open(f"{run_dir}/journal.jsonl", "rb") as f:
+        lines = f.read().split(b"\n")
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            journal.append(json.loads(line))
+        except ValueError:
+            # Only the last line may be torn by a crash.
+            if i < len(lines) - 1 and any(x.strip() for x in lines[i + 1:]):
+                problems.append(f"journal line {i + 1} does not parse")
+    frames = {}
+    for e in journal:
+        if e.get("event") == "frame":
+            if e["index"] in frames:
+                problems.append(f"journal: frame {e['index']} recorded twice")
+            frames[e["index"]] = e
+    n = len(frames)
+    if sorted(frames) != list(range(n)):
+        problems.append(f"journal: frame indices are not 0..{n - 1}: {sorted(frames)[:10]}...")
+    rejected = set()
+    damaged = set()
+    done_sets = set()
+    skipped_sets = set()  # late time-lapse sets the plan's policy skipped: not planned
+    for e in journal:
+        if e.get("event") == "set-rejected":
+            rejected.update(e["frames"])
+        if e.get("event") == "frame-damaged":
+            # Kept aside on a resume and taken again: recorded, not stored.
+            damaged.add(e["index"])
+            rejected.add(e["index"])
+        if e.get("event") == "set-done":
+            done_sets.add(e["set"])
+        if e.get("event") == "set-late" and e.get("action") == "skipped":
+            skipped_sets.add(e["set"])
+    finished = any(e.get("event") == "finished" for e in journal)
+
+    root = zarr.open_group(f"{run_dir}/run.zarr", mode="r")
+    arrays = {}
+
+    def visit(group, prefix):
+        for name, member in group.members():
+            path = f"{prefix}{name}"
+            if isinstance(member, zarr.Group):
+                visit(member, path + "/")
+            else:
+                arrays[path] = member
+
+    visit(root, "")
+    values = {}
+    for path, a in sorted(arrays.items()):
+        try:
+            values[path] = a[...]
+        except Exception as e:  # noqa: BLE001 - any failure to read is the finding
+            problems.append(f"{path}: unreadable: {type(e).__name__}: {e}")
+        if "long_name" not in a.attrs:
+            problems.append(f"{path}: no long_name attribute")
+    for group in ("frames", "products"):
+        try:
+            ds = xr.open_zarr(f"{run_dir}/run.zarr", group=group, consolidated=False)
+            for name, var in ds.data_vars.items():
+                if any(d.startswith("dim_") for d in var.dims):
+                    problems.append(f"xarray {group}/{name}: unnamed dimensions {var.dims}")
+        except Exception as e:  # noqa: BLE001
+            problems.append(f"xarray cannot open {group}: {type(e).__name__}: {e}")
+
+    pixels = values.get("frames/pixels")
+    if pixels is not None:
+        if pixels.shape[0] != n:
+            problems.append(f"frames/pixels holds {pixels.shape[0]} frames; the journal {n}")
+        for i in range(min(n, pixels.shape[0])):
+            if i in damaged:
+                continue
+            h = xxhash.xxh3_64_intdigest(np.ascontiguousarray(pixels[i], dtype="<u2").tobytes())
+            if h != frames[i]["hash"]:
+                problems.append(f"frame {i}: pixels hash {h:#x}, journal {frames[i]['hash']:#x}")
+    for name, key in (("hash", "hash"), ("step", "step"), ("frame_id", "frame_id")):
+        v = values.get(f"frames/{name}")
+        if v is None:
+            problems.append(f"frames/{name} missing")
+            continue
+        if len(v) != n:
+            problems.append(f"frames/{name} has {len(v)} values; the journal {n} frames")
+            continue
+        bad = [i for i in range(n) if int(v[i]) != int(frames[i][key])]
+        if bad:
+            problems.append(f"frames/{name} differs from the journal at frames {bad[:10]}")
+    kinds = values.get("frames/kind")
+    if kinds is not None and len(kinds) == n:
+        codes = {"light": 0, "dark": 1}
+        bad = [i for i in range(n) if int(kinds[i]) != codes.get(frames[i]["kind"], -1)]
+        if bad:
+            problems.append(f"frames/kind differs from the journal at frames {bad[:10]}")
+
+    slot_sets = values.get("products/set")
+    stored_sets = []
+    if slot_sets is not None:
+        stored_sets = [int(s) for s in slot_sets if s >= 0]
+        dup = sorted({s for s in stored_sets if stored_sets.count(s) > 1})
+        if dup:
+            problems.append(f"products: sets {dup} have more than one slot")
+        missing = sorted(done_sets - set(stored_sets))
+        if missing:
+            problems.append(f"products: sets {missing} are done in the journal but not stored")
+
+    if finished_required and not finished:
+        problems.append("the journal does not record the run as finished")
+    if finished:
+        accepted = [frames[i]["step"] for i in range(n) if i not in rejected]
+        steps = sorted(accepted)
+        dup = sorted({s for s in steps if steps.count(s) > 1})
+        if dup:
+            problems.append(f"steps {dup[:10]} have more than one accepted frame")
+        if steps and not skipped_sets and sorted(set(steps)) != list(range(max(steps) + 1)):
+            gaps = sorted(set(range(max(steps) + 1)) - set(steps))
+            problems.append(f"steps {gaps[:10]} have no accepted frame")
+        summary = root.attrs.get("summary", {}).get("run", {})
+        if summary.get("sets_accepted") != len(set(stored_sets)):
+            problems.append(
+                f"summary sets_accepted {summary.get('sets_accepted')} but the store holds "
+                f"{len(set(stored_sets))} sets")
+
+    print(json.dumps({"ok": not problems, "frames": n, "sets": len(set(stored_sets)),
+                      "finished": finished, "problems": problems}))
+    return 0 if not problems else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))
