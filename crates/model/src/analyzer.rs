@@ -80,6 +80,51 @@ pub struct AnalyzerSet {
     stokes_from_intensities: DMatrix<f64>,
 }
 
+/// The pseudo-inverse `W^+` (`3 x N`) of a measurement matrix `W` (`N x 3` analyzer rows,
+/// `N >= 3`) by its singular value decomposition, and `W`'s singular values, descending: the
+/// one Stokes estimator of the workspace (the model's analyzer sets and the engine's live
+/// products). Errors (naming `angles_deg`) when `W` is rank-deficient at the conventional
+/// numerical threshold `s_max * eps * N` (as `numpy.linalg.matrix_rank`), or has fewer than
+/// 3 rows or columns other than 3.
+pub fn stokes_from_intensities(w: &DMatrix<f64>) -> Result<(DMatrix<f64>, [f64; 3]), ModelError> {
+    let n = w.nrows();
+    if n < 3 || w.ncols() != 3 {
+        return Err(ModelError::Invalid {
+            field: "angles_deg",
+            reason: format!(
+                "a {n} x {} measurement matrix; allowed N x 3 with N >= 3",
+                w.ncols()
+            ),
+        });
+    }
+    let svd = w.clone().svd(true, true);
+    let mut sv = [
+        svd.singular_values[0],
+        svd.singular_values[1],
+        svd.singular_values[2],
+    ];
+    sv.sort_by(|a, b| b.total_cmp(a));
+    // Rank test at the conventional numerical threshold (as numpy.linalg.matrix_rank).
+    let threshold = sv[0] * f64::EPSILON * n as f64;
+    if sv[2] <= threshold {
+        return Err(ModelError::Invalid {
+            field: "angles_deg",
+            reason: format!(
+                "the measurement matrix is singular (singular values {:.3e}, {:.3e}, {:.3e}): \
+                 need at least 3 distinct angles modulo 180 deg",
+                sv[0], sv[1], sv[2]
+            ),
+        });
+    }
+    let pinv = svd
+        .pseudo_inverse(threshold)
+        .map_err(|e| ModelError::Invalid {
+            field: "angles_deg",
+            reason: format!("pseudo-inverse failed: {e}"),
+        })?;
+    Ok((pinv, sv))
+}
+
 /// Largest number of analyzer angles accepted (a generous bound on any acquisition plan).
 pub const MAX_ANGLES: usize = 4096;
 
@@ -108,31 +153,7 @@ impl AnalyzerSet {
             });
         }
         let w = DMatrix::from_fn(n, 3, |i, j| analyzer.row(angles_rad[i])[j]);
-        let svd = w.clone().svd(true, true);
-        let mut sv = [
-            svd.singular_values[0],
-            svd.singular_values[1],
-            svd.singular_values[2],
-        ];
-        sv.sort_by(|a, b| b.total_cmp(a));
-        // Rank test at the conventional numerical threshold (as numpy.linalg.matrix_rank).
-        let threshold = sv[0] * f64::EPSILON * n as f64;
-        if sv[2] <= threshold {
-            return Err(ModelError::Invalid {
-                field: "angles_deg",
-                reason: format!(
-                    "the measurement matrix is singular (singular values {:.3e}, {:.3e}, {:.3e}): \
-                     need at least 3 distinct angles modulo 180 deg",
-                    sv[0], sv[1], sv[2]
-                ),
-            });
-        }
-        let pinv = svd
-            .pseudo_inverse(threshold)
-            .map_err(|e| ModelError::Invalid {
-                field: "angles_deg",
-                reason: format!("pseudo-inverse failed: {e}"),
-            })?;
+        let (pinv, sv) = stokes_from_intensities(&w)?;
         Ok(AnalyzerSet {
             angles_rad: angles_rad.to_vec(),
             intensities_from_stokes: w,
