@@ -60,12 +60,7 @@ pub fn check_run(run_dir: &Path) -> Result<RunCheck, crate::run::RunError> {
     let mut damaged = Vec::new();
     for index in v.missing.iter().chain(&v.mismatched) {
         let step = frames.get(index).map_or(0, |f| f.step);
-        let what = v
-            .findings
-            .iter()
-            .find(|f| f.starts_with(&format!("frame {index}:")))
-            .cloned()
-            .unwrap_or_default();
+        let what = v.finding(*index);
         damaged.push(format!(
             "{} (step {step}): {what}",
             store.frame_chunk_path(*index).display()

@@ -153,12 +153,7 @@ pub(super) fn set_aside_damaged(
     for &index in &damaged {
         let step = records.get(&index).map_or(0, |r| r.step);
         let chunk = opened.store.frame_chunk_path(index);
-        let finding = v
-            .findings
-            .iter()
-            .find(|f| f.starts_with(&format!("frame {index}:")))
-            .cloned()
-            .unwrap_or_default();
+        let finding = v.finding(index);
         let kept = opened.store.set_aside_frame(index)?;
         let kept_as = kept.as_deref().map(relative).unwrap_or_default();
         tracing::error!(

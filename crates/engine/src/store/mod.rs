@@ -265,6 +265,16 @@ impl Verification {
     pub fn is_ok(&self) -> bool {
         self.missing.is_empty() && self.mismatched.is_empty()
     }
+
+    /// What was found about frame `index` (empty when nothing was).
+    pub fn finding(&self, index: u64) -> String {
+        let prefix = format!("frame {index}:");
+        self.findings
+            .iter()
+            .find(|f| f.starts_with(&prefix))
+            .cloned()
+            .unwrap_or_default()
+    }
 }
 
 /// One slot of `products/`.
@@ -1043,17 +1053,7 @@ impl RunStore {
     /// Records which dark level set `set`'s products subtract (the `dark` attribute of
     /// `products/`, an object by set number).
     pub fn set_product_dark(&self, set: u64, description: &str) -> Result<(), StoreError> {
-        self.modify_group_attributes(PRODUCTS, |attrs| {
-            let d = attrs
-                .entry("dark")
-                .or_insert_with(|| Value::Object(Map::new()));
-            if !d.is_object() {
-                *d = Value::Object(Map::new());
-            }
-            if let Value::Object(m) = d {
-                m.insert(set.to_string(), json!(description));
-            }
-        })
+        self.insert_into_attribute(PRODUCTS, "dark", &set.to_string(), json!(description))
     }
 
     /// Reads product `name` of `slot`.
@@ -1176,6 +1176,44 @@ impl RunStore {
             .map_err(zarr_err(self.node(node), "writing the group metadata"))
     }
 
+    /// Sets `key` of the object attribute `attribute` of group `node` (made an object if it
+    /// is missing or is not one).
+    fn insert_into_attribute(
+        &self,
+        node: &str,
+        attribute: &str,
+        key: &str,
+        value: Value,
+    ) -> Result<(), StoreError> {
+        self.modify_group_attributes(node, |attrs| {
+            let a = attrs
+                .entry(attribute)
+                .or_insert_with(|| Value::Object(Map::new()));
+            if !a.is_object() {
+                *a = Value::Object(Map::new());
+            }
+            if let Value::Object(m) = a {
+                m.insert(key.to_string(), value);
+            }
+        })
+    }
+
+    /// Appends `value` to the root array attribute `attribute` (made an array if it is
+    /// missing or is not one).
+    fn push_to_attribute(&self, attribute: &str, value: Value) -> Result<(), StoreError> {
+        self.modify_group_attributes("/", |attrs| {
+            let a = attrs
+                .entry(attribute)
+                .or_insert_with(|| Value::Array(Vec::new()));
+            if !a.is_array() {
+                *a = Value::Array(Vec::new());
+            }
+            if let Value::Array(list) = a {
+                list.push(value);
+            }
+        })
+    }
+
     /// Sets a root attribute (read-modify-write of `run.zarr/zarr.json`, replaced atomically).
     pub fn set_attribute(&self, key: &str, value: Value) -> Result<(), StoreError> {
         self.update_group_attribute("/", key, value)
@@ -1183,48 +1221,18 @@ impl RunStore {
 
     /// Sets `calibration[kind]` (the root `calibration` attribute is an object by kind).
     pub fn set_calibration(&self, kind: &str, result: Value) -> Result<(), StoreError> {
-        self.modify_group_attributes("/", |attrs| {
-            let cal = attrs
-                .entry("calibration")
-                .or_insert_with(|| Value::Object(Map::new()));
-            if !cal.is_object() {
-                *cal = Value::Object(Map::new());
-            }
-            if let Value::Object(m) = cal {
-                m.insert(kind.to_string(), result);
-            }
-        })
+        self.insert_into_attribute("/", "calibration", kind, result)
     }
 
     /// Appends a planner decision to the root `decisions` attribute.
     pub fn push_decision(&self, decision: Value) -> Result<(), StoreError> {
-        self.modify_group_attributes("/", |attrs| {
-            let d = attrs
-                .entry("decisions")
-                .or_insert_with(|| Value::Array(Vec::new()));
-            if !d.is_array() {
-                *d = Value::Array(Vec::new());
-            }
-            if let Value::Array(a) = d {
-                a.push(decision);
-            }
-        })
+        self.push_to_attribute("decisions", decision)
     }
 
     /// Appends a late time-lapse set (what the plan's policy did with it) to the root
     /// `late_sets` attribute.
     pub fn push_late_set(&self, late: Value) -> Result<(), StoreError> {
-        self.modify_group_attributes("/", |attrs| {
-            let d = attrs
-                .entry("late_sets")
-                .or_insert_with(|| Value::Array(Vec::new()));
-            if !d.is_array() {
-                *d = Value::Array(Vec::new());
-            }
-            if let Value::Array(a) = d {
-                a.push(late);
-            }
-        })
+        self.push_to_attribute("late_sets", late)
     }
 
     /// The root attributes.
