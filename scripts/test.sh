@@ -13,7 +13,9 @@ cd "$(dirname "$0")/.."
 #   ships in aravis-tools (aravis-tools-cli has arv-tool-0.8 only).
 # * The GUI's screenshot tour runs polarimeter-gui under Xvfb (xvfb-run needs xauth) with
 #   Mesa's software OpenGL; winit loads the X11 client libraries at run time.
-APT_PACKAGES=(libaravis-dev libusb-1.0-0-dev aravis-tools-cli aravis-tools
+# * polar-camera-uvc (nokhwa) builds its Linux V4L2 bindings with bindgen, which loads libclang
+#   (libclang-dev); only that crate, and the CLI's `uvc` feature, need it.
+APT_PACKAGES=(libaravis-dev libusb-1.0-0-dev aravis-tools-cli aravis-tools libclang-dev
   xvfb xauth libgl1-mesa-dri libegl1 libgl1 libx11-xcb1 libxcursor1 libxrandr2 libxi6
   libxkbcommon-x11-0)
 if ((${#APT_PACKAGES[@]})); then
@@ -32,7 +34,7 @@ if [ "${1:-}" = "--deps-only" ]; then exit 0; fi
 # * zarr-python 3, xarray and xxhash read runs back from the outside (scripts/check_run.py,
 #   scripts/zarr_interop.py; crates/engine/tests/{store,crash_safety}.rs, crates/cli/tests/crash.rs);
 # * public client libraries (pylablib, thorlabs_elliptec, roesel's elliptec) drive the
-#   simulated Elliptec and FW102C/FW212C devices (hil-mocks/tests/client_conformance.rs).
+#   simulated Elliptec and FW102C/FW212C devices (tests/tests/hil/conformance_elliptec.rs).
 PY_VENV=target/py-venv
 REQUIREMENTS=scripts/requirements.txt
 [ -x "$PY_VENV/bin/python" ] || python3 -m venv "$PY_VENV"

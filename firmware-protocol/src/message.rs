@@ -41,6 +41,27 @@ pub enum Command {
     Save,
     /// 0x0a: reboot; the device sends [`Reply::Ack`], then a [`Reply::Boot`] notice.
     Reset,
+    /// 0x0b: turn continuously at a signed velocity (velocity mode): ramp at the set
+    /// acceleration and keep turning until [`Command::Stop`] or another `Spin`, which changes the
+    /// speed without stopping. [`Reply::Ack`]; the [`Reply::MotionDone`] that ends the spin
+    /// carries this command's number.
+    Spin {
+        /// Velocity, counts per second; the sign is the direction (non-zero).
+        velocity_counts_per_s: i32,
+    },
+    /// 0x0c: arm the position-compare trigger: a pulse on the trigger output, with a
+    /// [`Reply::Trigger`] event, when the position crosses `first_counts + k * interval_counts`
+    /// (k = 0 .. pulses - 1) moving in the direction of `interval_counts`'s sign. `pulses` 0
+    /// disarms.
+    SetTrigger {
+        /// Position of the first pulse, counts.
+        first_counts: i32,
+        /// Signed distance between pulses, counts (non-zero when armed); its sign is the
+        /// direction of motion that fires.
+        interval_counts: i32,
+        /// Number of pulses (0 disarms).
+        pulses: u32,
+    },
 }
 
 /// What kind of device answers.
@@ -105,6 +126,10 @@ impl StatusFlags {
     pub const STALLED: u8 = 1 << 2;
     /// Bit 3: over temperature.
     pub const OVER_TEMPERATURE: u8 = 1 << 3;
+    /// Bit 4: turning in velocity mode ([`Command::Spin`]).
+    pub const SPINNING: u8 = 1 << 4;
+    /// Bit 5: the position-compare trigger is armed with pulses left ([`Command::SetTrigger`]).
+    pub const TRIGGER_ARMED: u8 = 1 << 5;
 
     /// Whether every bit of `mask` is set.
     pub const fn has(self, mask: u8) -> bool {
@@ -156,6 +181,16 @@ pub enum Reply {
         /// Why.
         reason: BootReason,
     },
+    /// 0x86: a position-compare trigger pulse (event; `seq` is the [`Command::SetTrigger`] that
+    /// armed it).
+    Trigger {
+        /// The pulse's index `k`, from 0.
+        index: u32,
+        /// The encoder position latched at the pulse, counts.
+        position_counts: i32,
+        /// The device's clock at the pulse, microseconds (wraps at 2^32).
+        time_us: u32,
+    },
 }
 
 fn expect(kind: u8, payload: &[u8], expected: usize) -> Result<(), DecodeError> {
@@ -191,6 +226,8 @@ impl Message for Command {
             Command::SelectSlot { .. } => 0x08,
             Command::Save => 0x09,
             Command::Reset => 0x0a,
+            Command::Spin { .. } => 0x0b,
+            Command::SetTrigger { .. } => 0x0c,
         }
     }
 
@@ -212,6 +249,22 @@ impl Message for Command {
             Command::SelectSlot { slot } => {
                 out[0] = slot;
                 1
+            }
+            Command::Spin {
+                velocity_counts_per_s,
+            } => {
+                out[..4].copy_from_slice(&velocity_counts_per_s.to_le_bytes());
+                4
+            }
+            Command::SetTrigger {
+                first_counts,
+                interval_counts,
+                pulses,
+            } => {
+                out[..4].copy_from_slice(&first_counts.to_le_bytes());
+                out[4..8].copy_from_slice(&interval_counts.to_le_bytes());
+                out[8..12].copy_from_slice(&pulses.to_le_bytes());
+                12
             }
             Command::Identify
             | Command::Home
@@ -242,6 +295,14 @@ impl Message for Command {
             0x08 => expect(kind, p, 1).map(|_| Command::SelectSlot { slot: p[0] }),
             0x09 => empty(Command::Save),
             0x0a => empty(Command::Reset),
+            0x0b => expect(kind, p, 4).map(|_| Command::Spin {
+                velocity_counts_per_s: i32_at(p, 0),
+            }),
+            0x0c => expect(kind, p, 12).map(|_| Command::SetTrigger {
+                first_counts: i32_at(p, 0),
+                interval_counts: i32_at(p, 4),
+                pulses: u32_at(p, 8),
+            }),
             _ => Err(DecodeError::UnknownKind { kind }),
         }
     }
@@ -332,6 +393,7 @@ impl Message for Reply {
             Reply::Status { .. } => 0x83,
             Reply::MotionDone { .. } => 0x84,
             Reply::Boot { .. } => 0x85,
+            Reply::Trigger { .. } => 0x86,
         }
     }
 
@@ -376,6 +438,16 @@ impl Message for Reply {
                 out[0] = reason.to_byte();
                 1
             }
+            Reply::Trigger {
+                index,
+                position_counts,
+                time_us,
+            } => {
+                out[..4].copy_from_slice(&index.to_le_bytes());
+                out[4..8].copy_from_slice(&position_counts.to_le_bytes());
+                out[8..12].copy_from_slice(&time_us.to_le_bytes());
+                12
+            }
         }
     }
 
@@ -403,6 +475,11 @@ impl Message for Reply {
             }),
             0x85 => expect(kind, p, 1).map(|_| Reply::Boot {
                 reason: BootReason::from_byte(p[0]),
+            }),
+            0x86 => expect(kind, p, 12).map(|_| Reply::Trigger {
+                index: u32_at(p, 0),
+                position_counts: i32_at(p, 4),
+                time_us: u32_at(p, 8),
             }),
             _ => Err(DecodeError::UnknownKind { kind }),
         }

@@ -73,6 +73,27 @@ fn command_vectors() -> Vec<(u8, Command, Vec<u8>)> {
             Command::Reset,
             vec![0x06, 0x01, 0x0a, 0x0a, 0x2d, 0xb5, 0x00],
         ),
+        (
+            11,
+            Command::Spin {
+                velocity_counts_per_s: -72_000,
+            },
+            vec![
+                0x0a, 0x01, 0x0b, 0x0b, 0xc0, 0xe6, 0xfe, 0xff, 0xf9, 0xe9, 0x00,
+            ],
+        ),
+        (
+            12,
+            Command::SetTrigger {
+                first_counts: 1000,
+                interval_counts: 4000,
+                pulses: 36,
+            },
+            vec![
+                0x06, 0x01, 0x0c, 0x0c, 0xe8, 0x03, 0x01, 0x03, 0xa0, 0x0f, 0x01, 0x02, 0x24, 0x01,
+                0x01, 0x03, 0xaa, 0x73, 0x00,
+            ],
+        ),
     ]
 }
 
@@ -132,6 +153,34 @@ fn reply_vectors() -> Vec<(u8, Reply, Vec<u8>)> {
                 reason: BootReason::Watchdog,
             },
             vec![0x02, 0x01, 0x05, 0x85, 0x01, 0x38, 0x06, 0x00],
+        ),
+        (
+            6,
+            Reply::Status {
+                position_counts: 36_000,
+                flags: StatusFlags(
+                    StatusFlags::HOMED
+                        | StatusFlags::MOVING
+                        | StatusFlags::SPINNING
+                        | StatusFlags::TRIGGER_ARMED,
+                ),
+                slot: 0xff,
+            },
+            vec![
+                0x06, 0x01, 0x06, 0x83, 0xa0, 0x8c, 0x01, 0x05, 0x33, 0xff, 0x04, 0x06, 0x00,
+            ],
+        ),
+        (
+            12,
+            Reply::Trigger {
+                index: 2,
+                position_counts: 9000,
+                time_us: 123_456,
+            },
+            vec![
+                0x05, 0x01, 0x0c, 0x86, 0x02, 0x01, 0x01, 0x03, 0x28, 0x23, 0x01, 0x04, 0x40, 0xe2,
+                0x01, 0x03, 0xea, 0x8a, 0x00,
+            ],
         ),
     ]
 }
@@ -324,6 +373,14 @@ fn any_command() -> impl Strategy<Value = Command> {
         any::<u8>().prop_map(|slot| Command::SelectSlot { slot }),
         Just(Command::Save),
         Just(Command::Reset),
+        any::<i32>().prop_map(|v| Command::Spin {
+            velocity_counts_per_s: v
+        }),
+        (any::<i32>(), any::<i32>(), any::<u32>()).prop_map(|(f, i, n)| Command::SetTrigger {
+            first_counts: f,
+            interval_counts: i,
+            pulses: n
+        }),
     ]
 }
 
@@ -357,6 +414,11 @@ fn any_reply() -> impl Strategy<Value = Reply> {
         any::<i32>().prop_map(|p| Reply::MotionDone { position_counts: p }),
         any::<u8>().prop_map(|b| Reply::Boot {
             reason: BootReason::from_byte(b)
+        }),
+        (any::<u32>(), any::<i32>(), any::<u32>()).prop_map(|(k, p, t)| Reply::Trigger {
+            index: k,
+            position_counts: p,
+            time_us: t
         }),
     ]
 }

@@ -354,13 +354,19 @@ pub struct SimCameraConfig {
 }
 
 /// An exposure under way.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 struct Exposing {
+    start: Instant,
     end: Instant,
-    psi_start_rad: f64,
+    /// The analyzer's true angle sampled through the exposure: (seconds from its start, angle).
+    path: Vec<(f64, f64)>,
 }
 
-/// The simulated camera (a [`BlockingCamera`]; wrap it in `polar_drivers::camera_thread` for
+/// How often the analyzer's angle is sampled during an exposure: often enough that the stage
+/// turns far less than 90 deg between samples at any speed it reaches (2 turns/s: 0.7 deg).
+const PATH_SAMPLE: Duration = Duration::from_millis(1);
+
+/// The simulated camera (a [`BlockingCamera`]; wrap it in `polar_hal::camera_thread` for
 /// the async [`polar_hal::Camera`]).
 pub struct SimCamera {
     config: SimCameraConfig,
@@ -514,10 +520,11 @@ impl SimCamera {
         c
     }
 
-    /// Mean photo-electrons of each pixel of `roi` (row-major) for an analyzer at `psi_rad`
-    /// (the average of the rows at `psi_rad` and `psi_end_rad`, for a move during the exposure)
-    /// and an exposure of `exposure_us`: `G m(psi)^T S`, `G` the camera equation's electrons per
-    /// radiance (MODEL.md section 6), clamped at 0.
+    /// Mean photo-electrons of each pixel of `roi` (row-major) for an exposure of
+    /// `exposure_us` during which the analyzer turns at constant speed from `psi_rad` to
+    /// `psi_end_rad` (equal for a still analyzer): `G rbar^T S`, `rbar` the span's average row
+    /// ([`SimCamera::span_row`]), `G` the camera equation's electrons per radiance (MODEL.md
+    /// section 6), clamped at 0.
     pub fn mean_electrons(
         &self,
         roi: Roi,
@@ -525,15 +532,67 @@ impl SimCamera {
         psi_end_rad: f64,
         exposure_us: f64,
     ) -> Result<Vec<f64>, SimCameraError> {
+        let row = self.span_row(psi_rad, psi_end_rad)?;
+        Ok(self.electrons_for_row(roi, row, exposure_us))
+    }
+
+    /// The camera's measurement row (real analyzer and fore-optics) averaged over an analyzer
+    /// turning at constant speed from `psi_rad` to `psi_end_rad`. The row is
+    /// `A + B cos 2psi + C sin 2psi`, so its average is `A + sinc(D) (B cos 2psi_c + C sin
+    /// 2psi_c)` (`polar_model::span`), with `A` and the modulated part read off the rows at the
+    /// centre `psi_c` and at `psi_c + 90 deg`.
+    pub fn span_row(&self, psi_rad: f64, psi_end_rad: f64) -> Result<[f64; 3], SimCameraError> {
+        let centre = 0.5 * (psi_rad + psi_end_rad);
         let w = self
             .sensor
-            .intensities_from_stokes(&[psi_rad, psi_end_rad])?;
+            .intensities_from_stokes(&[centre, centre + 0.5 * std::f64::consts::PI])?;
+        let factor = polar_model::span::sinc(psi_end_rad - psi_rad);
+        Ok(std::array::from_fn(|j| {
+            let (a, m) = (0.5 * (w[(0, j)] + w[(1, j)]), 0.5 * (w[(0, j)] - w[(1, j)]));
+            a + factor * m
+        }))
+    }
+
+    /// Mean photo-electrons as [`SimCamera::mean_electrons`], for an analyzer path sampled as
+    /// `(time, angle)` pairs through the exposure (any time unit; at least one sample): the
+    /// time-weighted average of the span rows between consecutive samples, each angle
+    /// unwrapped modulo 180 deg against the previous one (the row's period), so the samples
+    /// must be less than 90 deg apart.
+    pub fn mean_electrons_along(
+        &self,
+        roi: Roi,
+        path: &[(f64, f64)],
+        exposure_us: f64,
+    ) -> Result<Vec<f64>, SimCameraError> {
+        let half_turn = std::f64::consts::PI;
+        let mut row = [0.0; 3];
+        let mut total = 0.0;
+        let mut previous: Option<(f64, f64)> = None;
+        for &(t, psi) in path {
+            let psi = match previous {
+                Some((_, last)) => last + polar_hal::signed_difference(psi, last, half_turn),
+                None => psi,
+            };
+            if let Some((t0, psi0)) = previous {
+                let dt = (t - t0).max(0.0);
+                let r = self.span_row(psi0, psi)?;
+                row.iter_mut().zip(r).for_each(|(acc, v)| *acc += dt * v);
+                total += dt;
+            }
+            previous = Some((t, psi));
+        }
+        if total <= 0.0 {
+            let psi = previous.map_or(0.0, |(_, p)| p);
+            row = self.span_row(psi, psi)?;
+            total = 1.0;
+        }
+        Ok(self.electrons_for_row(roi, row.map(|v| v / total), exposure_us))
+    }
+
+    /// `G row^T S` for each pixel of `roi`, clamped at 0.
+    fn electrons_for_row(&self, roi: Roi, row: [f64; 3], exposure_us: f64) -> Vec<f64> {
         let g = self.sensor.responsivity_e_per_s() * exposure_us * 1e-6;
-        let row = [
-            0.5 * (w[(0, 0)] + w[(1, 0)]) * g,
-            0.5 * (w[(0, 1)] + w[(1, 1)]) * g,
-            0.5 * (w[(0, 2)] + w[(1, 2)]) * g,
-        ];
+        let row = row.map(|v| v * g);
         let scene = &self.config.scene;
         let mut out = Vec::with_capacity(roi.pixels());
         for y in roi.y..roi.y + roi.height {
@@ -543,7 +602,7 @@ impl SimCamera {
                 out.push((row[0] * s[0] + row[1] * s[1] + row[2] * s[2]).max(0.0));
             }
         }
-        Ok(out)
+        out
     }
 
     fn error(&self, kind: ErrorKind, message: impl Into<String>) -> DeviceError {
@@ -562,10 +621,14 @@ impl SimCamera {
     }
 
     /// Draws the frame whose exposure just ended.
-    fn finish(&mut self, started: Exposing) -> Result<Grabbed, DeviceError> {
+    fn finish(&mut self, mut started: Exposing) -> Result<Grabbed, DeviceError> {
         // What the sensor saw is fixed when the exposure ends; only then is the end reported,
         // so a move started on the report cannot reach this frame.
-        let psi_end = (self.angle)();
+        let end_s = started
+            .end
+            .saturating_duration_since(started.start)
+            .as_secs_f64();
+        started.path.push((end_s, (self.angle)()));
         let light = self.illumination.get();
         let id = self.frame_id;
         self.frame_id += 1;
@@ -590,7 +653,7 @@ impl SimCamera {
             (true, Some(last)) => last.clone(),
             _ => {
                 let mut electrons = self
-                    .mean_electrons(self.roi, started.psi_start_rad, psi_end, self.exposure_us)
+                    .mean_electrons_along(self.roi, &started.path, self.exposure_us)
                     .map_err(|e| self.error(ErrorKind::Other, e.to_string()))?;
                 if light != 1.0 {
                     electrons.iter_mut().for_each(|e| *e *= light);
@@ -768,21 +831,34 @@ impl BlockingCamera for SimCamera {
             let period = Duration::from_secs_f64(1.0 / self.config.max_frame_rate_hz);
             self.next_start = start + exposure.max(period);
             self.exposing = Some(Exposing {
+                start,
                 end: start + exposure,
-                psi_start_rad: (self.angle)(),
+                path: vec![(0.0, (self.angle)())],
             });
         }
-        let Some(exposing) = self.exposing else {
+        let Some(end) = self.exposing.as_ref().map(|e| e.end) else {
             return Ok(Grabbed::Nothing);
         };
-        let now = Instant::now();
-        if exposing.end > deadline {
-            std::thread::sleep(deadline.saturating_duration_since(now));
+        // Sample the analyzer's path while exposing, up to the end or the caller's deadline.
+        // The samples' times are read after each (imprecise) OS sleep; only the end is precise.
+        let until = end.min(deadline);
+        while Instant::now() + PATH_SAMPLE < until {
+            std::thread::sleep(PATH_SAMPLE);
+            let angle = (self.angle)();
+            let now = Instant::now();
+            if let Some(e) = self.exposing.as_mut() {
+                e.path
+                    .push((now.saturating_duration_since(e.start).as_secs_f64(), angle));
+            }
+        }
+        crate::sleep_until_precisely(until);
+        if end > deadline {
             return Ok(Grabbed::Nothing);
         }
-        crate::sleep_until_precisely(exposing.end);
-        self.exposing = None;
-        self.finish(exposing)
+        match self.exposing.take() {
+            Some(exposing) => self.finish(exposing),
+            None => Ok(Grabbed::Nothing),
+        }
     }
 }
 

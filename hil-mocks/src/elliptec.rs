@@ -70,7 +70,7 @@
 
 use crate::faults::{Dice, DutyCycle, FaultProfile};
 use crate::motion::{output_from_motor, Profile};
-use crate::sim::{Simulator, Truth};
+use crate::sim::{next_request, Scan, Simulator, Truth};
 use std::f64::consts::TAU;
 
 /// A partial command idle this long (simulated seconds) is dropped and answered `GS01`.
@@ -230,13 +230,6 @@ struct Motion {
     search: bool,
 }
 
-/// What the bytes pending at the front of the input buffer are.
-enum Scan {
-    NeedMore,
-    Skip,
-    Complete(usize),
-}
-
 /// The value of an upper-case hex digit.
 fn hex_digit(b: u8) -> Option<u8> {
     match b {
@@ -265,7 +258,7 @@ fn data_len(cc: [u8; 2]) -> Option<usize> {
 }
 
 /// Whether `buf` starts with a complete command, a prefix of one, or a byte to skip.
-fn scan(buf: &[u8]) -> Scan {
+fn scan(buf: &[u8]) -> Scan<()> {
     // Until both command letters are in, any length will do: only the prefix is checked.
     let cc = [1, 2].map(|i| buf.get(i).copied().unwrap_or(b'?'));
     let n = 3 + data_len(cc).unwrap_or(0);
@@ -281,7 +274,7 @@ fn scan(buf: &[u8]) -> Scan {
         }
     }
     if buf.len() >= n {
-        Scan::Complete(n)
+        Scan::Complete((), n)
     } else {
         Scan::NeedMore
     }
@@ -743,18 +736,8 @@ impl Simulator for ElliptecDevice {
         for &b in bytes {
             self.pending.push(b);
             self.last_byte_s = now_s;
-            loop {
-                match scan(&self.pending) {
-                    Scan::NeedMore => break,
-                    Scan::Skip => {
-                        self.pending.remove(0);
-                    }
-                    Scan::Complete(n) => {
-                        let n = n.min(self.pending.len());
-                        let cmd: Vec<u8> = self.pending.drain(..n).collect();
-                        out.extend(self.execute(now_s, &cmd));
-                    }
-                }
+            while let Some(((), cmd)) = next_request(&mut self.pending, scan) {
+                out.extend(self.execute(now_s, &cmd));
             }
         }
         // A stop may end the motion at once.

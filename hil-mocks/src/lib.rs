@@ -18,6 +18,7 @@
 //! bytes.
 #![warn(missing_docs)]
 
+pub mod apt;
 pub mod camera;
 pub mod elliptec;
 pub mod faults;

@@ -105,6 +105,52 @@ impl Profile {
     }
 }
 
+/// Velocity mode: from position `start` turning at `v0` (counts/s, signed) at time `t0_s`, the
+/// axis changes speed at acceleration `a` (counts/s^2, > 0) to `v1` and holds it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Ramp {
+    /// Position at `t0_s`, counts.
+    pub start: f64,
+    /// Velocity at `t0_s`, counts/s.
+    pub v0: f64,
+    /// Velocity held after the ramp, counts/s.
+    pub v1: f64,
+    /// Start time, seconds.
+    pub t0_s: f64,
+    /// Acceleration, counts/s^2 (> 0).
+    pub a: f64,
+}
+
+impl Ramp {
+    /// The time the ramp ends and the velocity `v1` is reached, seconds.
+    pub fn settled_s(&self) -> f64 {
+        self.t0_s + (self.v1 - self.v0).abs() / self.a
+    }
+
+    /// Velocity at `t_s` (signed).
+    pub fn velocity(&self, t_s: f64) -> f64 {
+        let t = (t_s - self.t0_s).max(0.0);
+        let dv = self.v1 - self.v0;
+        if t >= dv.abs() / self.a {
+            self.v1
+        } else {
+            self.v0 + dv.signum() * self.a * t
+        }
+    }
+
+    /// Position at `t_s`.
+    pub fn position(&self, t_s: f64) -> f64 {
+        let t = (t_s - self.t0_s).max(0.0);
+        let dv = self.v1 - self.v0;
+        let tr = dv.abs() / self.a;
+        if t <= tr {
+            self.start + self.v0 * t + 0.5 * dv.signum() * self.a * t * t
+        } else {
+            self.start + 0.5 * (self.v0 + self.v1) * tr + self.v1 * (t - tr)
+        }
+    }
+}
+
 /// The output shaft lags the motor by half the backlash against the last direction of motion:
 /// output = motor - direction * backlash / 2.
 pub fn output_from_motor(motor: f64, direction: f64, backlash: f64) -> f64 {
@@ -137,6 +183,32 @@ mod tests {
             last = x;
         }
         assert!((p.velocity(3.0) + 2_000.0).abs() < 1e-9);
+    }
+
+    /// A ramp from rest reaches its velocity after v/a with position v^2/(2a), then turns at
+    /// that velocity; a ramp down to 0 ends where v^2/(2a) says.
+    #[test]
+    fn ramp_kinematics() {
+        let up = Ramp {
+            start: 10.0,
+            v0: 0.0,
+            v1: -3_000.0,
+            t0_s: 2.0,
+            a: 12_000.0,
+        };
+        assert!((up.settled_s() - 2.25).abs() < 1e-12);
+        assert!((up.position(2.25) - (10.0 - 3_000.0f64.powi(2) / 24_000.0)).abs() < 1e-9);
+        assert!((up.position(3.25) - up.position(2.25) + 3_000.0).abs() < 1e-9);
+        assert_eq!(up.velocity(5.0), -3_000.0);
+        let down = Ramp {
+            start: 0.0,
+            v0: 3_000.0,
+            v1: 0.0,
+            t0_s: 0.0,
+            a: 12_000.0,
+        };
+        assert!((down.position(10.0) - 375.0).abs() < 1e-9);
+        assert_eq!(down.velocity(10.0), 0.0);
     }
 
     /// A short move is triangular: duration 2 sqrt(d/a), peak velocity below the cruise.

@@ -3,7 +3,7 @@
 //! bytes come out, including the motion-done events that fall due as time passes.
 
 use crate::faults::{Dice, DutyCycle, FaultProfile};
-use crate::motion::{output_from_motor, Profile};
+use crate::motion::{output_from_motor, Profile, Ramp};
 use crate::sim::{Simulator, Truth};
 use polar_firmware_protocol::{
     encode_vec, BootReason, Command, Decoder, DeviceKind, ErrorCode, Packet, Reply, StatusFlags,
@@ -85,8 +85,43 @@ pub struct NativeDevice {
     motion: Option<(Profile, u8)>,
     /// Homing in progress: its end time and the command's seq.
     homing: Option<(f64, u8)>,
+    /// Velocity mode: the ramp, the seq of the `Spin` that set it, and whether it is a `Stop`
+    /// ramping down to rest (then a MotionDone follows).
+    spin: Option<Spin>,
+    /// The armed position-compare trigger.
+    trigger: Option<TriggerArm>,
     duty: DutyCycle,
 }
+
+/// Velocity mode in progress.
+#[derive(Debug, Clone, Copy)]
+struct Spin {
+    ramp: Ramp,
+    seq: u8,
+    stopping: bool,
+}
+
+/// An armed position-compare trigger: pulse `next` fires when the position crosses
+/// `first + next * interval` moving in `interval`'s direction.
+#[derive(Debug, Clone, Copy)]
+struct TriggerArm {
+    first: f64,
+    interval: f64,
+    pulses: u32,
+    next: u32,
+    seq: u8,
+    /// Crossings are searched from this time on.
+    checked_s: f64,
+}
+
+impl TriggerArm {
+    fn target(&self) -> f64 {
+        self.first + self.next as f64 * self.interval
+    }
+}
+
+/// The fastest a simulated rotator spins, turns per second (720 deg/s).
+pub const MAX_SPIN_TURNS_PER_S: f64 = 2.0;
 
 impl NativeDevice {
     /// A device at power-on (unhomed, at a random position), faults from `faults`, all randomness
@@ -107,6 +142,8 @@ impl NativeDevice {
             stalled: false,
             motion: None,
             homing: None,
+            spin: None,
+            trigger: None,
             duty: DutyCycle::default(),
         }
     }
@@ -114,7 +151,11 @@ impl NativeDevice {
     /// The output shaft's true angle in counts at `now_s` (what the optics see), which differs
     /// from the reported position by the backlash and the encoder noise.
     pub fn true_output_counts(&self, now_s: f64) -> f64 {
-        let direction = self.motion.map_or(self.direction, |(p, _)| p.direction());
+        let direction = match (self.spin, self.motion) {
+            (Some(s), _) if s.ramp.velocity(now_s) != 0.0 => s.ramp.velocity(now_s).signum(),
+            (_, Some((p, _))) => p.direction(),
+            _ => self.direction,
+        };
         output_from_motor(
             self.position_now(now_s),
             direction,
@@ -126,6 +167,7 @@ impl NativeDevice {
     pub fn busy(&self, now_s: f64) -> bool {
         self.motion.as_ref().is_some_and(|(p, _)| now_s < p.end_s())
             || self.homing.is_some_and(|(end, _)| now_s < end)
+            || self.spin.is_some()
     }
 
     /// The power-on notice a host sees when it opens the port after a boot.
@@ -151,9 +193,17 @@ impl NativeDevice {
         out
     }
 
-    /// Advances to `now_s`: returns the events (MotionDone) that fell due.
+    /// Advances to `now_s`: returns the events (trigger pulses, MotionDone) that fell due.
     pub fn tick(&mut self, now_s: f64) -> Vec<u8> {
-        let mut out = Vec::new();
+        let mut out = self.fire_triggers(now_s);
+        if let Some(s) = self.spin {
+            if s.stopping && now_s >= s.ramp.settled_s() {
+                self.spin = None;
+                self.motor = s.ramp.position(now_s);
+                let position_counts = self.reported(self.motor);
+                out.extend(self.send(s.seq, Reply::MotionDone { position_counts }));
+            }
+        }
         if let Some((end, seq)) = self.homing {
             if now_s >= end {
                 self.homing = None;
@@ -192,10 +242,80 @@ impl NativeDevice {
     }
 
     fn position_now(&self, now_s: f64) -> f64 {
+        if let Some(s) = &self.spin {
+            return s.ramp.position(now_s);
+        }
         match &self.motion {
             Some((p, _)) => p.position(now_s),
             None => self.motor,
         }
+    }
+
+    /// The time, in `[from_s, to_s]`, at which the position first reaches `target` moving in
+    /// `direction`, if it does by `to_s` (the position is monotonic over one motion; 60
+    /// bisections resolve the time to far below a microsecond).
+    fn crossing_s(&self, from_s: f64, to_s: f64, target: f64, direction: f64) -> Option<f64> {
+        let past = |t: f64| direction * (self.position_now(t) - target) >= 0.0;
+        if to_s < from_s || past(from_s) || !past(to_s) {
+            return None;
+        }
+        let (mut lo, mut hi) = (from_s, to_s);
+        for _ in 0..60 {
+            let mid = 0.5 * (lo + hi);
+            if past(mid) {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        Some(hi)
+    }
+
+    /// The latest time the current motion can cross a trigger position: the end of a move or of
+    /// a stop ramp, an hour ahead for a spin, nothing when idle.
+    fn motion_horizon_s(&self, from_s: f64) -> Option<f64> {
+        if let Some(s) = self.spin {
+            return Some(if s.stopping {
+                s.ramp.settled_s()
+            } else {
+                from_s.max(s.ramp.settled_s()) + 3600.0
+            });
+        }
+        self.motion.map(|(p, _)| p.end_s())
+    }
+
+    /// The trigger pulses whose positions the axis crossed up to `now_s`, as events.
+    fn fire_triggers(&mut self, now_s: f64) -> Vec<u8> {
+        let mut out = Vec::new();
+        while let Some(mut arm) = self.trigger {
+            let direction = arm.interval.signum();
+            let Some(t) = self.crossing_s(arm.checked_s, now_s, arm.target(), direction) else {
+                arm.checked_s = arm.checked_s.max(now_s);
+                self.trigger = Some(arm);
+                break;
+            };
+            let position_counts = self.reported(arm.target());
+            let time_us = ((t * 1e6).round() as u64 & u64::from(u32::MAX)) as u32;
+            out.extend(self.send(
+                arm.seq,
+                Reply::Trigger {
+                    index: arm.next,
+                    position_counts,
+                    time_us,
+                },
+            ));
+            arm.next += 1;
+            arm.checked_s = t;
+            self.trigger = (arm.next < arm.pulses).then_some(arm);
+        }
+        out
+    }
+
+    /// When the next trigger pulse falls due under the current motion.
+    fn next_trigger_s(&self) -> Option<f64> {
+        let arm = self.trigger?;
+        let horizon = self.motion_horizon_s(arm.checked_s)?;
+        self.crossing_s(arm.checked_s, horizon, arm.target(), arm.interval.signum())
     }
 
     /// Starts a move to `target` (motor counts); a stall fault cuts it half way.
@@ -222,6 +342,8 @@ impl NativeDevice {
     fn reset(&mut self) {
         self.motion = None;
         self.homing = None;
+        self.spin = None;
+        self.trigger = None;
         self.homed = false;
         self.stalled = false;
         self.decoder.clear();
@@ -322,6 +444,23 @@ impl NativeDevice {
                     self.start_move(now_s, seq, target)
                 }
             }
+            Command::Stop if self.spin.is_some_and(|s| !s.stopping) => {
+                if let Some(s) = self.spin {
+                    let ramp = Ramp {
+                        start: s.ramp.position(now_s),
+                        v0: s.ramp.velocity(now_s),
+                        v1: 0.0,
+                        t0_s: now_s,
+                        a: self.acceleration,
+                    };
+                    self.spin = Some(Spin {
+                        ramp,
+                        seq: s.seq,
+                        stopping: true,
+                    });
+                }
+                self.send(seq, Reply::Ack)
+            }
             Command::Stop => {
                 if let Some((p, s)) = self.motion {
                     if now_s < p.end_s() {
@@ -336,6 +475,11 @@ impl NativeDevice {
                 for (on, bit) in [
                     (self.homed, StatusFlags::HOMED),
                     (moving, StatusFlags::MOVING),
+                    (
+                        self.spin.is_some_and(|s| !s.stopping),
+                        StatusFlags::SPINNING,
+                    ),
+                    (self.trigger.is_some(), StatusFlags::TRIGGER_ARMED),
                     (self.stalled && !moving, StatusFlags::STALLED),
                     (
                         self.duty.too_hot(&self.faults, now_s),
@@ -380,6 +524,64 @@ impl NativeDevice {
                     self.send(seq, Reply::Ack)
                 }
             }
+            Command::Spin { .. } | Command::SetTrigger { .. } if !rotator => {
+                self.nack(seq, ErrorCode::Unsupported)
+            }
+            Command::Spin {
+                velocity_counts_per_s,
+            } => {
+                let v = velocity_counts_per_s as f64;
+                let max = MAX_SPIN_TURNS_PER_S * c.counts_per_turn as f64;
+                if velocity_counts_per_s == 0 || v.abs() > max {
+                    self.nack(seq, ErrorCode::OutOfRange)
+                } else if !self.homed {
+                    self.nack(seq, ErrorCode::NotHomed)
+                } else if self.spin.is_none() && busy {
+                    self.nack(seq, ErrorCode::Busy)
+                } else if self.duty.too_hot(&self.faults, now_s) {
+                    self.nack(seq, ErrorCode::OverTemperature)
+                } else {
+                    let (start, v0) = match self.spin {
+                        Some(s) => (s.ramp.position(now_s), s.ramp.velocity(now_s)),
+                        None => (self.motor, 0.0),
+                    };
+                    self.stalled = false;
+                    self.spin = Some(Spin {
+                        ramp: Ramp {
+                            start,
+                            v0,
+                            v1: v,
+                            t0_s: now_s,
+                            a: self.acceleration,
+                        },
+                        seq,
+                        stopping: false,
+                    });
+                    self.send(seq, Reply::Ack)
+                }
+            }
+            Command::SetTrigger {
+                first_counts,
+                interval_counts,
+                pulses,
+            } => {
+                if pulses == 0 {
+                    self.trigger = None;
+                    self.send(seq, Reply::Ack)
+                } else if interval_counts == 0 {
+                    self.nack(seq, ErrorCode::OutOfRange)
+                } else {
+                    self.trigger = Some(TriggerArm {
+                        first: first_counts as f64,
+                        interval: interval_counts as f64,
+                        pulses,
+                        next: 0,
+                        seq,
+                        checked_s: now_s,
+                    });
+                    self.send(seq, Reply::Ack)
+                }
+            }
             Command::Save => self.send(seq, Reply::Ack),
             Command::Reset => {
                 let mut out = self.send(seq, Reply::Ack);
@@ -420,10 +622,11 @@ impl Simulator for NativeDevice {
     fn next_event_s(&self) -> Option<f64> {
         let homing = self.homing.map(|(end, _)| end);
         let motion = self.motion.map(|(p, _)| p.end_s());
-        match (homing, motion) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        }
+        let stop = self.spin.filter(|s| s.stopping).map(|s| s.ramp.settled_s());
+        [homing, motion, stop, self.next_trigger_s()]
+            .into_iter()
+            .flatten()
+            .reduce(f64::min)
     }
 
     fn on_open(&mut self, _now_s: f64) -> Vec<u8> {
@@ -496,6 +699,169 @@ mod tests {
 
     fn ok(seq: u8, message: Reply) -> Result<Packet<Reply>, DecodeError> {
         Ok(Packet { seq, message })
+    }
+
+    /// Velocity mode and the position-compare trigger: pulses at the armed positions, each at
+    /// the time the kinematics say (ramp 0 -> 72000 counts/s at 96000 counts/s^2: position
+    /// a t^2 / 2 during the 0.75 s ramp, then 27000 + 72000 (t - 0.75)), latched within the
+    /// encoder noise (0.3 counts rms: 3 counts is 10 sigma); Busy for moves while spinning; a
+    /// Stop ramps down and ends with MotionDone where v^2 / 2a says.
+    #[test]
+    fn spin_with_position_compare_trigger() {
+        let mut dev = NativeDevice::new(NativeConfig::rotator(), FaultProfile::default(), 5);
+        let mut host = Host::new();
+        let spin = Command::Spin {
+            velocity_counts_per_s: 72_000,
+        };
+        let (s, r) = host.send(&mut dev, 0.0, spin);
+        assert_eq!(
+            r,
+            vec![ok(
+                s,
+                Reply::Nack {
+                    code: ErrorCode::NotHomed
+                }
+            )]
+        );
+        host.send(&mut dev, 0.0, Command::Home);
+        host.decode(&dev.tick(0.5));
+        for bad in [0, 288_001, -288_001] {
+            let (s, r) = host.send(
+                &mut dev,
+                1.0,
+                Command::Spin {
+                    velocity_counts_per_s: bad,
+                },
+            );
+            assert_eq!(
+                r,
+                vec![ok(
+                    s,
+                    Reply::Nack {
+                        code: ErrorCode::OutOfRange
+                    }
+                )]
+            );
+        }
+        let arm = Command::SetTrigger {
+            first_counts: 1000,
+            interval_counts: 8000,
+            pulses: 5,
+        };
+        let (trig, r) = host.send(&mut dev, 1.0, arm);
+        assert_eq!(r, vec![ok(trig, Reply::Ack)]);
+        let (spin_seq, r) = host.send(&mut dev, 1.0, spin);
+        assert_eq!(r, vec![ok(spin_seq, Reply::Ack)]);
+        let (s, r) = host.send(&mut dev, 1.1, Command::MoveAbsolute { position_counts: 0 });
+        assert_eq!(
+            r,
+            vec![ok(
+                s,
+                Reply::Nack {
+                    code: ErrorCode::Busy
+                }
+            )]
+        );
+        let (_, r) = host.send(&mut dev, 1.1, Command::GetStatus);
+        let want = StatusFlags::HOMED
+            | StatusFlags::MOVING
+            | StatusFlags::SPINNING
+            | StatusFlags::TRIGGER_ARMED;
+        assert!(
+            matches!(r[..], [Ok(Packet { message: Reply::Status { flags, .. }, .. })] if flags.0 == want)
+        );
+        let a = 96_000.0;
+        let expected_s = |p: f64| {
+            if p <= 27_000.0 {
+                1.0 + (2.0 * p / a).sqrt()
+            } else {
+                1.75 + (p - 27_000.0) / 72_000.0
+            }
+        };
+        let mut pulses = Vec::new();
+        while pulses.len() < 5 {
+            let t = dev.next_event_s().expect("a pulse is due");
+            for packet in host.decode(&dev.tick(t)) {
+                pulses.push((packet.unwrap(), t));
+            }
+        }
+        for (k, (packet, t)) in pulses.iter().enumerate() {
+            let target = 1000.0 + 8000.0 * k as f64;
+            let Reply::Trigger {
+                index,
+                position_counts,
+                time_us,
+            } = packet.message
+            else {
+                panic!("expected a trigger, got {packet:?}");
+            };
+            assert_eq!((packet.seq, index), (trig, k as u32));
+            assert!(
+                (position_counts as f64 - target).abs() <= 3.0,
+                "{position_counts}"
+            );
+            assert!((t - expected_s(target)).abs() < 1e-9, "pulse {k} at {t}");
+            assert!((time_us as f64 - expected_s(target) * 1e6).abs() <= 1.0);
+        }
+        let (_, r) = host.send(&mut dev, 2.0, Command::GetStatus);
+        assert!(
+            matches!(r[..], [Ok(Packet { message: Reply::Status { flags, .. }, .. })] if !flags.has(StatusFlags::TRIGGER_ARMED) && flags.has(StatusFlags::SPINNING))
+        );
+        // Stop at t = 2.0 (position 27000 + 72000 * 0.25 = 45000): 0.75 s to rest, 27000 on.
+        let (s, r) = host.send(&mut dev, 2.0, Command::Stop);
+        assert_eq!(r, vec![ok(s, Reply::Ack)]);
+        assert_eq!(dev.next_event_s(), Some(2.75));
+        let done = host.decode(&dev.tick(2.75));
+        assert!(
+            matches!(done[..], [Ok(Packet { seq, message: Reply::MotionDone { position_counts } })] if seq == spin_seq && (position_counts - 72_000).abs() <= 3),
+            "{done:?}"
+        );
+        assert!(!dev.busy(2.75));
+    }
+
+    /// A negative interval fires on the way down; a filter wheel refuses both commands.
+    #[test]
+    fn trigger_direction_and_wheel() {
+        let mut dev = NativeDevice::new(NativeConfig::rotator(), FaultProfile::default(), 6);
+        let mut host = Host::new();
+        host.send(&mut dev, 0.0, Command::Home);
+        host.decode(&dev.tick(0.5));
+        let arm = Command::SetTrigger {
+            first_counts: -100,
+            interval_counts: -1000,
+            pulses: 3,
+        };
+        let (trig, _) = host.send(&mut dev, 1.0, arm);
+        host.send(
+            &mut dev,
+            1.0,
+            Command::Spin {
+                velocity_counts_per_s: -36_000,
+            },
+        );
+        let mut seen = Vec::new();
+        while seen.len() < 3 {
+            let t = dev.next_event_s().expect("a pulse is due");
+            seen.extend(host.decode(&dev.tick(t)));
+        }
+        for (k, p) in seen.iter().enumerate() {
+            let p = p.as_ref().unwrap();
+            assert_eq!(p.seq, trig);
+            assert!(
+                matches!(p.message, Reply::Trigger { index, position_counts, .. } if index == k as u32 && (position_counts + 100 + 1000 * k as i32).abs() <= 3)
+            );
+        }
+        let mut wheel = NativeDevice::new(NativeConfig::wheel(), FaultProfile::default(), 7);
+        let (s, r) = host.send(&mut wheel, 0.0, arm);
+        assert_eq!(
+            r,
+            vec![ok(
+                s,
+                Reply::Nack {
+                    code: ErrorCode::Unsupported
+                }
+            )]
+        );
     }
 
     /// The handshake, homing (Ack now, MotionDone after the homing time), a move that ends

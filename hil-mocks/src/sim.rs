@@ -1,7 +1,13 @@
 //! What every simulated serial device offers the transport server ([`crate::serve`]) and the
 //! tests: bytes in and out on simulated time, the next time something falls due, what the host
 //! sees when it opens the port, a power cycle, and the ground truth a test checks a driver
-//! against.
+//! against; and [`SIMULATORS`], every serial dialect's simulators keyed by the dialect's name
+//! (one line per dialect), which `sim stage`, the engine's simulated rig and the tests use.
+
+use crate::elliptec::{ElliptecConfig, ElliptecDevice};
+use crate::faults::FaultProfile;
+use crate::fw102c::{Fw102cConfig, Fw102cDevice};
+use crate::native::{NativeConfig, NativeDevice};
 
 /// Where the mechanism really is (what the optics see), for tests.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -18,6 +24,39 @@ pub enum Truth {
         /// The slot, from 0.
         slot: Option<usize>,
     },
+}
+
+/// What a simulator's request scanner finds at the front of its input buffer.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Scan<T> {
+    /// Not enough bytes for a whole request yet.
+    NeedMore,
+    /// The first byte starts no request (it is dropped: resynchronisation).
+    Skip,
+    /// A whole request, decoded as `T`, of this many bytes.
+    Complete(T, usize),
+}
+
+/// The next whole request at the front of `pending` by `scan`, taken off the buffer with its
+/// bytes; bytes that start no request are dropped first. `None` when the buffer holds no whole
+/// request (the rest stays for later bytes).
+pub fn next_request<T>(
+    pending: &mut Vec<u8>,
+    scan: impl Fn(&[u8]) -> Scan<T>,
+) -> Option<(T, Vec<u8>)> {
+    while !pending.is_empty() {
+        match scan(pending) {
+            Scan::NeedMore => return None,
+            Scan::Skip => {
+                pending.remove(0);
+            }
+            Scan::Complete(request, n) => {
+                let n = n.min(pending.len());
+                return Some((request, pending.drain(..n).collect()));
+            }
+        }
+    }
+    None
 }
 
 /// A device simulated at the byte level.
@@ -66,5 +105,138 @@ impl Simulator for Box<dyn Simulator> {
     }
     fn truth(&self, now_s: f64) -> Truth {
         (**self).truth(now_s)
+    }
+}
+
+/// Builds a simulator of one model (lower case, as [`SimDialect::models`] spells it) with
+/// device faults and a seed; `None` for a model the dialect does not have.
+pub type BuildSimulator = fn(&str, FaultProfile, u64) -> Option<Box<dyn Simulator>>;
+
+/// The simulators of one serial dialect, keyed by the dialect's name in
+/// `polar_drivers::registry::DIALECTS`.
+#[derive(Debug, Clone, Copy)]
+pub struct SimDialect {
+    /// The dialect's name (`native`, `elliptec`, ...).
+    pub dialect: &'static str,
+    /// The models simulated, lower case; the first is the default.
+    pub models: &'static [&'static str],
+    /// The constructor.
+    pub build: BuildSimulator,
+}
+
+/// Every dialect's simulators, one line each.
+pub static SIMULATORS: &[SimDialect] = &[
+    SimDialect {
+        dialect: "native",
+        models: &["rotator", "wheel"],
+        build: |model, faults, seed| {
+            let config = match model {
+                "rotator" => NativeConfig::rotator(),
+                "wheel" => NativeConfig::wheel(),
+                _ => return None,
+            };
+            Some(Box::new(NativeDevice::new(config, faults, seed)))
+        },
+    },
+    SimDialect {
+        dialect: "elliptec",
+        models: &["ell14", "ell18", "ell6", "ell9"],
+        build: |model, faults, seed| {
+            let config = match model {
+                "ell14" => ElliptecConfig::ell14(),
+                "ell18" => ElliptecConfig::ell18(),
+                "ell6" => ElliptecConfig::ell6(),
+                "ell9" => ElliptecConfig::ell9(),
+                _ => return None,
+            };
+            Some(Box::new(ElliptecDevice::new(config, faults, seed)))
+        },
+    },
+    SimDialect {
+        dialect: "fw102c",
+        models: &["fw102c", "fw212c"],
+        build: |model, faults, seed| {
+            let config = match model {
+                "fw102c" => Fw102cConfig::fw102c(),
+                "fw212c" => Fw102cConfig::fw212c(),
+                _ => return None,
+            };
+            Some(Box::new(Fw102cDevice::new(config, faults, seed)))
+        },
+    },
+    SimDialect {
+        dialect: "apt",
+        models: &["k10cr1", "prm1z8"],
+        build: crate::apt::simulate,
+    },
+];
+
+/// Why [`simulator`] made none; the message names the value and what is allowed.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SimLookupError {
+    /// No simulator speaks the dialect.
+    #[error("dialect = {0:?} has no simulator: allowed {1}")]
+    Dialect(String, String),
+    /// The dialect has no such model.
+    #[error("model = {0:?} is not a {1} device: allowed {2}")]
+    Model(String, String, String),
+}
+
+/// The simulator of `dialect`'s `model` (or its first model), with device faults.
+pub fn simulator(
+    dialect: &str,
+    model: Option<&str>,
+    faults: FaultProfile,
+    seed: u64,
+) -> Result<Box<dyn Simulator>, SimLookupError> {
+    let entry = SIMULATORS
+        .iter()
+        .find(|s| s.dialect == dialect)
+        .ok_or_else(|| {
+            let names: Vec<&str> = SIMULATORS.iter().map(|s| s.dialect).collect();
+            SimLookupError::Dialect(dialect.to_string(), names.join(", "))
+        })?;
+    let model = model.map_or(entry.models[0], |m| m);
+    let known = entry.models.contains(&model);
+    known
+        .then(|| (entry.build)(model, faults, seed))
+        .flatten()
+        .ok_or_else(|| {
+            SimLookupError::Model(
+                model.to_string(),
+                dialect.to_string(),
+                entry.models.join(", "),
+            )
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every listed model builds, describes itself as its dialect's device and uses a real
+    /// line rate; an unknown dialect or model is refused naming what is allowed.
+    #[test]
+    fn every_listed_model_builds() {
+        for s in SIMULATORS {
+            for m in s.models {
+                let sim = simulator(s.dialect, Some(m), FaultProfile::default(), 1).unwrap();
+                assert!(sim.baud() >= 9600, "{} {m}", s.dialect);
+            }
+        }
+        let Err(e) = simulator("native", Some("ell14"), FaultProfile::default(), 1) else {
+            panic!("an Elliptec model built as a native device");
+        };
+        assert_eq!(
+            e.to_string(),
+            "model = \"ell14\" is not a native device: allowed rotator, wheel"
+        );
+        let Err(e) = simulator("nonesuch", None, FaultProfile::default(), 1) else {
+            panic!("an unknown dialect built");
+        };
+        assert!(
+            e.to_string().contains("allowed native, elliptec, fw102c"),
+            "{e}"
+        );
     }
 }

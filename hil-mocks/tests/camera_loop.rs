@@ -7,9 +7,9 @@
 //! - The camera's faults, as the async camera reports them.
 
 use nalgebra::{DMatrix, DVector};
-use polar_drivers::camera_thread::{ThreadPolicy, ThreadedCamera};
 use polar_drivers::link::SerialPath;
 use polar_drivers::native::{self, NativeRotator};
+use polar_hal::camera_thread::{ThreadPolicy, ThreadedCamera};
 use polar_hal::{Camera, ErrorKind, Roi, Rotator, TriggerMode};
 use polar_hil_mocks::camera::{CameraFaults, Layout, SimCamera, SimCameraConfig, SimScene};
 use polar_hil_mocks::faults::FaultProfile;
@@ -334,4 +334,86 @@ async fn moving_at_exposure_end_does_not_reach_the_frame() {
     let still = take(None).await;
     assert_eq!(take(Some(true)).await, still, "moved at the exposure end");
     assert_ne!(take(Some(false)).await, still, "moved during the exposure");
+}
+
+/// An analyzer turning during the exposure: the frame is the time average of Malus's law along
+/// the path. Over a half turn every pixel sees only its unpolarised part (the mean of two
+/// orthogonal still frames); a sampled constant-speed path across the 180/0 deg wrap equals the
+/// closed-form span (the samples are unwrapped modulo 180 deg); and a 60 deg span differs from
+/// the average of its two end rows (cos D against the true sin(D)/D). Tolerances are rounding
+/// (1e-9 relative) except the last, a physical difference of several percent of the polarised
+/// signal.
+#[test]
+fn a_turning_analyzer_averages_malus_law_along_its_path() {
+    let cam = SimCamera::new(
+        config(sim_scene(), CameraFaults::default()),
+        Arc::new(|| 0.0),
+    )
+    .expect("camera");
+    let full = Roi::full(WIDTH, HEIGHT);
+    let deg = |d: f64| d.to_radians();
+    let close = |a: &[f64], b: &[f64]| {
+        a.iter()
+            .zip(b)
+            .all(|(x, y)| (x - y).abs() <= 1e-9 * x.abs().max(y.abs()).max(1.0))
+    };
+    let half_turn = cam
+        .mean_electrons(full, deg(20.0), deg(200.0), 1000.0)
+        .expect("half turn");
+    let a = cam
+        .mean_electrons(full, deg(20.0), deg(20.0), 1000.0)
+        .unwrap();
+    let b = cam
+        .mean_electrons(full, deg(110.0), deg(110.0), 1000.0)
+        .unwrap();
+    let unpolarised: Vec<f64> = a.iter().zip(&b).map(|(x, y)| 0.5 * (x + y)).collect();
+    assert!(close(&half_turn, &unpolarised));
+
+    // 170 -> 200 deg at constant speed, sampled every 1 deg as the stage reports it (wrapped).
+    let path: Vec<(f64, f64)> = (0..=30)
+        .map(|k| {
+            let d = 170.0 + k as f64;
+            (k as f64, deg(d).rem_euclid(std::f64::consts::TAU))
+        })
+        .collect();
+    let sampled = cam.mean_electrons_along(full, &path, 1000.0).unwrap();
+    let span = cam
+        .mean_electrons(full, deg(170.0), deg(200.0), 1000.0)
+        .unwrap();
+    assert!(close(&sampled, &span));
+
+    // The end-row average is wrong for a wide span: compare the polarised part of the
+    // glass's brightest pixel.
+    let wide = cam
+        .mean_electrons(full, deg(0.0), deg(60.0), 1000.0)
+        .unwrap();
+    let ends: Vec<f64> = {
+        let e0 = cam
+            .mean_electrons(full, deg(0.0), deg(0.0), 1000.0)
+            .unwrap();
+        let e1 = cam
+            .mean_electrons(full, deg(60.0), deg(60.0), 1000.0)
+            .unwrap();
+        e0.iter().zip(&e1).map(|(x, y)| 0.5 * (x + y)).collect()
+    };
+    let centre = cam
+        .mean_electrons(full, deg(30.0), deg(30.0), 1000.0)
+        .unwrap();
+    let c0 = cam
+        .mean_electrons(full, deg(120.0), deg(120.0), 1000.0)
+        .unwrap();
+    // Polarised parts relative to the unpolarised mean at the span's centre.
+    let (mut best, mut k_best) = (0.0, 0);
+    for k in 0..centre.len() {
+        let p = (centre[k] - c0[k]).abs();
+        if p > best {
+            best = p;
+            k_best = k;
+        }
+    }
+    let mean = 0.5 * (centre[k_best] + c0[k_best]);
+    let modulation = |x: f64| (x - mean) / (0.5 * (centre[k_best] - c0[k_best]));
+    let sinc = deg(60.0).sin() / deg(60.0);
+    assert!((modulation(wide[k_best]) - sinc).abs() < 1e-9);
+    assert!((modulation(ends[k_best]) - deg(60.0).cos()).abs() < 1e-9);
 }

@@ -15,7 +15,7 @@ thorlabs_elliptec (`thorlabs_elliptec.ELLx`) and roesel's elliptec (`elliptec.Ro
 Exit status 1 if any row FAILED. CONFORMANCE_DEBUG=1 logs every exchange of the clients that log
 (thorlabs_elliptec) to stderr.
 
-Run by hil-mocks/tests/client_conformance.rs, which serves the devices.
+Run by tests/tests/hil/conformance_elliptec.rs, which serves the devices.
 """
 
 import argparse

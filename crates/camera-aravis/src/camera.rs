@@ -61,7 +61,7 @@ const HARDWARE_TRIGGER_SOURCE: &str = "Line0";
 const PROBE_REGISTER: u64 = 0;
 
 /// One GenICam camera opened through Aravis. Blocking; run it on its own thread through
-/// `polar_drivers::camera_thread::ThreadedCamera`.
+/// `polar_hal::camera_thread::ThreadedCamera`.
 pub struct AravisCamera {
     id: String,
     camera: ::aravis::Camera,

@@ -15,7 +15,7 @@
 //!   `control-lost` signal, or a stream silent for [`AravisOptions::silence_before_probe`]
 //!   followed by a register read that fails.
 //!
-//! Run it on its own thread with `polar_drivers::camera_thread::ThreadedCamera` to get an async
+//! Run it on its own thread with `polar_hal::camera_thread::ThreadedCamera` to get an async
 //! [`polar_hal::Camera`]. With the `fake` feature, [`FakeAnalyzerCamera`] runs Aravis's fake
 //! GigE Vision camera inside the process, with an image that follows an analyzer angle.
 //!

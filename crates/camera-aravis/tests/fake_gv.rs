@@ -7,7 +7,7 @@
 //! set, `real_camera_when_configured` runs the grab and exposure checks on that camera.
 
 use polar_camera_aravis::{list, AnalyzerScene, AravisCamera, FakeAnalyzerCamera};
-use polar_drivers::camera_thread::{ThreadPolicy, ThreadedCamera};
+use polar_hal::camera_thread::{ThreadPolicy, ThreadedCamera};
 use polar_hal::{
     BlockingCamera, Camera, ErrorKind, Frame, GainUnit, PixelFormat, Roi, StreamStats, TriggerMode,
 };

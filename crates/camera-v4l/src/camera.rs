@@ -139,7 +139,7 @@ struct Streaming {
 }
 
 /// A V4L2 camera (webcam, USB or CSI video device) as a [`BlockingCamera`]; run it through
-/// `polar_drivers::camera_thread::ThreadedCamera` to get an async `Camera`.
+/// `polar_hal::camera_thread::ThreadedCamera` to get an async `Camera`.
 ///
 /// * Exposure: `V4L2_CID_EXPOSURE_ABSOLUTE` (100 us units). Setting it first switches
 ///   `exposure_auto` to manual where the device has it; the value read back is returned.

@@ -4,7 +4,7 @@
 //!
 //! ```no_run
 //! use polar_camera_v4l::V4lCamera;
-//! use polar_drivers::camera_thread::{ThreadPolicy, ThreadedCamera};
+//! use polar_hal::camera_thread::{ThreadPolicy, ThreadedCamera};
 //! # fn main() -> Result<(), polar_hal::DeviceError> {
 //! for d in polar_camera_v4l::list()? {
 //!     println!("{d}"); // path, card name, driver, bus info, formats
@@ -21,14 +21,15 @@
 //!   and frame-size enumeration, format negotiation, controls, and the MMAP stream. Its bindings
 //!   are written by hand, so it builds with no system package. `v4l` 0.14, the usual
 //!   choice, generates its bindings with bindgen in `v4l2-sys-mit`'s build script and so
-//!   needs libclang at build time; this machine and CI have none (the build fails with "Unable
-//!   to find libclang"). nokhwa's `input-native` depends on that same `v4l`, so it fails the
-//!   same way, and it would add no control that `linuxvideo` lacks. Neither is used.
+//!   needs libclang at build time. nokhwa's `input-native` depends on that same `v4l`, and
+//!   offers no 16-bit format, no `GREY` and no absolute exposure of its own. Neither is used
+//!   here; nokhwa is the UVC backend for Windows and macOS (`polar-camera-uvc`).
 //! * `rustix` (`poll(2)`, safe API) bounds every wait for a frame by its deadline:
 //!   `linuxvideo`'s dequeue blocks with no timeout.
-//! * `zune-jpeg` (pure Rust, strict mode, luma-only output) decodes MJPEG; the standard
-//!   Huffman tables are put back first when a frame leaves them out, as UVC cameras do. No
-//!   mozjpeg, no C.
+//! * `polar-frame-convert` (re-exported as [`convert`], shared with the UVC backend) turns
+//!   buffers into luminance; `zune-jpeg` (pure Rust, strict mode, luma-only output) decodes
+//!   MJPEG; the standard Huffman tables are put back first when a frame leaves them out, as UVC
+//!   cameras do. No mozjpeg, no C.
 //! * This crate: enumeration and selection by name, bus info or path ([`device`]); the camera
 //!   ([`V4lCamera`]: exposure, gain, formats, host-side ROI, free-run, grab with a deadline,
 //!   error kinds); the pure conversions ([`convert`]). `unsafe` stays inside `linuxvideo`.
@@ -45,7 +46,8 @@
 #![warn(missing_docs)]
 
 mod camera;
-pub mod convert;
+/// The pure conversions, shared with the UVC backend (crate `polar-frame-convert`).
+pub use polar_frame_convert as convert;
 pub mod device;
 mod sys;
 

@@ -6,7 +6,7 @@
 //! saturated) and keep it still.
 
 use polar_camera_v4l::{scan, V4lCamera};
-use polar_drivers::camera_thread::{ThreadPolicy, ThreadedCamera};
+use polar_hal::camera_thread::{ThreadPolicy, ThreadedCamera};
 use polar_hal::{Camera, ErrorKind, Frame, PixelFormat, Roi, TriggerMode};
 use std::path::Path;
 use std::time::Duration;

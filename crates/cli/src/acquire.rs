@@ -8,14 +8,11 @@
 //! for `resume` (exit status 3).
 
 use crate::commands::CommandError;
-use crate::devices::Dialect;
-use polar_drivers::any::AnyRotator;
-use polar_drivers::camera_thread::ThreadedCamera;
 use polar_engine::plan::Plan;
 use polar_engine::run::{self, Control, Controller, Event, Outcome, Rig, RunState};
 use polar_engine::sim::SimRig;
 use polar_hal::{Analyzer, Camera};
-use polar_hal::{Approach, OnRotator};
+use polar_rig::{Hardware, Rig as RigFile};
 use serde_json::{json, Value};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -190,85 +187,7 @@ async fn run_simulated(
     Ok((outcome, rig))
 }
 
-/// The engine's rig on real devices: a rotator in either dialect, a threaded camera.
-pub type HardwareRig = Rig<OnRotator<AnyRotator>, ThreadedCamera>;
-
-/// Connects the hardware rig `hw` describes: reads the camera's noise model from
-/// `camera_file`, opens the camera by its spec, connects and homes the stage (positive
-/// approach with 1 deg of overshoot, the analyzer's zero offset from `hw`). Used by `run`,
-/// `resume` and the GUI.
-///
-/// Errors name the flag: an unreadable or invalid camera file, a camera that does not open, a
-/// stage that does not answer, or `--dialect fw102c` (a wheel cannot turn an analyzer freely).
-pub async fn connect_hardware(hw: &Hardware) -> Result<HardwareRig, CommandError> {
-    if hw.dialect == Dialect::Fw102c {
-        return Err(CommandError(
-            "--dialect fw102c: a run needs a rotator; a wheel of fixed polarizers is not \
-             supported by `run` yet"
-                .into(),
-        ));
-    }
-    let camera_model = polar_model::sensor::Camera::from_toml_str(
-        &std::fs::read_to_string(&hw.camera_file).map_err(|e| {
-            CommandError(format!("--camera-file {}: {e}", hw.camera_file.display()))
-        })?,
-    )
-    .map_err(|e| CommandError(format!("--camera-file: {e}")))?;
-    let band = polar_model::atmosphere::Band::flat(450.0, 650.0).map_err(err)?;
-    let sensor = polar_model::sensor::SensorModel::new(&camera_model, &band).map_err(err)?;
-    let sim_opts = crate::camera::SimOptions {
-        scene: None,
-        camera_file: None,
-        analyzer_deg: 0.0,
-        width: 320,
-        height: 240,
-        seed: 1,
-    };
-    let camera = crate::camera::open(&hw.camera, &sim_opts).map_err(err)?;
-    let devices = json!({
-        "kind": "hardware",
-        "stage": { "port": hw.port, "dialect": hw.dialect.name() },
-        "camera": hw.camera,
-        "camera_file": hw.camera_file.display().to_string(),
-        "camera_info": format!("{:?}", camera.info()),
-    });
-    let policy = hw.dialect.policy();
-    let connector = crate::devices::connector(&hw.port, hw.dialect);
-    let rotator: AnyRotator = match hw.dialect {
-        Dialect::Elliptec => polar_drivers::elliptec::ElliptecRotator::connect(
-            connector,
-            hw.address,
-            policy,
-            0.05f64.to_radians(),
-        )
-        .await
-        .map_err(err)?
-        .into(),
-        Dialect::Native | Dialect::Fw102c => {
-            polar_drivers::native::NativeRotator::connect(connector, policy)
-                .await
-                .map_err(err)?
-                .into()
-        }
-    };
-    Ok(Rig {
-        analyzer: OnRotator {
-            rotator,
-            zero_offset_rad: hw.zero_offset_deg.to_radians(),
-            approach: Approach::Positive,
-            overshoot_rad: 1f64.to_radians(),
-        },
-        camera,
-        camera_model,
-        sensor,
-        illumination: None,
-        target_mask: None,
-        sun_deg: None,
-        devices,
-    })
-}
-
-/// A run on the hardware rig `hw` describes.
+/// A run on the hardware rig `hw` describes (`polar_rig::connect_hardware`).
 async fn run_hardware(
     plan: &Plan,
     hw: &Hardware,
@@ -276,61 +195,13 @@ async fn run_hardware(
     resume: bool,
     ui: Ui,
 ) -> Result<Outcome, CommandError> {
-    let rig = connect_hardware(hw).await?;
-    drive(plan, rig, run_dir, resume, ui).await
-}
-
-/// Real devices for `run`.
-#[derive(Debug, Clone)]
-pub struct Hardware {
-    /// The stage's serial port.
-    pub port: String,
-    /// Its dialect.
-    pub dialect: Dialect,
-    /// Elliptec address.
-    pub address: u8,
-    /// The camera spec (`genicam:ID`, `v4l:NAME`).
-    pub camera: String,
-    /// The camera's noise model (a calibrated camera file).
-    pub camera_file: PathBuf,
-    /// Stage angle at which the analyzer's axis is along the camera's x axis, degrees (from
-    /// `calibrate-analyzer`).
-    pub zero_offset_deg: f64,
-}
-
-impl Hardware {
-    /// The hardware the flags describe: `None` when none of `--port`, `--dialect`,
-    /// `--camera`, `--camera-file` is given (simulated devices); an error naming the flags when
-    /// only some are, or when `--zero-offset-deg` is not finite. Shared by `run`, `resume` and
-    /// `polarimeter-gui`.
-    pub fn from_flags(
-        port: Option<String>,
-        dialect: Option<Dialect>,
-        camera: Option<String>,
-        camera_file: Option<PathBuf>,
-        address: u8,
-        zero_offset_deg: f64,
-    ) -> Result<Option<Hardware>, String> {
-        match (port, dialect, camera, camera_file) {
-            (None, None, None, None) => Ok(None),
-            (Some(port), Some(dialect), Some(camera), Some(camera_file)) => {
-                if !zero_offset_deg.is_finite() {
-                    return Err(format!(
-                        "--zero-offset-deg = {zero_offset_deg} is invalid: allowed a finite angle"
-                    ));
-                }
-                Ok(Some(Hardware {
-                    port,
-                    dialect,
-                    address,
-                    camera,
-                    camera_file,
-                    zero_offset_deg,
-                }))
-            }
-            _ => Err("hardware needs all of --port, --dialect, --camera and --camera-file".into()),
-        }
+    let connected = polar_rig::connect_hardware(hw).await.map_err(err)?;
+    let polar_rig::Connected { rig, simulator } = connected;
+    let outcome = drive(plan, rig, run_dir, resume, ui).await;
+    if let Some(s) = simulator {
+        s.shutdown().await;
     }
+    outcome
 }
 
 fn runtime() -> Result<tokio::runtime::Runtime, CommandError> {
@@ -402,27 +273,46 @@ fn forecast_models(
     Ok((scene, camera))
 }
 
-/// `plan check FILE`: the forecast, without running.
-pub fn plan_check(path: &Path) -> Result<Value, CommandError> {
-    let (plan, dir) = load_plan(path)?;
+/// `plan check FILE [--rig RIG]`: the forecast, without running; with a rig, its site (for a
+/// plan without one) and its camera file.
+pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandError> {
+    let (mut plan, dir) = load_plan(path)?;
+    if let Some(r) = rig {
+        crate::rig::apply_site(&mut plan, r);
+    }
     // What `run --simulate` would refuse, refused here with the same message.
     polar_engine::sim::SimRig::validate(&plan, &dir).map_err(err)?;
     plan.check_frame(plan.simulation.width, plan.simulation.height)
         .map_err(err)?;
-    let (scene, camera) = forecast_models(&plan, &dir)?;
+    let (scene, mut camera) = forecast_models(&plan, &dir)?;
+    if let Some(r) = rig {
+        if let Some(c) = crate::rig::camera_model(r)? {
+            camera = c;
+        }
+    }
     let timing = polar_engine::forecast::Timing::simulated(&plan);
     let f = polar_engine::forecast::forecast(&plan, &scene, &camera, &timing).map_err(err)?;
-    Ok(json!({ "plan": plan.name, "kind": plan.kind.name(), "forecast": f }))
+    let mut v = json!({ "plan": plan.name, "kind": plan.kind.name(), "forecast": f });
+    if let Some(r) = rig {
+        v["rig"] = json!(r.path.display().to_string());
+    }
+    Ok(v)
 }
 
-/// `run PLAN [--simulate | hardware] [--out DIR]`.
+/// `run PLAN [--simulate | hardware] [--rig RIG] [--out DIR]`. With a rig: its site for a plan
+/// without one, and a finished calibrate-analyzer run's result written back to it as a new
+/// revision (`rig_written` in the output).
 pub fn run_cmd(
     plan_path: &Path,
     hardware: Option<Hardware>,
+    rig: Option<&RigFile>,
     out: Option<PathBuf>,
     ui: Ui,
 ) -> Result<(Value, i32), CommandError> {
-    let (plan, plan_dir) = load_plan(plan_path)?;
+    let (mut plan, plan_dir) = load_plan(plan_path)?;
+    if let Some(r) = rig {
+        crate::rig::apply_site(&mut plan, r);
+    }
     let run_dir = out.unwrap_or_else(|| run::default_run_dir(Path::new("."), &plan));
     let _log = crate::logging::to_run_dir(&run_dir);
     let rt = runtime()?;
@@ -437,7 +327,14 @@ pub fn run_cmd(
             Some(hw) => run_hardware(&plan, hw, &run_dir, false, ui).await,
         }
     })?;
-    Ok(outcome_json(&outcome, &run_dir))
+    let (mut v, code) = outcome_json(&outcome, &run_dir);
+    if let (Some(r), Outcome::Done(_)) = (rig, &outcome) {
+        let hw_zero = hardware.as_ref().map_or(0.0, |h| h.zero_offset_deg);
+        if let Some(written) = crate::rig::write_back(r, &plan, &run_dir, hw_zero)? {
+            v["rig_written"] = written;
+        }
+    }
+    Ok((v, code))
 }
 
 /// `resume RUN_DIR`: continues a paused or crashed run with the devices it was started on
@@ -445,6 +342,7 @@ pub fn run_cmd(
 pub fn resume_cmd(
     run_dir: &Path,
     hardware: Option<Hardware>,
+    rig: Option<&RigFile>,
     ui: Ui,
 ) -> Result<(Value, i32), CommandError> {
     let plan = run::plan_of(run_dir).map_err(err)?;
@@ -476,7 +374,15 @@ pub fn resume_cmd(
             ))),
         }
     })?;
-    Ok(outcome_json(&outcome, run_dir))
+    let (mut v, code) = outcome_json(&outcome, run_dir);
+    // A calibration that finishes in a resume (after a lens-cap pause) writes back as a run.
+    if let (Some(r), Outcome::Done(_)) = (rig, &outcome) {
+        let hw_zero = hardware.as_ref().map_or(0.0, |h| h.zero_offset_deg);
+        if let Some(written) = crate::rig::write_back(r, &plan, run_dir, hw_zero)? {
+            v["rig_written"] = written;
+        }
+    }
+    Ok((v, code))
 }
 
 /// `check RUN_DIR`: the run's frames and products against its journal; exit status 1 when
@@ -809,7 +715,7 @@ fn demo_detection(
         &contrast,
         3,
         &polar_planner::Constraints {
-            min_separation_rad: 30f64.to_radians(),
+            max_condition: Some(polar_planner::stokes::STOKES_MAX_CONDITION),
             ..polar_planner::Constraints::default()
         },
         0.01f64.to_radians(),

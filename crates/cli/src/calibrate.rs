@@ -605,6 +605,39 @@ pub fn calibrate_noise(opts: &NoiseOptions) -> Result<NoiseReport, CalibrateErro
     })
 }
 
+/// `calibrate noise [--rig RIG]`: [`calibrate_noise`]; with a rig, its camera file is the base
+/// camera (unless `--base-camera` names one), and the measured camera file is written beside
+/// it as a new revision the rig then points to (`rig_written` in the output).
+pub fn calibrate_noise_cmd(
+    mut opts: NoiseOptions,
+    rig: Option<&Path>,
+) -> Result<Value, crate::commands::CommandError> {
+    use crate::commands::CommandError;
+    let rig = rig.map(crate::rig::load).transpose()?;
+    if let Some(r) = &rig {
+        if opts.base_camera.is_none() {
+            opts.base_camera = Some(r.camera_file.clone().ok_or_else(|| {
+                CommandError(format!(
+                    "--rig {}: camera.file is missing: the noise calibration needs a base camera \
+                     (name it there, or give --base-camera)",
+                    r.path.display()
+                ))
+            })?);
+        }
+    }
+    let report = calibrate_noise(&opts).map_err(|e| CommandError(e.to_string()))?;
+    let mut v = report.to_json();
+    if let Some(r) = &rig {
+        let measured = opts
+            .out
+            .as_ref()
+            .unwrap_or(&opts.frames)
+            .join("camera.toml");
+        v["rig_written"] = crate::rig::record_camera_file(r, &measured)?;
+    }
+    Ok(v)
+}
+
 /// noise.toml: the measured detector fields under the camera file's names, with their standard
 /// uncertainties in an `[uncertainty]` table.
 fn noise_toml(dir: &Path, r: &PhotonTransfer) -> String {
@@ -659,8 +692,8 @@ fn noise_toml(dir: &Path, r: &PhotonTransfer) -> String {
 }
 
 /// The base camera with the measured detector fields, validated, written to `path` and parsed
-/// back.
-fn measured_camera(
+/// back (`calibrate noise --base-camera`, and a calibrate-noise run's write-back to a rig).
+pub(crate) fn measured_camera(
     base: &Camera,
     r: &PhotonTransfer,
     path: &Path,

@@ -1,29 +1,20 @@
 //! `polarimeter camera --camera sim|genicam:ID|v4l:NAME grab ...`: frames from a camera to
-//! 16-bit TIFF files, each with a JSON sidecar of its metadata, and the cameras that
-//! `devices list` shows.
+//! 16-bit TIFF files, each with a JSON sidecar of its metadata.
 //!
-//! The simulated camera (`sim`) renders a scene file (default: the rooftop example with an
+//! Cameras are opened through the camera backends' registry (`polar_rig::camera`). The
+//! simulated camera (`sim`) renders a scene file (default: the rooftop example with an
 //! aluminium panel added) through an analyzer at a fixed angle (`--analyzer-deg`), with the
 //! sensor model of a camera file (default: the modern CMOS example). The GenICam and V4L2
-//! backends are cargo features of this crate (`genicam`, `v4l`): the default build needs no
-//! system library.
+//! backends are cargo features (`genicam`, `v4l`) this crate forwards to `polar-rig`: the
+//! default build needs no system library.
 
-use polar_drivers::camera_thread::{ThreadPolicy, ThreadedCamera};
+use polar_hal::camera_thread::ThreadedCamera;
 use polar_hal::{Camera, DeviceError, Frame};
-use polar_hil_mocks::camera::{AngleSource, Layout, SimCamera, SimCameraConfig, SimScene};
-use polar_model::scene_file::Scene;
-use polar_model::sensor::Camera as CameraModel;
+use polar_rig::camera::CameraError;
+pub use polar_rig::camera::SimOptions;
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
-
-/// The default scene of the simulated camera: `examples/rooftop_panels.toml`, the rooftop
-/// example with an aluminium panel added.
-pub const DEFAULT_SCENE: &str = include_str!("../../../examples/rooftop_panels.toml");
-
-/// The default camera of the simulated camera.
-pub const DEFAULT_CAMERA: &str = include_str!("../../../examples/cameras/cmos_modern.toml");
 
 /// Errors of the camera command.
 #[derive(Debug, thiserror::Error)]
@@ -44,163 +35,43 @@ pub enum CameraCmdError {
     },
 }
 
-/// How the simulated camera is set up.
-#[derive(Debug, Clone)]
-pub struct SimOptions {
-    /// Scene file (None: [`DEFAULT_SCENE`]).
-    pub scene: Option<PathBuf>,
-    /// Camera file (None: [`DEFAULT_CAMERA`]).
-    pub camera_file: Option<PathBuf>,
-    /// Analyzer angle, degrees.
-    pub analyzer_deg: f64,
-    /// Sensor size, pixels.
-    pub width: u32,
-    /// Sensor size, pixels.
-    pub height: u32,
-    /// Seed of the texture and the noise.
-    pub seed: u64,
-}
-
-fn read(path: &Path, what: &str) -> Result<String, CameraCmdError> {
-    std::fs::read_to_string(path).map_err(|e| {
-        CameraCmdError::Input(format!("--{what} {}: cannot read: {e}", path.display()))
-    })
-}
-
-/// The simulated camera, as a blocking camera.
-pub fn sim_camera(opts: &SimOptions) -> Result<SimCamera, CameraCmdError> {
-    let scene_text = match &opts.scene {
-        Some(p) => read(p, "scene")?,
-        None => DEFAULT_SCENE.to_string(),
-    };
-    let base = opts
-        .scene
-        .as_ref()
-        .and_then(|p| p.parent().map(Path::to_path_buf))
-        .unwrap_or_default();
-    let scene = Scene::from_toml_str_with_files(&scene_text, &|name| {
-        std::fs::read_to_string(base.join(name)).map_err(|e| e.to_string())
-    })
-    .map_err(|e| CameraCmdError::Input(format!("scene: {e}")))?;
-    let camera_text = match &opts.camera_file {
-        Some(p) => read(p, "camera-file")?,
-        None => DEFAULT_CAMERA.to_string(),
-    };
-    let camera = CameraModel::from_toml_str(&camera_text)
-        .map_err(|e| CameraCmdError::Input(format!("camera file: {e}")))?;
-    if !opts.analyzer_deg.is_finite() {
-        return Err(CameraCmdError::Input(format!(
-            "analyzer_deg = {} is invalid: allowed a finite angle",
-            opts.analyzer_deg
-        )));
+impl From<CameraError> for CameraCmdError {
+    fn from(e: CameraError) -> Self {
+        match e {
+            CameraError::Device(d) => CameraCmdError::Device(d),
+            CameraError::Input(m) => CameraCmdError::Input(m),
+        }
     }
-    let names: Vec<String> = scene.materials.iter().map(|m| m.name.clone()).collect();
-    let sim_scene = SimScene::render(
-        &scene.spec,
-        &scene.materials,
-        &Layout::panels_on_ground(&names),
-        opts.width,
-        opts.height,
-        1e-3,
-        opts.seed,
-    )
-    .map_err(|e| CameraCmdError::Input(e.to_string()))?;
-    let psi = opts.analyzer_deg.to_radians();
-    let angle: AngleSource = Arc::new(move || psi);
-    SimCamera::new(
-        SimCameraConfig {
-            id: "sim".into(),
-            camera,
-            scene: Arc::new(sim_scene),
-            max_frame_rate_hz: 100.0,
-            faults: Default::default(),
-            seed: opts.seed,
-            noise_stream: 0,
-        },
-        angle,
-    )
-    .map_err(|e| CameraCmdError::Input(e.to_string()))
 }
 
-/// Opens a camera by its spec: `sim`, `genicam:ID` or `v4l:NAME`.
+/// Opens a camera by name through the camera backends' registry (`polar_rig::camera`).
 pub fn open(spec: &str, sim: &SimOptions) -> Result<ThreadedCamera, CameraCmdError> {
-    let policy = ThreadPolicy::default();
-    match spec.split_once(':') {
-        None if spec == "sim" => Ok(ThreadedCamera::spawn(sim_camera(sim)?, policy)?),
-        Some(("genicam", id)) => open_genicam(id, policy),
-        Some(("v4l", name)) => open_v4l(name, policy),
-        _ => Err(CameraCmdError::Input(format!(
-            "camera = {spec:?} is invalid: allowed sim, genicam:ID or v4l:NAME"
-        ))),
-    }
+    Ok(polar_rig::camera::open(spec, sim)?)
 }
 
-#[cfg(feature = "genicam")]
-fn open_genicam(id: &str, policy: ThreadPolicy) -> Result<ThreadedCamera, CameraCmdError> {
-    let cam = polar_camera_aravis::AravisCamera::open(id).map_err(DeviceError::from)?;
-    Ok(ThreadedCamera::spawn(cam, policy)?)
-}
-
-#[cfg(not(feature = "genicam"))]
-fn open_genicam(_id: &str, _policy: ThreadPolicy) -> Result<ThreadedCamera, CameraCmdError> {
-    Err(CameraCmdError::Input(
-        "camera = genicam:...: this build has no GenICam support; rebuild with \
-         `cargo build --release -p polar-cli --features genicam` (needs libaravis-dev and \
-         libusb-1.0-0-dev)"
-            .into(),
-    ))
-}
-
-#[cfg(feature = "v4l")]
-fn open_v4l(name: &str, policy: ThreadPolicy) -> Result<ThreadedCamera, CameraCmdError> {
-    let cam = polar_camera_v4l::V4lCamera::open(name)?;
-    Ok(ThreadedCamera::spawn(cam, policy)?)
-}
-
-#[cfg(not(feature = "v4l"))]
-fn open_v4l(_name: &str, _policy: ThreadPolicy) -> Result<ThreadedCamera, CameraCmdError> {
-    Err(CameraCmdError::Input(
-        "camera = v4l:...: this build has no V4L2 support; rebuild with \
-         `cargo build --release -p polar-cli --features v4l`"
-            .into(),
-    ))
-}
-
-/// The cameras `devices list` shows: the compiled-in backends' discoveries, and the simulated
-/// camera with `simulate`.
-pub fn list(simulate: bool) -> Value {
-    let mut cameras = Vec::new();
-    if simulate {
-        cameras.push(json!({
-            "camera": "sim",
-            "backend": "simulated",
-            "model": "rendered from the model (scene and camera files)",
-        }));
-    }
-    #[cfg(feature = "genicam")]
-    match polar_camera_aravis::list() {
-        Ok(found) => cameras.extend(found.into_iter().map(|d| {
-            json!({ "camera": format!("genicam:{}", d.id), "backend": "genicam",
-                    "model": format!("{} {}", d.vendor, d.model), "address": d.address })
-        })),
-        Err(e) => cameras.push(json!({ "backend": "genicam", "error": e.to_string() })),
-    }
-    #[cfg(feature = "v4l")]
-    match polar_camera_v4l::list() {
-        Ok(found) => cameras.extend(found.into_iter().map(|d| {
-            json!({ "camera": format!("v4l:{}", d.card), "backend": "v4l2",
-                    "path": d.path.display().to_string(), "bus": d.bus_info, "driver": d.driver,
-                    "formats": d.fourccs })
-        })),
-        Err(e) => cameras.push(json!({ "backend": "v4l2", "error": e.to_string() })),
-    }
-    json!({
-        "cameras": cameras,
-        "backends": {
-            "genicam": cfg!(feature = "genicam"),
-            "v4l": cfg!(feature = "v4l"),
-        },
-    })
+/// The camera name and camera file of `camera`: `--camera` and `--camera-file` override the
+/// rig file's `[camera]`; the error names the flag or the rig's key that is missing.
+pub fn from_rig(
+    rig: Option<&Path>,
+    camera: Option<String>,
+    camera_file: Option<PathBuf>,
+) -> Result<(String, Option<PathBuf>), crate::commands::CommandError> {
+    let rig = rig.map(crate::rig::load).transpose()?;
+    let name = camera
+        .or_else(|| rig.as_ref().and_then(polar_rig::Rig::camera_name))
+        .ok_or_else(|| {
+            crate::commands::CommandError(match &rig {
+                Some(r) => format!(
+                    "rig {}: camera.backend is missing (or give --camera)",
+                    r.path.display()
+                ),
+                None => {
+                    "give --camera (sim, genicam:ID, v4l:NAME or uvc:BUS_OR_NAME) or --rig".into()
+                }
+            })
+        })?;
+    let file = camera_file.or_else(|| rig.and_then(|r| r.camera_file));
+    Ok((name, file))
 }
 
 /// What `grab` was asked for.

@@ -165,14 +165,23 @@ pub fn fresnel(a: &FresnelArgs) -> Result<Value, CommandError> {
         "[0, 90]",
     )?;
     let r = amplitudes(&idx, ti)?;
-    Ok(json!({
+    let mut out = json!({
         "rs": [r.rs.re, r.rs.im],
         "rp": [r.rp.re, r.rp.im],
         "Rs": r.rs_power(),
         "Rp": r.rp_power(),
         "re_rs_rp_conj": r.re_rs_rp_conj(),
-        "brewster_deg": idx.brewster_angle_rad().to_degrees(),
-    }))
+    });
+    if idx.k > 0.0 {
+        // An absorbing medium has no Brewster angle (Rp never vanishes): the pseudo-Brewster
+        // angle, where Rp is smallest, and that Rp.
+        let pb = idx.pseudo_brewster();
+        out["pseudo_brewster_deg"] = json!(pb.angle_rad.to_degrees());
+        out["rp_min"] = json!(pb.rp_min);
+    } else {
+        out["brewster_deg"] = json!(idx.brewster_angle_rad().to_degrees());
+    }
+    Ok(out)
 }
 
 /// `polarimeter model pbrdf`: the full pBRDF Mueller matrix at one geometry.
@@ -828,7 +837,7 @@ fn matrix_json(m: &nalgebra::Matrix3<f64>) -> Value {
 /// One material's result as JSON.
 pub fn material_json(r: &polar_model::scene::MaterialResult) -> Value {
     let t = &r.terms;
-    json!({
+    let mut out = json!({
         "material": r.name,
         "mean": [r.mean.0[0], r.mean.0[1], r.mean.0[2]],
         "cov": matrix_json(&r.cov),
@@ -846,7 +855,32 @@ pub fn material_json(r: &polar_model::scene::MaterialResult) -> Value {
             "spectral_nodes": t.spectral_nodes,
         },
         "evaluations": r.evaluations,
-    })
+    });
+    if let Some(f) = &r.floor {
+        out["error_floor"] = floor_json(f);
+    }
+    out
+}
+
+/// An input's error floor as JSON: its size, source and the tolerance integrated to, with a
+/// note when the tolerance asked for is below it.
+fn floor_json(f: &polar_model::scene::ErrorFloor) -> Value {
+    let mut out = json!({
+        "relative": f.relative,
+        "source": f.source,
+        "integrated_to": f.tolerance,
+    });
+    if f.below_floor {
+        out["note"] = json!(format!(
+            "the tolerance asked for is below this input's error floor ({:.2e} of S0), which \
+             no integration can improve: integrated to {:.2e} (the larger of the tolerance and \
+             {} of the floor); error_estimate includes the floor",
+            f.relative,
+            f.tolerance,
+            polar_model::scene::FLOOR_FRACTION
+        ));
+    }
+    out
 }
 
 /// Reads a file a scene names, relative to the scene file's directory.
@@ -1220,8 +1254,9 @@ pub fn sensor(a: &SensorArgs) -> Result<Value, CommandError> {
 }
 
 /// `polarimeter model dolp-stats`: DoLP and AoP mean and spread of the Stokes estimate from
-/// intensities with independent noise `sigma_i` behind ideal analyzers (Taylor or Rice regime),
-/// optionally checked by a seeded Monte Carlo.
+/// intensities with independent noise `sigma_i` behind ideal analyzers (the integration over the
+/// Gaussian Stokes estimate at every polarised SNR, or on request the Taylor or Rice
+/// approximation), optionally checked by a seeded Monte Carlo.
 #[derive(Debug, Clone, Args)]
 pub struct DolpStatsArgs {
     /// Analyzer angles, degrees.
@@ -1233,7 +1268,9 @@ pub struct DolpStatsArgs {
     /// Standard deviation of each intensity, same units, > 0.
     #[arg(long)]
     pub sigma_i: f64,
-    /// Regime: auto (Rice below a polarised SNR of 3), taylor or rice.
+    /// Method: auto (the integration, valid at every polarised SNR, with an error estimate),
+    /// taylor (delta-method approximation) or rice (isotropic Rice approximation); the last two
+    /// for comparison.
     #[arg(long, default_value = "auto")]
     pub regime: String,
     /// Monte Carlo samples for a check (0: none), up to 5e7.
@@ -1294,7 +1331,7 @@ fn stokes_moments(
 
 /// Evaluates [`DolpStatsArgs`].
 pub fn dolp_stats(a: &DolpStatsArgs) -> Result<Value, CommandError> {
-    use polar_model::stats::{self, Regime, RegimeChoice};
+    use polar_model::stats::{self, Regime, RegimeChoice, StatsMethod};
     let (mean, cov, mut warnings) = stokes_moments(&a.angles_deg, &a.stokes, a.sigma_i)?;
     let choice = match a.regime.as_str() {
         "auto" => RegimeChoice::Auto,
@@ -1314,6 +1351,13 @@ pub fn dolp_stats(a: &DolpStatsArgs) -> Result<Value, CommandError> {
         "std": s.dolp_std,
         "aop_mean_deg": s.aop_mean_rad.to_degrees(),
         "aop_std_deg": s.aop_std_rad.to_degrees(),
+        "aop_bias_deg": s.aop_bias_rad.to_degrees(),
+        "method": match s.method {
+            StatsMethod::Integration => "integration",
+            StatsMethod::Taylor => "taylor",
+            StatsMethod::Rice => "rice",
+        },
+        "rel_error_estimate": s.rel_error_estimate,
         "regime": match s.regime { Regime::Taylor => "taylor", Regime::Rice => "rice" },
         "polarised_snr": s.polarised_snr,
         "sigma_p": s.sigma_p,
@@ -1336,6 +1380,64 @@ pub fn dolp_stats(a: &DolpStatsArgs) -> Result<Value, CommandError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A metal gets the pseudo-Brewster angle (copper 68.454 deg, the published value in
+    /// crates/model/tests/reference.rs, to its 6e-4 deg) with Rp there (0.428, between 0 and
+    /// Rp at 60 deg); a dielectric keeps atan(n) = 56.659 deg and no pseudo angle.
+    #[test]
+    fn fresnel_reports_pseudo_brewster_for_metals_only() {
+        let copper = fresnel(&FresnelArgs {
+            n: Some(1.02),
+            k: 2.577,
+            theta_i_deg: Some(60.0),
+        })
+        .unwrap();
+        assert!(copper.get("brewster_deg").is_none(), "{copper}");
+        let pb = copper["pseudo_brewster_deg"].as_f64().unwrap();
+        assert!((pb - 68.454).abs() < 6e-4, "{pb}");
+        let rp_min = copper["rp_min"].as_f64().unwrap();
+        assert!(
+            rp_min > 0.0 && rp_min < copper["Rp"].as_f64().unwrap(),
+            "{copper}"
+        );
+        let glass = fresnel(&FresnelArgs {
+            n: Some(1.52),
+            k: 0.0,
+            theta_i_deg: Some(60.0),
+        })
+        .unwrap();
+        assert!(glass.get("pseudo_brewster_deg").is_none(), "{glass}");
+        assert!((glass["brewster_deg"].as_f64().unwrap() - 56.659293).abs() < 1e-6);
+    }
+
+    /// The rooftop lit by its 10-degree sky table, asked for 1e-9: every material states its
+    /// floor (above 1e-4 of S0: a 10-degree grid), a note that 1e-9 is below it, an
+    /// integration tolerance of at least a quarter of it, and an error estimate that includes
+    /// it. The same scene with the model sky has no floor at all.
+    #[test]
+    fn scene_json_states_the_table_floor() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../examples");
+        let table = load_scene(&root.join("rooftop_table.toml")).unwrap();
+        let v = scene_json(&table, 1e-9).unwrap();
+        for m in v["materials"].as_array().unwrap() {
+            let f = &m["error_floor"];
+            let relative = f["relative"].as_f64().unwrap();
+            assert!(relative > 1e-4, "{m}");
+            assert!(f["note"].as_str().unwrap().contains("below"), "{f}");
+            assert!(f["source"].as_str().unwrap().contains("sky table"), "{f}");
+            let to = f["integrated_to"].as_f64().unwrap();
+            assert!(
+                to >= 0.9 * polar_model::scene::FLOOR_FRACTION * relative,
+                "{f}"
+            );
+            assert!(m["error_estimate"].as_f64().unwrap() >= relative, "{m}");
+        }
+        let model = load_scene(&root.join("rooftop.toml")).unwrap();
+        let v = scene_json(&model, 1e-3).unwrap();
+        for m in v["materials"].as_array().unwrap() {
+            assert!(m.get("error_floor").is_none(), "{m}");
+        }
+    }
 
     #[test]
     fn numbers_print_compactly_and_long_text_is_cut() {

@@ -1,17 +1,12 @@
 //! `devices list`, `stage` and `sim stage`: serial ports, one-shot stage and wheel commands in
-//! every dialect, and simulated devices on pseudo-terminals.
+//! every dialect of the registry (`polar_drivers::registry`), and the simulators of the
+//! simulators' registry (`polar_hil_mocks::sim::SIMULATORS`) on pseudo-terminals.
 
-use polar_drivers::elliptec::{self, ElliptecRotator, ElliptecSlider};
-use polar_drivers::fw102c::{self, Fw102c};
-use polar_drivers::link::{Connector, Policy, SerialPath};
-use polar_drivers::native::{self, NativeRotator, NativeWheel};
-use polar_hal::{angle_from_counts, DeviceError, FilterWheel, Rotator};
-use polar_hil_mocks::elliptec::{ElliptecConfig, ElliptecDevice};
+use polar_drivers::registry::{self, DeviceKind, Dialect, Identity, Position, DIALECTS};
+use polar_hal::{DeviceError, FilterWheel, Rotator};
 use polar_hil_mocks::faults::FaultProfile;
-use polar_hil_mocks::fw102c::{Fw102cConfig, Fw102cDevice};
-use polar_hil_mocks::native::{NativeConfig, NativeDevice};
 use polar_hil_mocks::serve::SimServer;
-use polar_hil_mocks::sim::Simulator;
+use polar_hil_mocks::sim::{Simulator, SIMULATORS};
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 
@@ -26,50 +21,24 @@ impl From<DeviceError> for DevicesError {
     }
 }
 
-/// The serial dialects.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum Dialect {
-    /// Our firmware (`firmware-protocol/SPEC.md`), 115200 baud.
-    Native,
-    /// Thorlabs Elliptec ELL14/ELL18 rotation mounts, ELL6/ELL9 sliders, 9600 baud.
-    Elliptec,
-    /// Thorlabs FW102C/FW212C filter wheels, 115200 baud.
-    Fw102c,
+/// The `--dialect` values: every dialect of the registry, with its description as help.
+pub fn dialect_values() -> clap::builder::PossibleValuesParser {
+    clap::builder::PossibleValuesParser::new(
+        DIALECTS
+            .iter()
+            .map(|d| clap::builder::PossibleValue::new(d.name).help(d.description)),
+    )
 }
 
-impl Dialect {
-    /// The line rate.
-    pub fn baud(self) -> u32 {
-        match self {
-            Dialect::Elliptec => 9600,
-            Dialect::Native | Dialect::Fw102c => 115_200,
-        }
-    }
-
-    /// The dialect the CLI spells `name` (`native`, `elliptec`, `fw102c`).
-    pub fn from_name(name: &str) -> Option<Dialect> {
-        [Dialect::Native, Dialect::Elliptec, Dialect::Fw102c]
-            .into_iter()
-            .find(|d| d.name() == name)
-    }
-
-    /// The dialect's name as the CLI spells it.
-    pub fn name(self) -> &'static str {
-        match self {
-            Dialect::Native => "native",
-            Dialect::Elliptec => "elliptec",
-            Dialect::Fw102c => "fw102c",
-        }
-    }
-
-    /// The driver policy (deadlines, retries) for the dialect.
-    pub fn policy(self) -> Policy {
-        match self {
-            Dialect::Native => native::default_policy(),
-            Dialect::Elliptec => elliptec::default_policy(),
-            Dialect::Fw102c => fw102c::default_policy(),
-        }
-    }
+/// The registry's dialect named `name`, or an error naming `--dialect`, the value and the
+/// dialects allowed.
+pub fn dialect(name: &str) -> Result<&'static Dialect, DevicesError> {
+    registry::find(name).ok_or_else(|| {
+        DevicesError(format!(
+            "--dialect = {name:?} is invalid: allowed {}",
+            registry::names()
+        ))
+    })
 }
 
 /// What `stage` does.
@@ -126,16 +95,32 @@ pub fn list(simulate: bool) -> Result<Value, DevicesError> {
             .into_iter()
             .map(|(link, target)| json!({ "port": link, "pty": target }))
             .collect();
-        out["simulated"] = json!({
-            "running": running,
-            "offered": [
-                { "dialect": "native", "models": ["rotator", "wheel"], "start": "polarimeter sim stage --dialect native" },
-                { "dialect": "elliptec", "models": ["ell14", "ell18", "ell6", "ell9"], "start": "polarimeter sim stage --dialect elliptec" },
-                { "dialect": "fw102c", "models": ["fw102c", "fw212c"], "start": "polarimeter sim stage --dialect fw102c" },
-            ],
-        });
+        let offered: Vec<Value> = SIMULATORS
+            .iter()
+            .map(|sim| {
+                json!({
+                    "dialect": sim.dialect,
+                    "models": sim.models,
+                    "start": format!("polarimeter sim stage --dialect {}", sim.dialect),
+                })
+            })
+            .collect();
+        out["simulated"] = json!({ "running": running, "offered": offered });
     }
-    let cameras = crate::camera::list(simulate);
+    out["dialects"] = DIALECTS
+        .iter()
+        .map(|d| {
+            json!({
+                "dialect": d.name,
+                "description": d.description,
+                "kinds": d.kinds.iter().map(|k| k.name()).collect::<Vec<_>>(),
+                "models": d.models,
+                "baud": d.baud,
+                "addressed": d.addressed,
+            })
+        })
+        .collect();
+    let cameras = polar_rig::camera::list(simulate);
     out["cameras"] = cameras["cameras"].clone();
     out["camera_backends"] = cameras["backends"].clone();
     Ok(out)
@@ -176,14 +161,6 @@ fn running_simulators() -> Vec<(String, PathBuf)> {
         .collect()
 }
 
-/// The serial connector of a port in a dialect (its baud rate).
-pub fn connector(port: &str, dialect: Dialect) -> Box<dyn Connector> {
-    Box::new(SerialPath {
-        path: port.to_string(),
-        baud: dialect.baud(),
-    })
-}
-
 fn runtime() -> Result<tokio::runtime::Runtime, DevicesError> {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -194,13 +171,16 @@ fn runtime() -> Result<tokio::runtime::Runtime, DevicesError> {
 /// One command to a stage or wheel on `port`.
 pub fn stage(
     port: &str,
-    dialect: Dialect,
+    dialect: &'static Dialect,
     address: u8,
     action: &StageAction,
 ) -> Result<Value, DevicesError> {
     if let StageAction::Move { angle_deg } = action {
         check_angle(*angle_deg)?;
     }
+    dialect
+        .check_address(address)
+        .map_err(|e| DevicesError(format!("--{e}")))?;
     runtime()?.block_on(stage_async(port, dialect, address, action))
 }
 
@@ -245,103 +225,77 @@ pub fn check_reached(
     }
 }
 
+/// A device's identity as JSON.
+pub fn identity_json(id: &Identity) -> Value {
+    let mut v = json!({
+        "kind": id.kind.name(),
+        "model": id.model,
+        "serial": id.serial,
+        "firmware": id.firmware,
+    });
+    if let Some(c) = id.counts_per_turn {
+        v["counts_per_turn"] = json!(c);
+    }
+    if let Some(n) = id.slots {
+        v["slots"] = json!(n);
+    }
+    if let Some(h) = id.homed {
+        v["homed"] = json!(h);
+    }
+    match id.position {
+        Position::Angle { deg } => v["position_deg"] = json!(deg),
+        Position::Slot(slot) => v["slot"] = json!(slot),
+    }
+    v
+}
+
 async fn stage_async(
     port: &str,
-    dialect: Dialect,
+    d: &'static Dialect,
     address: u8,
     action: &StageAction,
 ) -> Result<Value, DevicesError> {
-    let policy = dialect.policy();
+    let policy = (d.policy)();
     let started = std::time::Instant::now();
     // Info and position: read without moving. The rest: connect (which homes), then act.
-    let rotator = match (dialect, action) {
-        (Dialect::Fw102c, StageAction::Move { .. }) => {
-            return Err(DevicesError(
-                "an FW102C is a filter wheel: use `slot --slot N`".into(),
-            ))
-        }
-        (Dialect::Fw102c, _) => false,
-        (Dialect::Native, StageAction::Info | StageAction::Position) => {
-            let p = native::probe(connector(port, dialect), policy).await?;
-            let id = p.identity;
-            let rotator = id.device == polar_firmware_protocol::DeviceKind::Rotator;
-            let mut v = json!({
-                "port": port, "dialect": dialect.name(),
-                "device": format!("{:?}", id.device),
-                "serial": format!("{:08x}", id.serial),
-                "firmware": format!("{}.{}.{}", id.firmware[0], id.firmware[1], id.firmware[2]),
-                "counts_per_turn": id.counts_per_turn,
-                "slots": id.slots,
-                "homed": p.homed,
-                "position_counts": p.position_counts,
-            });
-            if rotator {
-                let angle = angle_from_counts(i64::from(p.position_counts), id.counts_per_turn);
-                v["position_deg"] = json!(angle.to_degrees());
-            } else {
-                v["slot"] = json!(p.slot);
+    let kind = match action {
+        StageAction::Info | StageAction::Position => {
+            let id = (d.identify)(d.connector(port), address, policy).await?;
+            let mut v = identity_json(&id);
+            v["port"] = json!(port);
+            v["dialect"] = json!(d.name);
+            if d.addressed {
+                v["address"] = json!(address);
             }
             return Ok(v);
         }
-        (Dialect::Elliptec, StageAction::Info | StageAction::Position) => {
-            let (info, counts) = elliptec::probe(connector(port, dialect), address, policy).await?;
-            let mut v = json!({
-                "port": port, "dialect": dialect.name(), "address": address,
-                "model": info.model(), "serial": info.serial, "year": info.year,
-                "firmware": info.firmware, "travel": info.travel, "pulses": info.pulses,
-                "position_counts": counts,
-            });
-            if elliptec::is_rotator(info.model_code) {
-                v["position_deg"] =
-                    json!(angle_from_counts(i64::from(counts), info.pulses).to_degrees());
-            } else if let Some(slots) = elliptec::slider_positions(info.model_code) {
-                v["slot"] = json!(slots.iter().position(|&p| (p - counts).abs() <= 5));
-            }
-            return Ok(v);
-        }
-        (_, StageAction::Move { .. }) => true,
-        (_, StageAction::Slot { .. }) => false,
-        (Dialect::Native, _) => {
-            let p = native::probe(connector(port, dialect), policy).await?;
-            p.identity.device == polar_firmware_protocol::DeviceKind::Rotator
-        }
-        (Dialect::Elliptec, _) => {
-            let (info, _) = elliptec::probe(connector(port, dialect), address, policy).await?;
-            elliptec::is_rotator(info.model_code)
-        }
+        StageAction::Move { .. } => DeviceKind::Rotator,
+        StageAction::Slot { .. } => DeviceKind::Wheel,
+        StageAction::Home => match d.kinds {
+            [only] => *only,
+            _ => (d.identify)(d.connector(port), address, policy).await?.kind,
+        },
     };
-    let mut out = if rotator {
-        let c = connector(port, dialect);
-        match dialect {
-            Dialect::Native => {
-                rotator_action(NativeRotator::connect(c, policy).await?, action).await?
-            }
-            _ => {
-                let tolerance_rad = 0.05f64.to_radians();
-                let r = ElliptecRotator::connect(c, address, policy, tolerance_rad).await?;
-                rotator_action(r, action).await?
-            }
+    let mut out = match (kind, d.rotator, d.wheel) {
+        (DeviceKind::Rotator, Some(connect), _) => {
+            rotator_action(connect(d.connector(port), address, policy).await?, action).await?
         }
-    } else {
-        let c = connector(port, dialect);
-        match dialect {
-            Dialect::Native => {
-                wheel_action(NativeWheel::connect(c, policy, None).await?, action).await?
-            }
-            Dialect::Elliptec => {
-                wheel_action(ElliptecSlider::connect(c, address, policy).await?, action).await?
-            }
-            Dialect::Fw102c => {
-                let w = Fw102c::connect(c, policy).await?;
-                let identity = w.identity().to_string();
-                let mut v = wheel_action(w, action).await?;
-                v["model"] = json!(identity);
-                v
-            }
+        (DeviceKind::Wheel, _, Some(connect)) => {
+            wheel_action(connect(d.connector(port), address, policy).await?, action).await?
+        }
+        (kind, _, _) => {
+            let hint = match kind {
+                DeviceKind::Rotator => "use `slot --slot N`",
+                DeviceKind::Wheel => "use `move --angle-deg X`",
+            };
+            return Err(DevicesError(format!(
+                "{}: {hint}",
+                registry::not_provided(d, kind)
+            )));
         }
     };
     out["port"] = json!(port);
-    out["dialect"] = json!(dialect.name());
+    out["dialect"] = json!(d.name);
     out["elapsed_s"] = json!(started.elapsed().as_secs_f64());
     Ok(out)
 }
@@ -411,73 +365,22 @@ async fn wheel_action<W: FilterWheel>(
     Ok(v)
 }
 
-/// The simulated models.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum SimModel {
-    /// Our firmware's rotation stage.
-    Rotator,
-    /// Our firmware's six-slot wheel.
-    Wheel,
-    /// Elliptec ELL14 rotation mount.
-    Ell14,
-    /// Elliptec ELL18 rotation mount.
-    Ell18,
-    /// Elliptec ELL6 two-position slider.
-    Ell6,
-    /// Elliptec ELL9 four-position slider.
-    Ell9,
-    /// Thorlabs FW102C six-position wheel.
-    Fw102c,
-    /// Thorlabs FW212C twelve-position wheel.
-    Fw212c,
-}
-
-/// The simulator of `dialect` (model `model`, or the dialect's first), with device faults.
+/// The simulator of dialect `dialect` (model `model`, or the dialect's first) with device
+/// faults, from the simulators' registry; errors name `--dialect` or `--model` and what is
+/// allowed.
 pub fn simulator(
-    dialect: Dialect,
-    model: Option<SimModel>,
+    dialect: &str,
+    model: Option<&str>,
     faults: FaultProfile,
     seed: u64,
 ) -> Result<Box<dyn Simulator>, DevicesError> {
-    use SimModel as M;
-    let sim: Box<dyn Simulator> = match (dialect, model) {
-        (Dialect::Native, None | Some(M::Rotator)) => {
-            Box::new(NativeDevice::new(NativeConfig::rotator(), faults, seed))
-        }
-        (Dialect::Native, Some(M::Wheel)) => {
-            Box::new(NativeDevice::new(NativeConfig::wheel(), faults, seed))
-        }
-        (Dialect::Elliptec, None | Some(M::Ell14)) => {
-            Box::new(ElliptecDevice::new(ElliptecConfig::ell14(), faults, seed))
-        }
-        (Dialect::Elliptec, Some(M::Ell18)) => {
-            Box::new(ElliptecDevice::new(ElliptecConfig::ell18(), faults, seed))
-        }
-        (Dialect::Elliptec, Some(M::Ell6)) => {
-            Box::new(ElliptecDevice::new(ElliptecConfig::ell6(), faults, seed))
-        }
-        (Dialect::Elliptec, Some(M::Ell9)) => {
-            Box::new(ElliptecDevice::new(ElliptecConfig::ell9(), faults, seed))
-        }
-        (Dialect::Fw102c, None | Some(M::Fw102c)) => {
-            Box::new(Fw102cDevice::new(Fw102cConfig::fw102c(), faults, seed))
-        }
-        (Dialect::Fw102c, Some(M::Fw212c)) => {
-            Box::new(Fw102cDevice::new(Fw102cConfig::fw212c(), faults, seed))
-        }
-        (d, Some(m)) => {
-            return Err(DevicesError(format!(
-                "--model = {m:?} is not a {} device: allowed {}",
-                d.name(),
-                match d {
-                    Dialect::Native => "rotator, wheel",
-                    Dialect::Elliptec => "ell14, ell18, ell6, ell9",
-                    Dialect::Fw102c => "fw102c, fw212c",
-                }
-            )))
-        }
-    };
-    Ok(sim)
+    polar_hil_mocks::sim::simulator(
+        dialect,
+        model.map(str::to_lowercase).as_deref(),
+        faults,
+        seed,
+    )
+    .map_err(|e| DevicesError(format!("--{e}")))
 }
 
 /// Reads a fault profile file.
@@ -491,16 +394,16 @@ pub fn load_faults(path: &Path) -> Result<FaultProfile, DevicesError> {
 /// Starts a simulator on a pseudo-terminal, prints `{"port": LINK, ...}` on one line, and
 /// serves until Ctrl-C (or until `stop` resolves).
 pub fn sim_stage(
-    dialect: Dialect,
-    model: Option<SimModel>,
+    dialect: &'static Dialect,
+    model: Option<&str>,
     faults: FaultProfile,
     seed: u64,
 ) -> Result<(), DevicesError> {
-    let sim = simulator(dialect, model, faults, seed)?;
+    let sim = simulator(dialect.name, model, faults, seed)?;
     let dir = sim_root().join(format!("polarimeter-sim-{}", std::process::id()));
     std::fs::create_dir_all(&dir)
         .map_err(|e| DevicesError(format!("cannot create {}: {e}", dir.display())))?;
-    let link = dir.join(format!("{}-{seed}", dialect.name()));
+    let link = dir.join(format!("{}-{seed}", dialect.name));
     let rt = runtime()?;
     let result = rt.block_on(async {
         let server = SimServer::pty(sim, faults, seed, &link)
@@ -508,9 +411,9 @@ pub fn sim_stage(
         let line = json!({
             "port": link,
             "pty": server.port(),
-            "dialect": dialect.name(),
+            "dialect": dialect.name,
             "device": server.describe(),
-            "baud": dialect.baud(),
+            "baud": dialect.baud,
             "seed": seed,
         });
         println!("{line}");
@@ -527,6 +430,143 @@ pub fn sim_stage(
     });
     let _ = std::fs::remove_dir_all(&dir);
     result
+}
+
+/// Tries each dialect's identify on `port`, each given `deadline`, in registry order; the
+/// first that answers. Each try sends that dialect's identify request, which a device of
+/// another dialect ignores or rejects as noise.
+pub fn identify_any(
+    port: &str,
+    deadline: std::time::Duration,
+) -> Result<Option<(&'static Dialect, Identity)>, DevicesError> {
+    runtime()?.block_on(async {
+        for d in DIALECTS {
+            let mut policy = (d.policy)();
+            policy.attempts = 1;
+            let id = (d.identify)(d.connector(port), 0, policy);
+            if let Ok(Ok(id)) = tokio::time::timeout(deadline, id).await {
+                return Ok(Some((d, id)));
+            }
+        }
+        Ok(None)
+    })
+}
+
+/// The ports `devices list` found (stable names first, then the ports), and the running
+/// simulators' links.
+pub fn candidate_ports(listed: &Value) -> Vec<String> {
+    let mut out = Vec::new();
+    for p in listed["ports"].as_array().into_iter().flatten() {
+        match p["stable"]
+            .as_array()
+            .and_then(|s| s.first())
+            .and_then(Value::as_str)
+        {
+            Some(stable) => out.push(stable.to_string()),
+            None => out.extend(p["port"].as_str().map(String::from)),
+        }
+    }
+    for r in listed["simulated"]["running"]
+        .as_array()
+        .into_iter()
+        .flatten()
+    {
+        out.extend(r["port"].as_str().map(String::from));
+    }
+    out
+}
+
+/// How long `devices list` gives each dialect to identify a device.
+pub const IDENTIFY_DEADLINE: std::time::Duration = std::time::Duration::from_millis(1500);
+
+/// `devices list [--simulate] [--rig RIG] [--write-rig FILE]`: [`list`]; with a rig, its stage
+/// identified and whether its camera was found; with `--write-rig`, a starting rig file.
+pub fn list_cmd(
+    simulate: bool,
+    rig: Option<&Path>,
+    write_rig: Option<&Path>,
+) -> Result<Value, DevicesError> {
+    let mut out = list(simulate)?;
+    if let Some(path) = rig {
+        let rig = crate::rig::load(path).map_err(|e| DevicesError(e.0))?;
+        let stage = match &rig.file.stage {
+            None => Value::Null,
+            Some(s) if s.is_simulated() => json!({ "simulated": s.dialect }),
+            Some(s) => match stage(&s.port, dialect(&s.dialect)?, s.address, &StageAction::Info) {
+                Ok(v) => v,
+                Err(e) => json!({ "port": s.port, "dialect": s.dialect, "error": e.0 }),
+            },
+        };
+        let camera = rig.camera_name();
+        let found = camera.as_deref().is_some_and(|c| {
+            c == "sim"
+                || out["cameras"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .any(|f| f["camera"] == c)
+        });
+        out["rig"] = json!({
+            "file": path.display().to_string(),
+            "stage": stage,
+            "camera": camera,
+            "camera_found": found,
+        });
+    }
+    if let Some(path) = write_rig {
+        let mut found = None;
+        for port in candidate_ports(&out) {
+            if let Some((d, id)) = identify_any(&port, IDENTIFY_DEADLINE)? {
+                found = Some(polar_rig::file::StageEntry {
+                    dialect: d.name.to_string(),
+                    port,
+                    address: 0,
+                    model: Some(id.model.to_lowercase()).filter(|m| d.models.contains(&m.as_str())),
+                });
+                break;
+            }
+        }
+        out["rig_written"] = crate::rig::write_starting_rig(path, found, &out["cameras"])
+            .map_err(|e| DevicesError(e.0))?;
+    }
+    Ok(out)
+}
+
+/// The port, dialect and address of `stage`: flags override the rig file's `[stage]`; errors
+/// name the missing flag or key.
+pub fn stage_target(
+    rig: Option<&Path>,
+    port: Option<String>,
+    dialect_name: Option<String>,
+    address: Option<u8>,
+) -> Result<(String, &'static Dialect, u8), DevicesError> {
+    let rig = rig
+        .map(crate::rig::load)
+        .transpose()
+        .map_err(|e| DevicesError(e.0))?;
+    let entry = rig.as_ref().and_then(|r| r.file.stage.clone());
+    let missing = |key: &str, flag: &str| match &rig {
+        Some(r) => DevicesError(format!(
+            "rig {}: {key} is missing (or give {flag})",
+            r.path.display()
+        )),
+        None => DevicesError(format!("give {flag} (or --rig)")),
+    };
+    let port = port
+        .or_else(|| entry.as_ref().map(|s| s.port.clone()))
+        .ok_or_else(|| missing("stage.port", "--port"))?;
+    if port == polar_rig::SIM_PORT {
+        return Err(DevicesError(
+            "stage.port = \"sim\": a one-shot command needs a port; start a simulator with \
+             `polarimeter sim stage --dialect D` and give its port"
+                .into(),
+        ));
+    }
+    let name = dialect_name
+        .or_else(|| entry.as_ref().map(|s| s.dialect.clone()))
+        .ok_or_else(|| missing("stage.dialect", "--dialect"))?;
+    let address = address.or(entry.map(|s| s.address)).unwrap_or(0);
+    Ok((port, dialect(&name)?, address))
 }
 
 /// Human-readable rendering of a result: `key: value` lines.

@@ -167,6 +167,19 @@ fn fig_2_1(out: &Path) -> Result<Vec<PathBuf>, FigureError> {
             (FONT, 15),
         )))
         .map_err(&e)?;
+    // A metal's Rp never vanishes: its pseudo-Brewster angle is where Rp is smallest.
+    let pseudo = copper.pseudo_brewster();
+    let pseudo_deg = pseudo.angle_rad.to_degrees();
+    chart
+        .draw_series(std::iter::once(Text::new(
+            format!(
+                "copper pseudo-Brewster {pseudo_deg:.2} deg (Rp {:.3})",
+                pseudo.rp_min
+            ),
+            (pseudo_deg - 40.0, pseudo.rp_min - 0.06),
+            (FONT, 15),
+        )))
+        .map_err(&e)?;
     chart
         .configure_series_labels()
         .position(SeriesLabelPosition::UpperLeft)

@@ -17,7 +17,7 @@ use clap::{Parser, Subcommand};
 use polar_cli::batch::{self, Kind};
 use polar_cli::calibrate;
 use polar_cli::commands::{self, DiffuseCache};
-use polar_cli::devices::{self, Dialect, SimModel, StageAction};
+use polar_cli::devices::{self, StageAction};
 use std::io::{BufRead, BufReader, Write};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -33,50 +33,74 @@ struct Cli {
     command: Command,
 }
 
-/// Real devices for `run` and `resume` (without them, `run --simulate`).
+/// Real devices for `run` and `resume`: a rig file, flags, or both (a flag overrides the rig
+/// file's entry, which overrides the default); without either, `run --simulate`.
 #[derive(Debug, clap::Args)]
 struct HardwareArgs {
-    /// The stage's serial port (prefer a stable /dev/serial/by-id/... path).
+    /// The rig file (TOML: [stage] dialect, port, address, model; [camera] backend, id, file;
+    /// [site]; [analyzer]). The flags below override its entries.
+    #[arg(long)]
+    rig: Option<PathBuf>,
+    /// The stage's serial port (prefer a stable /dev/serial/by-id/... path; `sim`: the
+    /// dialect's simulator on a pseudo-terminal).
     #[arg(long)]
     port: Option<String>,
     /// The stage's protocol.
-    #[arg(long, value_enum)]
-    dialect: Option<Dialect>,
-    /// Elliptec bus address, 0..=15.
-    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=15))]
-    address: u8,
-    /// The camera: genicam:ID or v4l:NAME.
+    #[arg(long, value_parser = devices::dialect_values())]
+    dialect: Option<String>,
+    /// Bus address (Elliptec 0..=15); default the rig's, else 0.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(0..=15))]
+    address: Option<u8>,
+    /// The camera: sim, genicam:ID, v4l:NAME or uvc:BUS_OR_NAME.
     #[arg(long)]
     camera: Option<String>,
     /// The camera's noise model (a calibrated camera file, e.g. from `calibrate noise`).
     #[arg(long)]
     camera_file: Option<PathBuf>,
     /// Stage angle at which the analyzer's axis is along the camera's x axis, degrees (from a
-    /// calibrate-analyzer run).
-    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
-    zero_offset_deg: f64,
+    /// calibrate-analyzer run); default the rig's, else 0.
+    #[arg(long, allow_negative_numbers = true)]
+    zero_offset_deg: Option<f64>,
 }
 
 impl HardwareArgs {
-    /// The hardware the flags describe (see `Hardware::from_flags`); `--zero-offset-deg` is
-    /// checked whether the devices are real or simulated.
-    fn hardware(&self) -> Result<Option<polar_cli::acquire::Hardware>, String> {
-        let z = self.zero_offset_deg;
-        if !(z.is_finite() && z.abs() <= 360.0) {
-            return Err(format!(
-                "--zero-offset-deg = {} is out of range: allowed a finite angle in [-360, 360] \
-                 degrees",
-                commands::compact(z)
-            ));
+    /// The rig file (if given) and the hardware it and the flags describe;
+    /// `--zero-offset-deg` is checked whether the devices are real or simulated.
+    fn hardware(&self) -> Result<(Option<polar_rig::Hardware>, Option<polar_rig::Rig>), String> {
+        if let Some(z) = self.zero_offset_deg {
+            if !(z.is_finite() && z.abs() <= 360.0) {
+                return Err(format!(
+                    "--zero-offset-deg = {} is out of range: allowed a finite angle in \
+                     [-360, 360] degrees",
+                    commands::compact(z)
+                ));
+            }
         }
-        polar_cli::acquire::Hardware::from_flags(
-            self.port.clone(),
-            self.dialect,
-            self.camera.clone(),
-            self.camera_file.clone(),
-            self.address,
-            self.zero_offset_deg,
-        )
+        match &self.rig {
+            Some(path) => {
+                let rig = polar_cli::rig::load(path).map_err(|e| e.to_string())?;
+                let hw = rig
+                    .hardware(&polar_rig::Overrides {
+                        port: self.port.clone(),
+                        dialect: self.dialect.clone(),
+                        address: self.address,
+                        camera: self.camera.clone(),
+                        camera_file: self.camera_file.clone(),
+                        zero_offset_deg: self.zero_offset_deg,
+                    })
+                    .map_err(|e| e.to_string())?;
+                Ok((hw, Some(rig)))
+            }
+            None => polar_rig::Hardware::from_flags(
+                self.port.clone(),
+                self.dialect.as_deref(),
+                self.camera.clone(),
+                self.camera_file.clone(),
+                self.address.unwrap_or(0),
+                self.zero_offset_deg.unwrap_or(0.0),
+            )
+            .map(|hw| (hw, None)),
+        }
     }
 }
 
@@ -89,9 +113,11 @@ enum Command {
         #[arg(long, default_value = "demo-run")]
         out: PathBuf,
     },
-    /// Run a plan (TOML or YAML) on simulated devices (--simulate) or on hardware (--port,
-    /// --dialect, --camera, --camera-file). Ctrl-C once pauses at the next safe point, twice
-    /// at once. Prints a JSON summary; exit status 3 when left paused (resume it later).
+    /// Run a plan (TOML or YAML) on simulated devices (--simulate) or on hardware (--rig FILE,
+    /// or --port, --dialect, --camera, --camera-file; a flag overrides the rig's entry). Ctrl-C
+    /// once pauses at the next safe point, twice at once. Prints a JSON summary; exit status 3
+    /// when left paused (resume it later). With --rig, a calibrate-analyzer run writes its
+    /// result to the rig as a new revision.
     Run {
         /// The plan file.
         plan: PathBuf,
@@ -105,7 +131,7 @@ enum Command {
         hardware: HardwareArgs,
     },
     /// Continue a paused or crashed run from its journal, with no duplicate and no missing
-    /// frame (hardware runs need the device flags again).
+    /// frame (hardware runs need --rig or the device flags again).
     Resume {
         /// The run directory.
         run_dir: PathBuf,
@@ -125,11 +151,14 @@ enum Command {
         command: ExportCommand,
     },
     /// One command to a camera: `sim` (rendered from the model), `genicam:ID` or `v4l:NAME`
-    /// (cargo features `genicam`, `v4l`).
+    /// (cargo features `genicam`, `v4l`), named by --camera or a rig file's [camera].
     Camera {
-        /// The camera: sim, genicam:ID or v4l:NAME.
+        /// The camera: sim, genicam:ID, v4l:NAME or uvc:BUS_OR_NAME (overrides the rig's).
         #[arg(long)]
-        camera: String,
+        camera: Option<String>,
+        /// A rig file: its [camera] (name and camera file).
+        #[arg(long)]
+        rig: Option<PathBuf>,
         /// Simulated camera: the scene file (default: the rooftop example plus a metal panel).
         #[arg(long)]
         scene: Option<PathBuf>,
@@ -184,15 +213,18 @@ enum Command {
     },
     /// One command to a rotation stage or filter wheel.
     Stage {
+        /// A rig file: its [stage] (the flags below override its entries).
+        #[arg(long)]
+        rig: Option<PathBuf>,
         /// The serial port (prefer a stable /dev/serial/by-id/... path).
         #[arg(long)]
-        port: String,
+        port: Option<String>,
         /// The device's protocol.
-        #[arg(long, value_enum)]
-        dialect: Dialect,
-        /// Elliptec bus address, 0..=15.
-        #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=15))]
-        address: u8,
+        #[arg(long, value_parser = devices::dialect_values())]
+        dialect: Option<String>,
+        /// Bus address (Elliptec 0..=15); default the rig's, else 0.
+        #[arg(long, value_parser = clap::value_parser!(u8).range(0..=15))]
+        address: Option<u8>,
         /// JSON output.
         #[arg(long, global = true)]
         json: bool,
@@ -225,6 +257,13 @@ enum DevicesCommand {
         /// Also list the simulated devices running and on offer.
         #[arg(long)]
         simulate: bool,
+        /// A rig file: identify its stage and look for its camera among those found.
+        #[arg(long)]
+        rig: Option<PathBuf>,
+        /// Write a starting rig file (a new file) from what is found: the first port whose
+        /// device identifies in a dialect of the registry, the first camera.
+        #[arg(long)]
+        write_rig: Option<PathBuf>,
         /// JSON output.
         #[arg(long)]
         json: bool,
@@ -259,11 +298,11 @@ enum SimCommand {
     /// until stopped (Ctrl-C).
     Stage {
         /// The protocol it speaks.
-        #[arg(long, value_enum)]
-        dialect: Dialect,
-        /// The model (default: the dialect's rotator, or the FW102C).
-        #[arg(long, value_enum)]
-        model: Option<SimModel>,
+        #[arg(long, value_parser = devices::dialect_values())]
+        dialect: String,
+        /// The model (default: the dialect's first, as `devices list --simulate` lists them).
+        #[arg(long)]
+        model: Option<String>,
         /// Fault profile (TOML; see hil-mocks/src/faults.rs for the knobs).
         #[arg(long)]
         faults: Option<PathBuf>,
@@ -330,6 +369,10 @@ enum CalibrateCommand {
         /// A camera file whose detector fields the measurement replaces, written as camera.toml.
         #[arg(long)]
         base_camera: Option<PathBuf>,
+        /// A rig file: its camera file is the base camera (unless --base-camera), and the
+        /// measured camera file is written beside it as a new revision the rig then points to.
+        #[arg(long)]
+        rig: Option<PathBuf>,
     },
 }
 
@@ -375,6 +418,9 @@ enum PlanCommand {
     Check {
         /// The plan file.
         file: PathBuf,
+        /// A rig file: its site (for a plan without one) and its camera file.
+        #[arg(long)]
+        rig: Option<PathBuf>,
     },
     /// APTD offline over an image stack (`frames.csv`: file,angle_deg; 16-bit TIFFs): the sets
     /// it chooses among the stack's angles, its decisions, and RX and matched-filter detection
@@ -485,6 +531,17 @@ enum BenchCommand {
         /// Minimum timing runs per Monte Carlo size.
         #[arg(long, default_value_t = 3)]
         min_runs: usize,
+        /// Instead, the accuracy grid: DoLP/AoP statistics against a Stokes-level Monte Carlo
+        /// over polarised SNR 0.5 .. 20, three analyzer sets, isotropic and anisotropic noise.
+        #[arg(long)]
+        grid: bool,
+        /// Monte Carlo draws per state of `--grid`, 4e5 ..= 5e7.
+        #[arg(long, default_value_t = 1_000_000)]
+        grid_samples: usize,
+        /// With `--grid`: write the report to this file (e.g.
+        /// docs/validation/dolp-aop-grid.md) instead of stdout.
+        #[arg(long, requires = "grid")]
+        out: Option<PathBuf>,
     },
 }
 
@@ -578,8 +635,8 @@ enum ModelCommand {
         #[command(flatten)]
         args: commands::SensorArgs,
     },
-    /// DoLP and AoP mean and spread of a Stokes estimate (Taylor or Rice regime), with an
-    /// optional Monte Carlo check.
+    /// DoLP and AoP mean, spread and AoP bias of a Stokes estimate (integration at every
+    /// polarised SNR, with its error estimate), with an optional Monte Carlo check.
     DolpStats {
         #[command(flatten)]
         args: commands::DolpStatsArgs,
@@ -970,7 +1027,7 @@ fn main() -> ExitCode {
             out,
             hardware,
         } => {
-            let hw = match hardware.hardware() {
+            let (hw, rig) = match hardware.hardware() {
                 Ok(hw) => hw,
                 Err(e) => {
                     eprintln!("error: {e}");
@@ -979,17 +1036,23 @@ fn main() -> ExitCode {
             };
             if simulate == hw.is_some() {
                 eprintln!(
-                    "error: give either --simulate or the hardware (--port, --dialect, --camera, --camera-file)"
+                    "error: give either --simulate or the hardware (--rig, or --port, --dialect, --camera, --camera-file)"
                 );
                 return ExitCode::from(2);
             }
             Ok(print_run(
-                polar_cli::acquire::run_cmd(&plan, hw, out, polar_cli::acquire::Ui::terminal())
-                    .map_err(|e| in_plan_file(&plan, e)),
+                polar_cli::acquire::run_cmd(
+                    &plan,
+                    hw,
+                    rig.as_ref(),
+                    out,
+                    polar_cli::acquire::Ui::terminal(),
+                )
+                .map_err(|e| in_plan_file(&plan, e)),
             ))
         }
         Command::Resume { run_dir, hardware } => {
-            let hw = match hardware.hardware() {
+            let (hw, rig) = match hardware.hardware() {
                 Ok(hw) => hw,
                 Err(e) => {
                     eprintln!("error: {e}");
@@ -999,6 +1062,7 @@ fn main() -> ExitCode {
             Ok(print_run(polar_cli::acquire::resume_cmd(
                 &run_dir,
                 hw,
+                rig.as_ref(),
                 polar_cli::acquire::Ui::terminal(),
             )))
         }
@@ -1007,10 +1071,14 @@ fn main() -> ExitCode {
             command: ExportCommand::Tiff { run_dir, out },
         } => Ok(print_json(polar_cli::acquire::export_tiff(&run_dir, out))),
         Command::Plan {
-            command: Some(PlanCommand::Check { file }),
+            command: Some(PlanCommand::Check { file, rig }),
             ..
         } => Ok(print_json(
-            polar_cli::acquire::plan_check(&file).map_err(|e| in_plan_file(&file, e)),
+            rig.as_deref()
+                .map(polar_cli::rig::load)
+                .transpose()
+                .and_then(|rig| polar_cli::acquire::plan_check(&file, rig.as_ref()))
+                .map_err(|e| in_plan_file(&file, e)),
         )),
         Command::Bench {
             command: BenchCommand::Run { sets, exposure_us },
@@ -1031,6 +1099,7 @@ fn main() -> ExitCode {
         } => Ok(print_text(polar_cli::acquire::bench_faults(faults, seed))),
         Command::Camera {
             camera,
+            rig,
             scene,
             camera_file,
             analyzer_deg,
@@ -1050,6 +1119,14 @@ fn main() -> ExitCode {
                 eprintln!("error: --deadline-s = {deadline_s} is out of range: allowed (0, 3600]");
                 return ExitCode::from(2);
             }
+            let (camera, camera_file) =
+                match polar_cli::camera::from_rig(rig.as_deref(), camera, camera_file) {
+                    Ok(c) => c,
+                    Err(e) => {
+                        eprintln!("error: {e}");
+                        return ExitCode::from(2);
+                    }
+                };
             let sim = polar_cli::camera::SimOptions {
                 scene,
                 camera_file,
@@ -1197,6 +1274,9 @@ fn main() -> ExitCode {
                     max_exponent,
                     seed,
                     min_runs,
+                    grid,
+                    grid_samples,
+                    out,
                 },
         } => {
             let opt = polar_cli::bench_stats::BenchOptions {
@@ -1205,18 +1285,48 @@ fn main() -> ExitCode {
                 seed,
                 min_runs,
             };
-            polar_cli::bench_stats::states()
-                .and_then(|s| polar_cli::bench_stats::run(&s, &opt))
-                .map(|r| {
-                    print!("{}", polar_cli::bench_stats::markdown(&r, &opt));
-                    ExitCode::SUCCESS
-                })
-                .map_err(anyhow::Error::from)
+            if grid {
+                use polar_cli::bench_stats::{grid_markdown, run_grid, write_grid_report};
+                let mut command = format!(
+                    "polarimeter bench stats --grid --grid-samples {grid_samples} --seed {seed}"
+                );
+                match out {
+                    Some(path) => {
+                        command += &format!(" --out {}", path.display());
+                        write_grid_report(&path, grid_samples, seed, &command).map(|rows| {
+                            println!("{} ({} states)", path.display(), rows.len());
+                            ExitCode::SUCCESS
+                        })
+                    }
+                    None => run_grid(grid_samples, seed).map(|rows| {
+                        print!("{}", grid_markdown(&rows, grid_samples, seed, &command));
+                        ExitCode::SUCCESS
+                    }),
+                }
+            } else {
+                polar_cli::bench_stats::states()
+                    .and_then(|s| polar_cli::bench_stats::run(&s, &opt))
+                    .map(|r| {
+                        print!("{}", polar_cli::bench_stats::markdown(&r, &opt));
+                        ExitCode::SUCCESS
+                    })
+            }
+            .map_err(anyhow::Error::from)
         }
         Command::Devices {
-            command: DevicesCommand::List { simulate, json },
-        } => Ok(print_device(devices::list(simulate), json)),
+            command:
+                DevicesCommand::List {
+                    simulate,
+                    rig,
+                    write_rig,
+                    json,
+                },
+        } => Ok(print_device(
+            devices::list_cmd(simulate, rig.as_deref(), write_rig.as_deref()),
+            json,
+        )),
         Command::Stage {
+            rig,
             port,
             dialect,
             address,
@@ -1230,8 +1340,9 @@ fn main() -> ExitCode {
                 StageCommand::Slot { slot } => StageAction::Slot { slot },
                 StageCommand::Position => StageAction::Position,
             };
+            let target = devices::stage_target(rig.as_deref(), port, dialect, address);
             Ok(print_device(
-                devices::stage(&port, dialect, address, &action),
+                target.and_then(|(port, d, address)| devices::stage(&port, d, address, &action)),
                 json,
             ))
         }
@@ -1275,15 +1386,16 @@ fn main() -> ExitCode {
                     frames,
                     out,
                     base_camera,
+                    rig,
                 },
-        } => Ok(print_json(
-            calibrate::calibrate_noise(&calibrate::NoiseOptions {
+        } => Ok(print_json(calibrate::calibrate_noise_cmd(
+            calibrate::NoiseOptions {
                 frames,
                 out,
                 base_camera,
-            })
-            .map(|r| r.to_json()),
-        )),
+            },
+            rig.as_deref(),
+        ))),
         Command::Sim {
             command:
                 SimCommand::Stage {
@@ -1297,7 +1409,10 @@ fn main() -> ExitCode {
                 Some(path) => devices::load_faults(&path),
                 None => Ok(Default::default()),
             };
-            match faults.and_then(|f| devices::sim_stage(dialect, model, f, seed)) {
+            let started = faults.and_then(|f| {
+                devices::sim_stage(devices::dialect(&dialect)?, model.as_deref(), f, seed)
+            });
+            match started {
                 Ok(()) => Ok(ExitCode::SUCCESS),
                 Err(e) => {
                     eprintln!("error: {e}");

@@ -144,6 +144,7 @@ pub fn angles(args: &PlanAnglesArgs) -> Result<Value, CommandError> {
             .fixed_angles_deg
             .as_ref()
             .map(|v| v.iter().map(|d| d.to_radians()).collect()),
+        max_condition: None,
     };
     let t0 = Instant::now();
     let opt = optimise(
@@ -300,14 +301,14 @@ pub struct PlanSceneArgs {
     /// Time budget for one set, seconds (frames, moves and settling); none by default.
     #[arg(long)]
     pub time_budget_s: Option<f64>,
-    /// Smallest separation between two angles, degrees. For a Stokes set (the default)
-    /// [30, 180 / channels], default 30; with --detection-only [0, 180 / channels], default 0
-    /// (0 lets the set repeat an angle).
+    /// Smallest separation between two angles, degrees, [0, 180 / channels] and below 90: the
+    /// stage's mechanical constraint (0 lets a detection-only set repeat an angle).
     #[arg(long)]
     pub min_separation_deg: Option<f64>,
     /// The detection-only optimum: the SCR-optimal set whatever it forms (repeats allowed, 1
     /// or 2 channels allowed), with no Stokes image; by default the set forms a Stokes image
-    /// (3 or more angles, every two at least --min-separation-deg >= 30 apart).
+    /// (3 or more angles whose ideal measurement matrix has a condition number of at most
+    /// 6.21, that of 0/30/60).
     #[arg(long)]
     pub detection_only: bool,
     /// The SCR to reach, as a fraction of the clutter-limited SCR, (0, 1).
@@ -410,15 +411,10 @@ fn saturation_limit_s(
     Ok(lo.exp())
 }
 
-/// A Stokes set's smallest separation between two angles, degrees: with it every 3-angle set
-/// of the ideal analyzer has a measurement-matrix condition number of at most
-/// [`STOKES_MAX_CONDITION`] (the worst is 0/30/60; 0/45/90 has 2.41, 0/60/120 1.41, the best).
-pub const STOKES_MIN_SEPARATION_DEG: f64 = 30.0;
-
-/// The worst 2-norm condition number of the ideal analyzer's `W` over 3-angle sets whose
-/// angles are at least [`STOKES_MIN_SEPARATION_DEG`] apart (0/30/60): the bound that defines
-/// a well-conditioned Stokes set here.
-pub const STOKES_MAX_CONDITION: f64 = 6.21;
+/// The Stokes rule's bound on the ideal measurement matrix's condition number
+/// ([`polar_planner::stokes`]: that of 0/30/60, the worst 3-angle set whose angles are at least
+/// 30 deg apart).
+pub use polar_planner::stokes::STOKES_MAX_CONDITION;
 
 /// The planner's contrast at `t_int_s` ([`Contrast::from_sensor`]: the camera's real rows and
 /// its noise at the background's light), whose SCR is the forecast's.
@@ -503,24 +499,13 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
         )));
     }
     let widest = 180.0 / n as f64;
-    let min_separation_deg = match (args.min_separation_deg, stokes) {
-        (None, true) => STOKES_MIN_SEPARATION_DEG,
-        (None, false) => 0.0,
-        (Some(v), true) => {
-            if !(v.is_finite() && (STOKES_MIN_SEPARATION_DEG..=widest).contains(&v)) {
-                return Err(CommandError(format!(
-                    "--min-separation-deg {v} is out of range for a Stokes set of {n} angles: \
-                     allowed [{STOKES_MIN_SEPARATION_DEG}, {widest}] (below \
-                     {STOKES_MIN_SEPARATION_DEG} deg the measurement matrix's condition number \
-                     can exceed {STOKES_MAX_CONDITION}), or add --detection-only"
-                )));
-            }
-            v
-        }
-        (Some(v), false) => {
+    let min_separation_deg = match args.min_separation_deg {
+        None => 0.0,
+        Some(v) => {
             if !(v.is_finite() && (0.0..=widest).contains(&v) && v < 90.0) {
                 return Err(CommandError(format!(
-                    "--min-separation-deg {v} is out of range for {n} angles: allowed [0, {}]",
+                    "--min-separation-deg {v} is out of range for {n} angles: allowed [0, {}] \
+                     ({n} angles that far apart must fit in 180 deg)",
                     widest.min(89.99)
                 )));
             }
@@ -570,6 +555,7 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
     let tol_rad = 0.01f64.to_radians();
     let constraints = Constraints {
         min_separation_rad: min_separation_deg.to_radians(),
+        max_condition: stokes.then_some(STOKES_MAX_CONDITION),
         ..Constraints::default()
     };
     let best_at = |t_int_s: f64| -> Result<(Contrast, Optimum), CommandError> {
@@ -649,16 +635,11 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
     notes.extend(contrast.notes.iter().cloned());
 
     // The other kind of set at the same integration time: what the Stokes constraint costs.
-    let other = if stokes {
+    // The same mechanical separation with the Stokes bound toggled.
+    let other = if n >= 3 {
         let c = Constraints {
-            min_separation_rad: 0.0,
-            ..Constraints::default()
-        };
-        Some(optimise(&contrast, n, &c, tol_rad).map_err(planner_error)?)
-    } else if n >= 3 && STOKES_MIN_SEPARATION_DEG * n as f64 <= 180.0 {
-        let c = Constraints {
-            min_separation_rad: STOKES_MIN_SEPARATION_DEG.to_radians(),
-            ..Constraints::default()
+            max_condition: (!stokes).then_some(STOKES_MAX_CONDITION),
+            ..constraints.clone()
         };
         Some(optimise(&contrast, n, &c, tol_rad).map_err(planner_error)?)
     } else {
@@ -670,16 +651,19 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
         a.len()
     };
     let condition = contrast.condition_number(&opt.angles_rad);
+    let ideal_condition = polar_planner::stokes::stokes_condition(&opt.angles_rad);
+    let finite = |k: f64| if k.is_finite() { json!(k) } else { Value::Null };
     let set_json = if stokes {
         let o = other.as_ref().map_or(opt.scr, |o| o.scr);
         json!({
             "kind": "stokes",
             "rule": format!(
-                "{n} angles, every two at least {min_separation_deg} deg apart (modulo 180): the \
-                 ideal analyzer's condition number is then at most {STOKES_MAX_CONDITION} for 3 \
-                 angles (condition_number: this camera's real rows)"
+                "{n} angles whose ideal measurement matrix has a condition number of at most \
+                 {STOKES_MAX_CONDITION} (that of 0/30/60, the worst 3-angle set 30 deg apart), \
+                 every two at least {min_separation_deg} deg apart (the stage's separation)"
             ),
-            "condition_number": condition,
+            "condition_number_ideal": finite(ideal_condition),
+            "condition_number": finite(condition),
             "scr_detection_only": o,
             "angles_detection_only_deg": other.as_ref().map(|o| degrees(&o.angles_rad)),
             "stokes_cost_scr": (o - opt.scr).max(0.0),
@@ -692,7 +676,8 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
                 "{n} angles at least {min_separation_deg} deg apart, repeats allowed: \
                  {distinct} distinct angle(s)"
             ),
-            "condition_number": if condition.is_finite() { json!(condition) } else { Value::Null },
+            "condition_number_ideal": finite(ideal_condition),
+            "condition_number": finite(condition),
         });
         if let Some(o) = &other {
             v["scr_stokes"] = json!(o.scr);
@@ -928,6 +913,8 @@ pub fn aptd_offline(args: &PlanAptdArgs) -> Result<Value, CommandError> {
         channels: args.channels,
         initial_angles_rad: initial,
         noise_var: args.noise_var,
+        // An image stack carries no camera file: the analyzer is taken as ideal.
+        instrument: polar_planner::Instrument::ideal(),
         target,
         constraints: Constraints {
             fixed_angles_rad: Some(available),

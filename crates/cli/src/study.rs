@@ -196,6 +196,14 @@ pub enum StudySelection {
     /// Adaptive polarimetric target detection against conventional sets (Meng (2012)'s Table 5.2;
     /// `study_aptd`).
     Aptd,
+    /// SCR of conventional and optimal sets against integration time (Meng (2012) Fig. 5.1;
+    /// `study_scr`).
+    ScrTime,
+    /// The distribution of SCR over all 3-angle sets (Meng (2012) Fig. 5.2; `study_scr`).
+    ScrSets,
+    /// DoLP variation over the field of view against roughness, and its ROC (Meng (2012)
+    /// Sec. 4.2.3; `study_fov`).
+    Fov,
 }
 
 impl StudySelection {
@@ -209,7 +217,10 @@ impl StudySelection {
             StudySelection::NoiseFactor => vec![StudyKind::NoiseFactor],
             StudySelection::IntegrationTime => vec![StudyKind::IntegrationTime],
             StudySelection::All => StudyKind::ALL.to_vec(),
-            StudySelection::Aptd => Vec::new(),
+            StudySelection::Aptd
+            | StudySelection::ScrTime
+            | StudySelection::ScrSets
+            | StudySelection::Fov => Vec::new(),
         }
     }
 }
@@ -508,7 +519,7 @@ pub struct StudyResult {
 
 /// A class's radiance statistics at the aperture.
 #[derive(Debug, Clone)]
-struct Radiance {
+pub(crate) struct Radiance {
     mean: Vector3<f64>,
     cov: Matrix3<f64>,
     path_relative: f64,
@@ -516,7 +527,7 @@ struct Radiance {
 }
 
 impl Radiance {
-    fn from_result(r: &polar_model::scene::MaterialResult) -> Radiance {
+    pub(crate) fn from_result(r: &polar_model::scene::MaterialResult) -> Radiance {
         Radiance {
             mean: r.mean.0,
             cov: r.cov,
@@ -544,7 +555,7 @@ struct Chain {
 
 /// The sensor settings of one point.
 #[derive(Debug, Clone, Copy)]
-struct SensorPoint {
+pub(crate) struct SensorPoint {
     t_int_s: f64,
     noise: NoiseFactor,
 }
@@ -554,6 +565,31 @@ fn snr(mean: f64, std: f64) -> f64 {
 }
 
 impl Study {
+    /// The scene's settings.
+    pub(crate) fn spec(&self) -> &SceneSpec {
+        &self.spec
+    }
+
+    /// Black paint, glass, background.
+    pub(crate) fn materials(&self) -> &[SceneMaterial; 3] {
+        &self.materials
+    }
+
+    /// The camera through the scene's band.
+    pub(crate) fn sensor(&self) -> &SensorModel {
+        &self.sensor
+    }
+
+    /// The settings.
+    pub(crate) fn settings(&self) -> &StudySettings {
+        &self.settings
+    }
+
+    /// The scene file, for captions.
+    pub(crate) fn scene_label(&self) -> &str {
+        &self.scene_label
+    }
+
     /// Loads the scene and camera files named by `args` and checks the settings.
     pub fn load(args: &StudyArgs) -> Result<Study, StudyError> {
         let scene = load_scene(&args.scene)?;
@@ -650,7 +686,7 @@ impl Study {
         })
     }
 
-    fn base_sensor(&self) -> SensorPoint {
+    pub(crate) fn base_sensor(&self) -> SensorPoint {
         SensorPoint {
             t_int_s: self.settings.t_int_ms * 1e-3,
             noise: self
@@ -661,7 +697,7 @@ impl Study {
     }
 
     /// The three classes' radiance statistics for `spec` and `materials`.
-    fn scene_stats(
+    pub(crate) fn scene_stats(
         &self,
         spec: &SceneSpec,
         materials: &[SceneMaterial; 3],
@@ -736,7 +772,7 @@ impl Study {
     }
 
     /// One point: the three classes through the sensor, then the two target-background pairs.
-    fn point(
+    pub(crate) fn point(
         &self,
         value: f64,
         label: String,
@@ -966,7 +1002,7 @@ fn switched_radiance(m: &SceneMaterial, t: &[Stokes; 3], on: [bool; 3]) -> Radia
 
 /// `m` with its facet-slope roughness replaced; errors name `sigma` (and a vegetation target,
 /// which has none).
-fn with_sigma(m: &SceneMaterial, sigma: f64) -> Result<SceneMaterial, ModelError> {
+pub(crate) fn with_sigma(m: &SceneMaterial, sigma: f64) -> Result<SceneMaterial, ModelError> {
     match m.surface {
         Surface::Microfacet { lobe, dhr } => Ok(SceneMaterial {
             surface: Surface::Microfacet {
@@ -1490,9 +1526,9 @@ pub fn draw(result: &StudyResult, path: &Path) -> Result<(), FigureError> {
     };
     top.draw_text(
         &format!(
-            "Study '{}' (seed Sec. {}): scene {}, {sweep}",
+            "Study '{}' (Meng (2012) Sec. {}): scene {}, {sweep}",
             kind.name(),
-            seed_section(kind),
+            meng_section(kind),
             result.scene
         ),
         &(FONT, 20).into_text_style(&top),
@@ -1547,7 +1583,8 @@ pub fn draw(result: &StudyResult, path: &Path) -> Result<(), FigureError> {
     Ok(())
 }
 
-fn seed_section(kind: StudyKind) -> &'static str {
+/// The section of Meng (2012) a study reproduces.
+fn meng_section(kind: StudyKind) -> &'static str {
     match kind {
         StudyKind::Sources => "4.2.1",
         StudyKind::Altitude => "4.2.2",
@@ -1573,6 +1610,15 @@ pub fn write(result: &StudyResult, out_dir: &Path) -> Result<Vec<PathBuf>, Study
 
 /// Runs the studies `args` selects and writes their files; returns the files written.
 pub fn execute(args: &StudyArgs) -> Result<Vec<PathBuf>, StudyError> {
+    match args.kind {
+        StudySelection::ScrTime => return crate::study_scr::execute_time(args),
+        StudySelection::ScrSets => return crate::study_scr::execute_sets(args),
+        StudySelection::Fov => return crate::study_fov::execute(args),
+        StudySelection::Aptd => {
+            return crate::study_aptd::execute(args).map_err(StudyError::from);
+        }
+        _ => {}
+    }
     let kinds = args.kind.kinds();
     if !args.values.is_empty() && kinds.len() != 1 {
         return Err(StudyError::Invalid {

@@ -277,6 +277,8 @@ fn one_case(
         channels: 3,
         initial_angles_rad: deg(&[0.0, 60.0, 120.0]),
         noise_var,
+        // The ideal rows the true statistics below are scored with (module docs).
+        instrument: polar_planner::Instrument::ideal(),
         target: TargetSpec::Region(region.clone()),
         constraints: Constraints::default(),
         angle_tol_rad: 0.5f64.to_radians(),

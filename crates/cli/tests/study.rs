@@ -62,7 +62,8 @@ fn snr(r: &StudyResult, k: usize) -> Vec<f64> {
 /// Noise factor (Meng (2012) Sec. 4.2.6). `F_n` multiplies the sensor-noise variance, so the frames'
 /// covariance is `Sigma_clutter + F Sigma_sensor`. The GLS Stokes covariance is then
 /// `Sigma_LS + F (W^T D^-1 W)^-1` (Woodbury), and the first-order DoLP variance is exactly
-/// affine in F: `var(9) - var(1) = 4 (var(3) - var(1))` (to 1e-6). Without clutter it is
+/// affine in F to first order: `var(9) - var(1) = 4 (var(3) - var(1))`, to the exact moments'
+/// second-order terms (2 %, below). Without clutter it is
 /// proportional to F, so the DoLP SNR falls as `1 / sqrt(F)`; the tolerance, 1 %, covers the
 /// second-order Taylor bias of the DoLP mean, which grows with the noise. With clutter the SNR
 /// still falls, but by less than `sqrt(F)`.
@@ -77,8 +78,13 @@ fn dolp_snr_falls_with_the_noise_factor() {
             .map(|p| p.targets[k].class.dolp_std.powi(2))
             .collect();
         let ratio = (var[2] - var[0]) / (var[1] - var[0]);
-        assert!((ratio - 4.0).abs() < 4e-6, "target {k}: {ratio}");
         let s = snr(&r, k);
+        // The exact moments add a term in F^2 to the first-order variance `a + b F`; with
+        // `v = a + b F + c F^2` the ratio is `4 + 24 c / b`. A 2 % band (|ratio - 4| < 0.08)
+        // holds the second-order terms here (1.0 % and 0.4 %) and still tells the noise factor
+        // on the variance (4) from one on the standard deviation (10) or on its square root
+        // (2.7).
+        assert!((ratio - 4.0).abs() < 0.08, "target {k}: {ratio}");
         assert!(s[0] > s[1] && s[1] > s[2], "target {k}: {s:?}");
         assert!(
             s[0] / s[2] < 3.0,

@@ -1,71 +1,123 @@
-//! One rotator type for the dialects chosen at run time (`--dialect native|elliptec`): the
-//! [`Rotator`] trait uses `async fn`, so it is not object-safe, and an enum that delegates lets a
-//! run, the CLI and the GUI hold either stage without being generic over it.
+//! One rotator type and one wheel type for the dialects chosen at run time (`--dialect`, a rig
+//! file's `[stage] dialect`): the [`Rotator`] and [`FilterWheel`] traits use `async fn`, so they
+//! are not object-safe. [`AnyRotator`] and [`AnyWheel`] box any implementation behind an
+//! object-safe twin of the trait whose methods return boxed futures, so a run, the CLI and the
+//! GUI hold a stage of any dialect without being generic over it, and a new dialect needs no
+//! change here (its registry line in [`crate::registry`] boxes its driver).
 
-use crate::elliptec::ElliptecRotator;
-use crate::native::NativeRotator;
-use polar_hal::{DeviceError, Rotator, RotatorInfo};
+use polar_hal::{DeviceError, FilterWheel, Rotator, RotatorInfo};
+use std::future::Future;
+use std::pin::Pin;
 
-/// A rotation stage of one of the supported dialects.
-pub enum AnyRotator {
-    /// Our firmware's stage.
-    Native(NativeRotator),
-    /// A Thorlabs Elliptec rotation mount (ELL14/ELL18).
-    Elliptec(ElliptecRotator),
+/// A boxed future that may hold the device borrowed (drivers run on local tasks: not `Send`).
+pub type LocalFuture<'a, T> = Pin<Box<dyn Future<Output = T> + 'a>>;
+
+/// [`Rotator`] with boxed futures (object-safe).
+trait DynRotator {
+    fn info(&self) -> &RotatorInfo;
+    fn home(&mut self) -> LocalFuture<'_, Result<(), DeviceError>>;
+    fn move_to(&mut self, angle_rad: f64) -> LocalFuture<'_, Result<f64, DeviceError>>;
+    fn position_rad(&mut self) -> LocalFuture<'_, Result<f64, DeviceError>>;
+    fn supports_velocity(&self) -> bool;
+    fn set_velocity(&mut self, rad_per_s: f64) -> LocalFuture<'_, Result<(), DeviceError>>;
 }
 
-impl From<NativeRotator> for AnyRotator {
-    fn from(r: NativeRotator) -> Self {
-        AnyRotator::Native(r)
+impl<R: Rotator> DynRotator for R {
+    fn info(&self) -> &RotatorInfo {
+        Rotator::info(self)
+    }
+    fn home(&mut self) -> LocalFuture<'_, Result<(), DeviceError>> {
+        Box::pin(Rotator::home(self))
+    }
+    fn move_to(&mut self, angle_rad: f64) -> LocalFuture<'_, Result<f64, DeviceError>> {
+        Box::pin(Rotator::move_to(self, angle_rad))
+    }
+    fn position_rad(&mut self) -> LocalFuture<'_, Result<f64, DeviceError>> {
+        Box::pin(Rotator::position_rad(self))
+    }
+    fn supports_velocity(&self) -> bool {
+        Rotator::supports_velocity(self)
+    }
+    fn set_velocity(&mut self, rad_per_s: f64) -> LocalFuture<'_, Result<(), DeviceError>> {
+        Box::pin(Rotator::set_velocity(self, rad_per_s))
     }
 }
 
-impl From<ElliptecRotator> for AnyRotator {
-    fn from(r: ElliptecRotator) -> Self {
-        AnyRotator::Elliptec(r)
+/// A rotation stage of any dialect.
+pub struct AnyRotator(Box<dyn DynRotator + Send>);
+
+impl AnyRotator {
+    /// Boxes a rotator.
+    pub fn new<R: Rotator + Send + 'static>(rotator: R) -> AnyRotator {
+        AnyRotator(Box::new(rotator))
     }
 }
 
 impl Rotator for AnyRotator {
     fn info(&self) -> &RotatorInfo {
-        match self {
-            AnyRotator::Native(r) => r.info(),
-            AnyRotator::Elliptec(r) => r.info(),
-        }
+        self.0.info()
     }
 
     async fn home(&mut self) -> Result<(), DeviceError> {
-        match self {
-            AnyRotator::Native(r) => r.home().await,
-            AnyRotator::Elliptec(r) => r.home().await,
-        }
+        self.0.home().await
     }
 
     async fn move_to(&mut self, angle_rad: f64) -> Result<f64, DeviceError> {
-        match self {
-            AnyRotator::Native(r) => r.move_to(angle_rad).await,
-            AnyRotator::Elliptec(r) => r.move_to(angle_rad).await,
-        }
+        self.0.move_to(angle_rad).await
     }
 
     async fn position_rad(&mut self) -> Result<f64, DeviceError> {
-        match self {
-            AnyRotator::Native(r) => r.position_rad().await,
-            AnyRotator::Elliptec(r) => r.position_rad().await,
-        }
+        self.0.position_rad().await
     }
 
     fn supports_velocity(&self) -> bool {
-        match self {
-            AnyRotator::Native(r) => r.supports_velocity(),
-            AnyRotator::Elliptec(r) => r.supports_velocity(),
-        }
+        self.0.supports_velocity()
     }
 
     async fn set_velocity(&mut self, rad_per_s: f64) -> Result<(), DeviceError> {
-        match self {
-            AnyRotator::Native(r) => r.set_velocity(rad_per_s).await,
-            AnyRotator::Elliptec(r) => r.set_velocity(rad_per_s).await,
-        }
+        self.0.set_velocity(rad_per_s).await
+    }
+}
+
+/// [`FilterWheel`] with boxed futures (object-safe).
+trait DynWheel {
+    fn slots(&self) -> &[String];
+    fn select(&mut self, slot: usize) -> LocalFuture<'_, Result<usize, DeviceError>>;
+    fn slot(&mut self) -> LocalFuture<'_, Result<Option<usize>, DeviceError>>;
+}
+
+impl<W: FilterWheel> DynWheel for W {
+    fn slots(&self) -> &[String] {
+        FilterWheel::slots(self)
+    }
+    fn select(&mut self, slot: usize) -> LocalFuture<'_, Result<usize, DeviceError>> {
+        Box::pin(FilterWheel::select(self, slot))
+    }
+    fn slot(&mut self) -> LocalFuture<'_, Result<Option<usize>, DeviceError>> {
+        Box::pin(FilterWheel::slot(self))
+    }
+}
+
+/// A filter wheel or slider of any dialect.
+pub struct AnyWheel(Box<dyn DynWheel + Send>);
+
+impl AnyWheel {
+    /// Boxes a wheel.
+    pub fn new<W: FilterWheel + Send + 'static>(wheel: W) -> AnyWheel {
+        AnyWheel(Box::new(wheel))
+    }
+}
+
+impl FilterWheel for AnyWheel {
+    fn slots(&self) -> &[String] {
+        self.0.slots()
+    }
+
+    async fn select(&mut self, slot: usize) -> Result<usize, DeviceError> {
+        self.0.select(slot).await
+    }
+
+    async fn slot(&mut self) -> Result<Option<usize>, DeviceError> {
+        self.0.slot().await
     }
 }

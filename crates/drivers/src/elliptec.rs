@@ -19,7 +19,7 @@
 //!   it did not command means the datum is lost, and it homes again. It also homes after every
 //!   reopen of the port.
 
-use crate::link::{Connector, Link, Policy};
+use crate::link::{retryable, Connector, Link, Policy};
 use polar_hal::{
     angle_from_counts, counts_toward, DeviceError, ErrorKind, FilterWheel, Rotator, RotatorInfo,
     TURN_RAD,
@@ -194,13 +194,6 @@ fn status_kind(code: u8) -> ErrorKind {
     }
 }
 
-fn retryable(e: &DeviceError) -> bool {
-    matches!(
-        e.kind(),
-        ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Busy | ErrorKind::Stalled
-    )
-}
-
 /// A connection to one module on an Elliptec bus.
 pub struct ElliptecSession {
     link: Link,
@@ -371,22 +364,8 @@ impl ElliptecSession {
             // A reopened port may be a power-cycled module: identify and home again.
             self.needs_init = true;
         }
-        let mut last = None;
-        for k in 0..self.policy.attempts.max(1) {
-            if !self.needs_init {
-                return Ok(());
-            }
-            self.policy.pause_before(k).await;
-            match self.init().await {
-                Ok(()) => self.needs_init = false,
-                Err(e) if retryable(&e) => last = Some(e),
-                Err(e) => return Err(e),
-            }
-        }
-        if self.needs_init {
-            return Err(last.unwrap_or_else(|| self.error(ErrorKind::Other, "init failed")));
-        }
-        Ok(())
+        let policy = self.policy;
+        policy.retry_init(self).await
     }
 
     async fn init(&mut self) -> Result<(), DeviceError> {
@@ -576,6 +555,8 @@ impl ElliptecSession {
         ))
     }
 }
+
+crate::link::initialise_by_flag!(ElliptecSession);
 
 /// Opens the port and reads module `address`'s `in` reply and position, without moving it.
 pub async fn probe(

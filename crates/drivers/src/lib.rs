@@ -4,6 +4,11 @@
 //! | dialect | module | devices |
 //! |---|---|---|
 //! | our firmware (`firmware-protocol/SPEC.md`) | [`native`] | [`native::NativeRotator`], [`native::NativeWheel`] |
+//! | Thorlabs Elliptec | [`elliptec`] | [`elliptec::ElliptecRotator`], [`elliptec::ElliptecSlider`] |
+//! | Thorlabs FW102C/FW212C | [`fw102c`] | [`fw102c::Fw102c`] |
+//!
+//! [`registry`] declares each dialect once (name, baud and line settings, policy, identify,
+//! constructors); [`any`] holds a stage or wheel of any dialect.
 //!
 //! Every driver owns its port ([`link::Link`]) and is owned by one task; every operation ends
 //! within its [`link::Policy`]'s deadlines; idempotent requests are retried with backoff;
@@ -15,8 +20,9 @@
 #![warn(missing_docs)]
 
 pub mod any;
-pub mod camera_thread;
+pub mod apt;
 pub mod elliptec;
 pub mod fw102c;
 pub mod link;
 pub mod native;
+pub mod registry;

@@ -130,7 +130,78 @@ impl Policy {
             tokio::time::sleep(self.backoff(attempt - 1)).await;
         }
     }
+
+    /// Identifies (and homes) a session while it needs it: up to [`Policy::attempts`] tries,
+    /// each after [`Policy::pause_before`]; a [`retryable`] error is kept and tried again,
+    /// any other is returned at once. The last retryable error (or the session's
+    /// [`Initialise::init_failed`]) is returned when every attempt is spent.
+    pub(crate) async fn retry_init<S: Initialise>(
+        &self,
+        session: &mut S,
+    ) -> Result<(), DeviceError> {
+        let mut last = None;
+        for k in 0..self.attempts.max(1) {
+            if !session.needs_init() {
+                return Ok(());
+            }
+            self.pause_before(k).await;
+            match session.init_attempt().await {
+                Ok(()) => {}
+                Err(e) if retryable(&e) => last = Some(e),
+                Err(e) => return Err(e),
+            }
+        }
+        if session.needs_init() {
+            return Err(last.unwrap_or_else(|| session.init_failed()));
+        }
+        Ok(())
+    }
 }
+
+/// Whether a failed request may be sent again: a timeout, a garbled or unexpected reply, a
+/// busy device or a stall (not a disconnect, which reopens the port, nor a refused request).
+pub(crate) fn retryable(e: &DeviceError) -> bool {
+    matches!(
+        e.kind(),
+        ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Busy | ErrorKind::Stalled
+    )
+}
+
+/// A dialect session that identifies (and homes) its device after the port opens or the
+/// device resets; [`Policy::retry_init`] drives it.
+pub(crate) trait Initialise: Send {
+    /// Whether the device still has to be identified.
+    fn needs_init(&self) -> bool;
+    /// One attempt to identify (and home); on success the session no longer needs it (unless
+    /// the attempt itself saw a reset).
+    fn init_attempt(&mut self) -> impl Future<Output = Result<(), DeviceError>> + Send;
+    /// The error when the attempts ran out without a retryable error to report.
+    fn init_failed(&self) -> DeviceError;
+}
+
+/// Implements [`Initialise`] for a session with a `needs_init: bool` field, an inherent
+/// `async fn init(&mut self) -> Result<(), DeviceError>` and an inherent
+/// `fn error(&self, ErrorKind, message) -> DeviceError`: a successful `init` clears the flag.
+macro_rules! initialise_by_flag {
+    ($session:ty) => {
+        impl $crate::link::Initialise for $session {
+            fn needs_init(&self) -> bool {
+                self.needs_init
+            }
+
+            async fn init_attempt(&mut self) -> Result<(), polar_hal::DeviceError> {
+                self.init().await?;
+                self.needs_init = false;
+                Ok(())
+            }
+
+            fn init_failed(&self) -> polar_hal::DeviceError {
+                self.error(polar_hal::ErrorKind::Other, "init failed")
+            }
+        }
+    };
+}
+pub(crate) use initialise_by_flag;
 
 /// An open-or-closed port with a receive buffer.
 pub struct Link {

@@ -8,7 +8,7 @@
 //!   never sent. A move whose acknowledgement or completion is lost is judged by the position
 //!   read back, never by the absence of an error.
 
-use crate::link::{Connector, Link, Policy};
+use crate::link::{retryable, Connector, Initialise, Link, Policy};
 use polar_firmware_protocol::{
     encode_vec, next_seq, Command, Decoder, DeviceKind, ErrorCode, Packet, Reply, StatusFlags,
     PROTOCOL_VERSION,
@@ -48,6 +48,18 @@ pub struct Identity {
     pub serial: u32,
 }
 
+/// One position-compare trigger pulse, as the controller reported it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TriggerPulse {
+    /// The pulse's index from the arming, from 0.
+    pub index: u32,
+    /// The encoder position latched at the pulse, radians, unwrapped (it keeps counting past a
+    /// turn while the stage spins).
+    pub angle_rad: f64,
+    /// The controller's clock at the pulse, microseconds (wraps at 2^32).
+    pub device_time_us: u32,
+}
+
 /// A status reading.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Status {
@@ -76,6 +88,12 @@ pub struct NativeSession {
     /// Velocity and acceleration set by the user, counts/s and counts/s^2: applied again after
     /// every reset (the controller boots with its defaults).
     motion: Option<(u32, u32)>,
+    /// Trigger pulses received and not yet taken, with the seq of the arming command.
+    triggers: VecDeque<(u8, TriggerPulse)>,
+    /// The seq of the `Spin` in progress (its MotionDone ends the spin).
+    spin_seq: Option<u8>,
+    /// The seq of the trigger's arming command (its pulses carry it).
+    trigger_seq: Option<u8>,
 }
 
 fn map_nack(link: &Link, code: ErrorCode, what: &str) -> DeviceError {
@@ -118,13 +136,6 @@ fn parse_identity(link: &Link, reply: Reply) -> Result<(u8, Identity), DeviceErr
     }
 }
 
-fn retryable(e: &DeviceError) -> bool {
-    matches!(
-        e.kind(),
-        ErrorKind::Timeout | ErrorKind::Protocol | ErrorKind::Busy | ErrorKind::Stalled
-    )
-}
-
 impl NativeSession {
     /// Opens the port, identifies the controller (which must be a `kind`, speaking our protocol
     /// version) and homes it.
@@ -146,6 +157,9 @@ impl NativeSession {
             tolerance_counts: 5,
             known_position: None,
             motion: None,
+            triggers: VecDeque::new(),
+            spin_seq: None,
+            trigger_seq: None,
         };
         s.ensure_ready().await?;
         Ok(s)
@@ -201,6 +215,27 @@ impl NativeSession {
                         }
                         self.resets_seen += 1;
                         self.lose_state();
+                    }
+                    if let Reply::Trigger {
+                        index,
+                        position_counts,
+                        time_us,
+                    } = p.message
+                    {
+                        // Events, not replies: kept apart so a request in flight does not
+                        // discard them as stale.
+                        let counts_per_turn = self.identity.map_or(1, |i| i.counts_per_turn);
+                        self.triggers.push_back((
+                            p.seq,
+                            TriggerPulse {
+                                index,
+                                angle_rad: f64::from(position_counts)
+                                    / f64::from(counts_per_turn.max(1))
+                                    * TURN_RAD,
+                                device_time_us: time_us,
+                            },
+                        ));
+                        continue;
                     }
                     self.packets.push_back(p);
                 }
@@ -400,32 +435,8 @@ impl NativeSession {
             }
             self.lose_state();
         }
-        let mut last = None;
-        for k in 0..self.policy.attempts.max(1) {
-            if !self.needs_init {
-                return Ok(());
-            }
-            self.policy.pause_before(k).await;
-            self.needs_init = false;
-            match self.init().await {
-                Ok(()) => {}
-                Err(e) if retryable(&e) => {
-                    self.lose_state();
-                    last = Some(e);
-                }
-                Err(e) => {
-                    self.lose_state();
-                    return Err(e);
-                }
-            }
-        }
-        if self.needs_init {
-            return Err(last.unwrap_or_else(|| {
-                self.link
-                    .error(ErrorKind::Other, "could not initialise the controller")
-            }));
-        }
-        Ok(())
+        let policy = self.policy;
+        policy.retry_init(self).await
     }
 
     async fn init(&mut self) -> Result<(), DeviceError> {
@@ -483,6 +494,96 @@ impl NativeSession {
                 format!("expected an ack to set motion, got {other:?}"),
             )),
         }
+    }
+
+    /// Starts or changes velocity mode (counts per second, signed).
+    pub async fn spin(&mut self, velocity_counts_per_s: i32) -> Result<(), DeviceError> {
+        self.ensure_ready().await?;
+        let command = Command::Spin {
+            velocity_counts_per_s,
+        };
+        let (seq, reply) = self.exchange(command).await?;
+        match reply {
+            Reply::Ack => {
+                self.spin_seq = Some(seq);
+                self.known_position = None;
+                Ok(())
+            }
+            Reply::Nack { code } => Err(map_nack(&self.link, code, "spin")),
+            other => Err(self.link.error(
+                ErrorKind::Protocol,
+                format!("expected an ack to spin, got {other:?}"),
+            )),
+        }
+    }
+
+    /// Arms the position-compare trigger (counts); drops pulses of earlier armings.
+    pub async fn arm_trigger(
+        &mut self,
+        first_counts: i32,
+        interval_counts: i32,
+        pulses: u32,
+    ) -> Result<(), DeviceError> {
+        self.ensure_ready().await?;
+        let command = Command::SetTrigger {
+            first_counts,
+            interval_counts,
+            pulses,
+        };
+        let (seq, reply) = self.exchange(command).await?;
+        match reply {
+            Reply::Ack => {
+                self.triggers.retain(|(s, _)| *s == seq);
+                self.trigger_seq = Some(seq);
+                Ok(())
+            }
+            Reply::Nack { code } => Err(map_nack(&self.link, code, "set trigger")),
+            other => Err(self.link.error(
+                ErrorKind::Protocol,
+                format!("expected an ack to set trigger, got {other:?}"),
+            )),
+        }
+    }
+
+    /// The next pulse of the current arming, within `timeout`.
+    pub async fn next_trigger(&mut self, timeout: Duration) -> Result<TriggerPulse, DeviceError> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            while let Some((seq, pulse)) = self.triggers.pop_front() {
+                if Some(seq) == self.trigger_seq {
+                    return Ok(pulse);
+                }
+            }
+            if self.needs_init {
+                return Err(self.reset_error());
+            }
+            self.link.fill(deadline, "trigger pulse").await?;
+            self.decode_buffer();
+        }
+    }
+
+    /// Stops velocity mode; returns the position (counts) of the MotionDone that ends it.
+    pub async fn stop_spin(&mut self) -> Result<i32, DeviceError> {
+        let Some(spin_seq) = self.spin_seq else {
+            return Err(self
+                .link
+                .error(ErrorKind::Other, "stop spin: the stage is not spinning"));
+        };
+        match self.query(Command::Stop).await? {
+            Reply::Ack => {}
+            Reply::Nack { code } => return Err(map_nack(&self.link, code, "stop")),
+            other => {
+                return Err(self.link.error(
+                    ErrorKind::Protocol,
+                    format!("expected an ack to stop, got {other:?}"),
+                ))
+            }
+        }
+        let timeout = self.policy.move_timeout;
+        let position = self.wait_done(spin_seq, timeout).await?;
+        self.spin_seq = None;
+        self.known_position = Some(position);
+        Ok(position)
     }
 
     /// Sets the cruise velocity and acceleration (kept and applied again after a reset).
@@ -607,6 +708,28 @@ impl NativeSession {
     }
 }
 
+impl Initialise for NativeSession {
+    fn needs_init(&self) -> bool {
+        self.needs_init
+    }
+
+    /// Clears the need first: `init` sets it again if it sees the controller reset; a failed
+    /// attempt forgets the state it may have left half set.
+    async fn init_attempt(&mut self) -> Result<(), DeviceError> {
+        self.needs_init = false;
+        let done = self.init().await;
+        if done.is_err() {
+            self.lose_state();
+        }
+        done
+    }
+
+    fn init_failed(&self) -> DeviceError {
+        self.link
+            .error(ErrorKind::Other, "could not initialise the controller")
+    }
+}
+
 /// What [`probe`] finds.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Probe {
@@ -635,6 +758,9 @@ pub async fn probe(connector: Box<dyn Connector>, policy: Policy) -> Result<Prob
         tolerance_counts: 5,
         known_position: None,
         motion: None,
+        triggers: VecDeque::new(),
+        spin_seq: None,
+        trigger_seq: None,
     };
     s.link.open(policy.open_timeout).await?;
     let reply = s.query(Command::Identify).await?;
@@ -694,6 +820,67 @@ impl NativeRotator {
     /// The session (identity, resets seen, opens).
     pub fn session(&self) -> &NativeSession {
         &self.session
+    }
+
+    /// Velocity mode: turns continuously at `velocity_rad_per_s` (signed) until
+    /// [`NativeRotator::stop_spin`]; a second call changes the speed without stopping. Errors
+    /// (OutOfRange) name the velocity and its allowed range; a firmware without velocity mode
+    /// answers Unsupported.
+    pub async fn spin(&mut self, velocity_rad_per_s: f64) -> Result<(), DeviceError> {
+        let per_rad = f64::from(self.info.counts_per_turn) / TURN_RAD;
+        let counts = (velocity_rad_per_s * per_rad).round();
+        if !(counts.is_finite() && counts != 0.0 && counts.abs() <= f64::from(i32::MAX)) {
+            return Err(self.session.link.error(
+                ErrorKind::OutOfRange,
+                format!(
+                    "spin velocity {velocity_rad_per_s} rad/s is out of range: allowed a \
+                     non-zero speed of at least one count per second ({:.3e} rad/s)",
+                    1.0 / per_rad
+                ),
+            ));
+        }
+        self.session.spin(counts as i32).await
+    }
+
+    /// Arms the position-compare trigger: `pulses` pulses, at `first_rad` (unwrapped, from the
+    /// datum) and then every `interval_rad` (signed: the direction of motion that fires).
+    /// Pulses queued from an earlier arming are dropped.
+    pub async fn arm_trigger(
+        &mut self,
+        first_rad: f64,
+        interval_rad: f64,
+        pulses: u32,
+    ) -> Result<(), DeviceError> {
+        let per_rad = f64::from(self.info.counts_per_turn) / TURN_RAD;
+        let first = (first_rad * per_rad).round();
+        let interval = (interval_rad * per_rad).round();
+        let fits = |x: f64| x.is_finite() && x.abs() <= f64::from(i32::MAX);
+        if !(fits(first) && fits(interval) && (interval != 0.0 || pulses == 0)) {
+            return Err(self.session.link.error(
+                ErrorKind::OutOfRange,
+                format!(
+                    "trigger first {first_rad} rad, interval {interval_rad} rad are out of \
+                     range: allowed an interval of at least one count ({:.3e} rad) and \
+                     positions within +-2^31 counts",
+                    1.0 / per_rad
+                ),
+            ));
+        }
+        self.session
+            .arm_trigger(first as i32, interval as i32, pulses)
+            .await
+    }
+
+    /// The next trigger pulse of the current arming, waiting up to `timeout`.
+    pub async fn next_trigger(&mut self, timeout: Duration) -> Result<TriggerPulse, DeviceError> {
+        self.session.next_trigger(timeout).await
+    }
+
+    /// Ends velocity mode: ramps down and returns where the stage stopped, radians in
+    /// `[0, 2 pi)`.
+    pub async fn stop_spin(&mut self) -> Result<f64, DeviceError> {
+        let counts = self.session.stop_spin().await?;
+        Ok(self.angle(counts))
     }
 
     fn angle(&self, counts: i32) -> f64 {

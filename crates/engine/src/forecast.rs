@@ -306,6 +306,7 @@ fn planner_choice(
     let contrast = contrast_at(sensor, target, background, exposure_us * 1e-6)?;
     let constraints = Constraints {
         min_separation_rad: from.min_separation_deg.to_radians(),
+        max_condition: Some(polar_planner::stokes::STOKES_MAX_CONDITION),
         ..Constraints::default()
     };
     let planner = |e: polar_planner::PlanError| ForecastError::Model {
@@ -371,15 +372,16 @@ fn planner_choice(
 /// target's and background's statistics from the scene (at [`SCENE_TOL`]), the sensor noise of
 /// `camera` at `exposure_us` (the contrast as `plan --scene` builds it), and
 /// [`polar_planner::optimise`] with `from.channels` angles at least `from.min_separation_deg`
-/// apart, to 0.01 deg.
+/// apart (the stage's constraint) forming a Stokes set (the ideal measurement matrix's condition
+/// number at most [`polar_planner::stokes::STOKES_MAX_CONDITION`], as `plan --scene` requires:
+/// the capture computes Stokes products), to 0.01 deg.
 ///
 /// Returns the angles (degrees in `[0, 180)`, sorted) and why: the choice's SCR beside the
 /// conventional sets' (0/45/90, 0/60/120, 0/45/90/135), the clutter limit, the noise variance.
 ///
 /// Errors: a target or background not in the scene (the message lists the scene's
 /// materials); `exposure_us` not finite or `<= 0`; the model's (camera, band, materials); no
-/// contrast between the two; a set of fewer than 3 distinct angles (raise
-/// `min_separation_deg`).
+/// contrast between the two; fewer than 3 channels (no Stokes set).
 pub fn planner_angles(
     scene: &Scene,
     camera: &Camera,

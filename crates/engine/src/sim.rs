@@ -9,9 +9,9 @@
 //! `simulation.cloud_at_set` dims the scene in the middle of that set.
 
 use crate::plan::{Plan, PlanKind};
-use polar_drivers::camera_thread::{ThreadPolicy, ThreadedCamera};
 use polar_drivers::link::SerialPath;
 use polar_drivers::native::{self, NativeRotator};
+use polar_hal::camera_thread::{ThreadPolicy, ThreadedCamera};
 use polar_hal::{Approach, OnRotator};
 use polar_hal::{DeviceError, Roi};
 use polar_hil_mocks::camera::{

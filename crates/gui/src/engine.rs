@@ -3,7 +3,6 @@
 //! through two bounded channels and never waits: commands go with `try_send`, replies are
 //! read with `try_recv` once per frame.
 
-use polar_cli::acquire::{connect_hardware, Hardware, HardwareRig};
 use polar_drivers::any::AnyRotator;
 use polar_engine::forecast::{self, Timing};
 use polar_engine::plan::Plan;
@@ -14,6 +13,7 @@ use polar_engine::store::RunStore;
 use polar_hal::camera::{Camera, TriggerMode};
 use polar_hal::{Analyzer, OnRotator};
 use polar_hal::{DeviceError, Rotator};
+use polar_rig::{connect_hardware, Hardware, HardwareRig};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -261,14 +261,17 @@ pub enum Devices {
     /// The simulated rig of each plan's `[simulation]` section (our stage's firmware on a
     /// pseudo-terminal, the model-rendered camera).
     Simulated,
-    /// Real devices, as `polarimeter run --port ... --dialect ... --camera ... --camera-file`.
-    Hardware(Hardware),
+    /// Real devices, as `polarimeter run --rig FILE` or `--port ... --dialect ... --camera ...
+    /// --camera-file` (`polar_rig`).
+    Hardware(Box<Hardware>),
 }
 
 /// Devices connected from the device panel (not held by a run).
 struct Connected {
     /// The simulated devices' servers (`None` on hardware).
     sim: Option<SimRig>,
+    /// A hardware rig's simulated stage (its port `sim`).
+    stage_sim: Option<polar_hil_mocks::serve::SimServer>,
     rig: HardwareRig,
     /// The `[simulation]` section and plan folder the simulated rig was built from.
     built_from: Option<(polar_engine::plan::Simulation, PathBuf)>,
@@ -282,6 +285,9 @@ impl Connected {
         drop(self.rig);
         if let Some(sim) = self.sim {
             sim.shutdown().await;
+        }
+        if let Some(stage) = self.stage_sim {
+            stage.shutdown().await;
         }
         if let Some(d) = self.link_dir {
             // Only if empty: the link is gone with the server.
@@ -409,10 +415,11 @@ async fn connect(
 ) -> Result<Connected, String> {
     match devices {
         Devices::Hardware(hw) => {
-            let rig = connect_hardware(hw).await.map_err(|e| e.to_string())?;
+            let c = connect_hardware(hw).await.map_err(|e| e.to_string())?;
             Ok(Connected {
                 sim: None,
-                rig,
+                stage_sim: c.simulator,
+                rig: c.rig,
                 built_from: None,
                 link_dir: None,
             })
@@ -425,7 +432,7 @@ async fn connect(
                 .map_err(|e| format!("simulated rig: {e}"))?;
             let rig = Rig {
                 analyzer: OnRotator {
-                    rotator: AnyRotator::from(r.analyzer.rotator),
+                    rotator: AnyRotator::new(r.analyzer.rotator),
                     zero_offset_rad: r.analyzer.zero_offset_rad,
                     approach: r.analyzer.approach,
                     overshoot_rad: r.analyzer.overshoot_rad,
@@ -440,6 +447,7 @@ async fn connect(
             };
             Ok(Connected {
                 sim: Some(sim),
+                stage_sim: None,
                 rig,
                 built_from: Some((plan.simulation.clone(), plan_dir.to_path_buf())),
                 link_dir: Some(link_dir.to_path_buf()),

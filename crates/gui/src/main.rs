@@ -1,11 +1,11 @@
-//! `polarimeter-gui [--simulate] [--out DIR] [--plan FILE] [--screenshots DIR]`: the plan
+//! `polarimeter-gui [--simulate | --rig FILE | hardware flags] [--out DIR] [--plan FILE]
+//! [--screenshots DIR]`: the plan
 //! runner, device panel, live view, planner and rooftop panels.
 
 use eframe::egui;
-use polar_cli::acquire::Hardware;
-use polar_cli::devices::Dialect;
 use polar_gui::engine::Devices;
 use polar_gui::{App, Status, Tab, View};
+use polar_rig::{Hardware, Overrides, Rig};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -14,10 +14,11 @@ const USAGE: &str =
     "usage: polarimeter-gui [--simulate | HARDWARE] [--out DIR] [--plan FILE] [--screenshots DIR]
 
   --simulate         drive the simulated devices (the default without HARDWARE)
-  HARDWARE           real devices, as `polarimeter run`: all of
-                       --port PATH --dialect native|elliptec --camera genicam:ID|v4l:NAME
-                       --camera-file FILE, and optionally --address N (Elliptec, 0..=15)
-                       and --zero-offset-deg X (from a calibrate-analyzer run)
+  HARDWARE           real devices, as `polarimeter run`: --rig FILE (a rig file: [stage],
+                     [camera], [analyzer]), or all of --port PATH --dialect NAME
+                     --camera sim|genicam:ID|v4l:NAME|uvc:BUS_OR_NAME --camera-file FILE, and optionally
+                     --address N (Elliptec, 0..=15) and --zero-offset-deg X; a flag
+                     overrides the rig file's entry
   --out DIR          base folder of the run directories (default: the current folder)
   --plan FILE        open this plan (TOML or YAML) in the editor
   --screenshots DIR  run the plan, then save PNGs of the live view, the device, planner and
@@ -36,7 +37,7 @@ fn main() -> std::process::ExitCode {
     while let Some(a) = args.next() {
         match a.as_str() {
             "--simulate" => simulate = true,
-            "--port" | "--dialect" | "--camera" | "--camera-file" | "--address"
+            "--rig" | "--port" | "--dialect" | "--camera" | "--camera-file" | "--address"
             | "--zero-offset-deg" => match args.next() {
                 Some(v) => {
                     if let Err(e) = hw.set(&a, &v) {
@@ -73,7 +74,7 @@ fn main() -> std::process::ExitCode {
         Ok(Some(_)) if simulate => {
             return usage("--simulate and the hardware flags exclude each other")
         }
-        Ok(Some(h)) => Devices::Hardware(h),
+        Ok(Some(h)) => Devices::Hardware(Box::new(h)),
         Err(e) => return usage(&e),
     };
     if let Some(d) = &shots {
@@ -128,56 +129,85 @@ fn main() -> std::process::ExitCode {
 /// The hardware flags as given.
 #[derive(Debug, Default)]
 struct HardwareFlags {
+    rig: Option<PathBuf>,
     port: Option<String>,
-    dialect: Option<Dialect>,
+    dialect: Option<String>,
     camera: Option<String>,
     camera_file: Option<PathBuf>,
-    address: u8,
-    zero_offset_deg: f64,
+    address: Option<u8>,
+    zero_offset_deg: Option<f64>,
 }
 
 impl HardwareFlags {
     /// Takes `flag`'s `value`; the error names the flag, the value and what is allowed.
     fn set(&mut self, flag: &str, value: &str) -> Result<(), String> {
         match flag {
+            "--rig" => self.rig = Some(PathBuf::from(value)),
             "--port" => self.port = Some(value.to_string()),
             "--camera" => self.camera = Some(value.to_string()),
             "--camera-file" => self.camera_file = Some(PathBuf::from(value)),
             "--dialect" => {
-                self.dialect = Some(Dialect::from_name(value).ok_or_else(|| {
-                    format!("--dialect = {value:?} is invalid: allowed native, elliptec")
-                })?)
+                let d = polar_drivers::registry::find(value).ok_or_else(|| {
+                    format!(
+                        "--dialect = {value:?} is invalid: allowed {}",
+                        polar_drivers::registry::names()
+                    )
+                })?;
+                self.dialect = Some(d.name.to_string());
             }
             "--address" => {
-                self.address = value
-                    .parse::<u8>()
-                    .ok()
-                    .filter(|a| *a <= 15)
-                    .ok_or_else(|| format!("--address = {value:?} is invalid: allowed 0..=15"))?
+                self.address = Some(
+                    value
+                        .parse::<u8>()
+                        .ok()
+                        .filter(|a| *a <= 15)
+                        .ok_or_else(|| {
+                            format!("--address = {value:?} is invalid: allowed 0..=15")
+                        })?,
+                )
             }
             _ => {
-                self.zero_offset_deg = value
-                    .parse::<f64>()
-                    .ok()
-                    .filter(|v| v.is_finite())
-                    .ok_or_else(|| {
-                        format!("--zero-offset-deg = {value:?} is invalid: allowed a finite angle")
-                    })?
+                self.zero_offset_deg = Some(
+                    value
+                        .parse::<f64>()
+                        .ok()
+                        .filter(|v| v.is_finite())
+                        .ok_or_else(|| {
+                            format!(
+                                "--zero-offset-deg = {value:?} is invalid: allowed a finite angle"
+                            )
+                        })?,
+                )
             }
         }
         Ok(())
     }
 
-    /// The hardware, if any flag was given (then all of the required ones must be).
+    /// The hardware, if the rig file or any flag names it (then all of the required entries
+    /// must be given by one or the other; a flag overrides the rig's entry).
     fn devices(&self) -> Result<Option<Hardware>, String> {
-        Hardware::from_flags(
-            self.port.clone(),
-            self.dialect,
-            self.camera.clone(),
-            self.camera_file.clone(),
-            self.address,
-            self.zero_offset_deg,
-        )
+        match &self.rig {
+            Some(path) => Rig::load(path)
+                .and_then(|rig| {
+                    rig.hardware(&Overrides {
+                        port: self.port.clone(),
+                        dialect: self.dialect.clone(),
+                        address: self.address,
+                        camera: self.camera.clone(),
+                        camera_file: self.camera_file.clone(),
+                        zero_offset_deg: self.zero_offset_deg,
+                    })
+                })
+                .map_err(|e| format!("--rig: {e}")),
+            None => Hardware::from_flags(
+                self.port.clone(),
+                self.dialect.as_deref(),
+                self.camera.clone(),
+                self.camera_file.clone(),
+                self.address.unwrap_or(0),
+                self.zero_offset_deg.unwrap_or(0.0),
+            ),
+        }
     }
 }
 

@@ -9,22 +9,23 @@
 //! materials are evaluated over the field of view at [`polar_engine::forecast::SCENE_TOL`]
 //! (their band Stokes means `mu_t`, `mu_b` and texture covariances `Sigma_t`, `Sigma_b`, in
 //! W m^-2 sr^-1). The planner's contrast is the one `polarimeter plan --scene` and
-//! [`polar_engine::forecast::planner_angles`] build: `d = mu_t - mu_b`, the background's clutter
-//! `Sigma_b`, and the per-frame sensor noise variance `V` of the background's mean frame at
-//! `exposure_us` (the mean of the 0 and 90 degree frames' variances, MODEL.md section 6),
-//! converted to radiance by `1 / (K G)^2`. Then (MODEL.md section 9)
+//! [`polar_engine::forecast::planner_angles`] build, [`Contrast::from_sensor`]:
+//! `d = mu_t - mu_b`, the background's clutter `Sigma_b`, the camera's real analyzer rows
+//! (principal transmittances, offset, fore-optics) and its per-frame noise at the background's
+//! light (a floor `V` from dark current, read noise and quantisation, and the shot noise, which
+//! follows the light each angle lets through), in radiance units. Then (MODEL.md section 9)
 //!
-//! `SCR(Psi) = (W d)^T (W Sigma_b W^T + V I)^-1 (W d)`, rows `w_i = 0.5 [1, cos 2psi_i, sin 2psi_i]`,
+//! `SCR(Psi) = (W d)^T (W Sigma_b W^T + D)^-1 (W d)`, `D = diag(V + c w_i . mu_b)`,
 //!
 //! maximised by [`polar_planner::optimise`] over `N` angles at least `min_separation_deg` apart
 //! (to 0.01 deg), and evaluated for the conventional sets of [`polar_planner::conventional`].
 //!
 //! Detection (MODEL.md section 8): the linear matched filter [`polar_model::metrics::matched_filter`]
-//! on the frames of a set, as `polarimeter plan angles` scores it: the classes in intensity space
-//! with ideal analyzer rows, background `W mu_b`, `W Sigma_b W^T + V I`, target `W mu_t`,
-//! `W Sigma_t W^T + V I` (the same sensor noise `V` for both). With equal covariances this is
-//! `Pd = Q(Q^-1(Pfa) - sqrt(SCR))`; with the target's own texture it is
-//! `Pd = Q((sigma_b Q^-1(Pfa) - SCR) / sigma_t)`.
+//! on the frames of a set as the camera model gives them ([`SensorModel::signal`]: each class's
+//! mean and texture through the real analyzer, each class's own sensor noise), in DN: the
+//! forecast of `plan --scene`. Its SCR is the planner's objective (the panel notes any
+//! difference above 1e-6 relative), so the optimum the table prints is optimal under the same
+//! numbers the table and the ROC curves show.
 //!
 //! An optimum over `N` frames is compared fairly only with sets of the same number of frames
 //! (one more frame never lowers the SCR), so the table's relative column divides each set's
@@ -38,6 +39,7 @@ use nalgebra::Matrix3;
 use polar_engine::forecast::SCENE_TOL;
 use polar_engine::plan::{Plan, PlanKind};
 use polar_engine::sim::{DEFAULT_CAMERA, DEFAULT_SCENE};
+use polar_model::metrics::{matched_filter, ClassStats};
 use polar_model::scene::{MaterialResult, Prepared};
 use polar_model::scene_file::Scene;
 use polar_model::sensor::{Camera, Exposure, SensorModel};
@@ -127,7 +129,8 @@ pub struct PlannerResult {
     pub scr_clutter_limit: f64,
     /// Condition number of the background's clutter covariance `Sigma_b`, as given.
     pub clutter_condition: f64,
-    /// Per-frame sensor noise variance `V`, (W m^-2 sr^-1)^2.
+    /// The angle-independent part of the per-frame sensor noise variance, the floor `V` (dark
+    /// current, read noise, quantisation), (W m^-2 sr^-1)^2; the shot noise adds to it per angle.
     pub noise_var_w2_m4_sr2: f64,
     /// What the user should know: the planner's regularisation, no contrast, the sensor's and
     /// the ROC's warnings, degenerate sets.
@@ -250,26 +253,40 @@ fn contrast_at(
     background: &MaterialResult,
     t_int_s: f64,
 ) -> Result<Contrast, String> {
-    let s = sensor
-        .signal(
-            &[0.0, std::f64::consts::FRAC_PI_2],
-            &Exposure::new(t_int_s, background.mean),
-        )
-        .map_err(|e| format!("material {}: {e}", background.name))?;
-    let dn_per_radiance = sensor.camera().gain_dn_per_e * s.electrons_from_radiance;
-    if !(dn_per_radiance.is_finite() && dn_per_radiance > 0.0) {
-        return Err(format!(
-            "camera: K G = {dn_per_radiance} DN per W m^-2 sr^-1: allowed a camera that responds \
-             in the scene's band"
-        ));
-    }
-    let noise_var = 0.5 * (s.cov_dn[(0, 0)] + s.cov_dn[(1, 1)]) / dn_per_radiance.powi(2);
-    Contrast::new(
-        target.mean.0 - background.mean.0,
-        symmetric(&background.cov),
-        noise_var,
+    Contrast::from_sensor(
+        sensor,
+        t_int_s,
+        &target.mean.0,
+        &background.mean.0,
+        &symmetric(&background.cov),
     )
     .map_err(|e| format!("planner: {e}"))
+}
+
+/// The matched filter on the frames of one set at `t_int_s` (module docs): the forecast.
+fn forecast_roc(
+    sensor: &SensorModel,
+    angles_rad: &[f64],
+    t_int_s: f64,
+    target: &MaterialResult,
+    background: &MaterialResult,
+    pfa: f64,
+) -> Result<polar_model::metrics::Roc, String> {
+    let frames = |field: &'static str, class: &MaterialResult| -> Result<ClassStats, String> {
+        let mut e = Exposure::new(t_int_s, class.mean);
+        e.radiance_cov_w2_m4_sr2 = symmetric(&class.cov);
+        let s = sensor
+            .signal(angles_rad, &e)
+            .map_err(|e| format!("material {}: {e}", class.name))?;
+        ClassStats::new(field, s.mean_dn, s.cov_dn)
+            .map_err(|e| format!("material {}: {e}", class.name))
+    };
+    matched_filter(
+        &frames("target", target)?,
+        &frames("background", background)?,
+        pfa,
+    )
+    .map_err(|e| format!("matched filter: {e}"))
 }
 
 fn symmetric(m: &Matrix3<f64>) -> Matrix3<f64> {
@@ -332,8 +349,6 @@ fn compute_from(
 
     let mut notes: Vec<String> = sensor.warnings().to_vec();
     notes.extend(contrast.notes.iter().cloned());
-    let t_cov = symmetric(&target.cov);
-    let b_cov = symmetric(&background.cov);
     let mut rows = Vec::new();
     let mut sets: Vec<(String, bool, Vec<f64>, f64)> = vec![(
         format!("optimal {}", inputs.channels),
@@ -375,14 +390,22 @@ fn compute_from(
                 }
             }
         };
-        let roc = polar_planner::scr::matched_filter_roc(
+        let roc = forecast_roc(
+            sensor,
             &angles_rad,
-            (&target.mean.0, &t_cov),
-            (&background.mean.0, &b_cov),
-            contrast.noise_var,
+            inputs.exposure_us * 1e-6,
+            target,
+            background,
             inputs.pfa,
         )
-        .map_err(|e| format!("{name}: matched filter: {e}"))?;
+        .map_err(|e| format!("{name}: {e}"))?;
+        if (roc.scr - scr).abs() > 1e-6 * roc.scr.max(1e-300) {
+            notes.push(format!(
+                "{name}: the forecast's SCR {} differs from the planner's {scr} by more than \
+                 1e-6 relative",
+                roc.scr
+            ));
+        }
         for w in &roc.warnings {
             let line = format!("{name}: {w}");
             if !notes.contains(&line) {
@@ -734,7 +757,7 @@ fn result_ui(ui: &mut egui::Ui, r: &PlannerResult) {
         });
     ui.label(format!(
         "Clutter limit (no sensor noise): SCR {}; clutter condition number {}; sensor noise \
-         variance {} (W m^-2 sr^-1)^2 per frame",
+         floor {} (W m^-2 sr^-1)^2 per frame, plus shot noise",
         fmt_num(r.scr_clutter_limit),
         fmt_num(r.clutter_condition),
         fmt_num(r.noise_var_w2_m4_sr2)

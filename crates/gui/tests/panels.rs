@@ -254,11 +254,10 @@ fn device_command_without_devices_is_refused() {
 /// goes on after Resume.
 #[test]
 fn hardware_flags_path_on_a_simulated_stage() {
-    use polar_cli::acquire::Hardware;
-    use polar_cli::devices::Dialect;
     use polar_engine::plan::Plan;
     use polar_engine::sim::SimRig;
     use polar_gui::engine::Devices;
+    use polar_rig::Hardware;
 
     let dir = temp_dir("hardware");
     std::fs::create_dir_all(&dir).unwrap();
@@ -276,13 +275,16 @@ fn hardware_flags_path_on_a_simulated_stage() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let hw = Hardware {
         port: stage.link.display().to_string(),
-        dialect: Dialect::Native,
+        dialect: polar_drivers::registry::find("native").expect("the native dialect"),
         address: 0,
+        model: None,
         camera: "sim".into(),
         camera_file: root.join("examples/cameras/cmos_modern.toml"),
         zero_offset_deg: 0.0,
+        extinction_ratio: None,
+        provenance: Default::default(),
     };
-    let app = App::new_on(dir.join("runs"), Devices::Hardware(hw), None).unwrap();
+    let app = App::new_on(dir.join("runs"), Devices::Hardware(Box::new(hw)), None).unwrap();
     let mut h = harness(app);
     h.step();
     assert!(label_shows(&h, "Devices: hardware, connected at start"));

@@ -4,7 +4,7 @@
 //! started, and grabbed from with a deadline. Every [`Frame`] carries its pixels widened to
 //! `u16`, its host and device timestamps, its frame id, and the exposure and gain the device
 //! reports it applied (read back, not the request). Backends over blocking SDKs run the SDK on a
-//! named thread and hand frames over a bounded queue (`polar_drivers::camera_thread`); the
+//! named thread and hand frames over a bounded queue (`polar_hal::camera_thread`); the
 //! simulated camera lives in `polar-hil-mocks`.
 
 use crate::{DeviceError, ErrorKind};
@@ -370,7 +370,7 @@ pub enum Grabbed {
 }
 
 /// A camera behind a blocking SDK (aravis, V4L2, the simulated camera's renderer). It is driven
-/// from one dedicated thread (`polar_drivers::camera_thread::ThreadedCamera`), which turns it into
+/// from one dedicated thread (`polar_hal::camera_thread::ThreadedCamera`), which turns it into
 /// an async [`Camera`]; implementations may block in every call but must return from
 /// [`BlockingCamera::wait_frame`] within its `wait`.
 pub trait BlockingCamera: Send + 'static {

@@ -11,11 +11,13 @@
 //!
 //! Every error maps to an [`ErrorKind`] through [`DeviceError::kind`], so that the engine can
 //! retry, reconnect or abort without knowing the device. Traits use `async fn`: drivers
-//! implement them on tokio, simulated devices in memory. This crate has no I/O and no runtime.
+//! implement them on tokio, simulated devices in memory. This crate has no I/O; its
+//! [`camera_thread`] runs a [`BlockingCamera`] on its own thread behind tokio channels.
 #![warn(missing_docs)]
 
 mod analyzer;
 pub mod camera;
+pub mod camera_thread;
 
 pub use analyzer::{Analyzer, Approach, OnRotator, OnWheel, SlotAngle};
 pub use camera::{

@@ -24,6 +24,7 @@
 //! * [`sky_table`]: a tabulated sky from a radiative-transfer code (CSV), interpolated with its error.
 //! * [`slope`]: a microfacet's specular lobe against a sky, integrated in facet-slope space.
 //! * [`skylight`]: skylight reflected by a surface (Eq. 3.22), with its error.
+//! * [`span`]: the measurement row of an exposure while the analyzer turns, and angle jitter.
 //! * [`sun`]: the sun's position from UTC time and site (NREL SPA).
 //! * [`scene`]: a scene's mean and covariance at the aperture, to a tolerance, with its error and the terms it skipped.
 //! * [`scene_file`]: the TOML scene format.
@@ -52,6 +53,7 @@ pub mod sky;
 pub mod sky_table;
 pub mod skylight;
 pub mod slope;
+pub mod span;
 pub mod stats;
 pub mod sun;
 pub mod tiles;

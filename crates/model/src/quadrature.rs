@@ -313,6 +313,17 @@ pub fn integrate<F: FnMut(f64) -> f64>(mut f: F, a: f64, b: f64, tol: Tolerance)
     scalar(adaptive(|x| ([f(x)], 0.0), a, b, tol))
 }
 
+/// [`integrate`] for an integrand with `N` components, all on the same adaptive partition; the
+/// error is the largest component's.
+pub fn integrate_n<const N: usize, F: FnMut(f64) -> [f64; N]>(
+    mut f: F,
+    a: f64,
+    b: f64,
+    tol: Tolerance,
+) -> IntegralN<N> {
+    adaptive(|x| (f(x), 0.0), a, b, tol)
+}
+
 /// Integrates `f(x, y)` over the rectangle `[ax, bx] x [ay, by]` by nested adaptive rules.
 ///
 /// The inner integral over `y` runs at a tenth of the outer tolerance (scaled by the outer

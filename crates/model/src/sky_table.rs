@@ -35,7 +35,9 @@
 //! convergent interpolant gains from halving its step), relative to the peak `S0`. What the
 //! grid does not sample it cannot see: a plane-parallel sky's steep rise within a few degrees
 //! of the horizon, between the last two zeniths, is the usual blind spot. A 10-degree table of a clear sky interpolates to a few
-//! percent near the sun, which no quadrature can improve; the scene adds it to its error.
+//! percent near the sun, which no quadrature can improve: the scene measures that floor for
+//! each material before integrating, integrates to no less than a quarter of it and adds it to
+//! its error ([`crate::scene::ErrorFloor`]).
 
 use crate::polarization::Stokes;
 use crate::sky::SkyRadiance;

@@ -4,18 +4,23 @@
 //! saying why.
 //!
 //! Each round:
-//! 1. **Stokes.** Estimate per-pixel Stokes by least squares from every frame taken so far.
+//! 1. **Stokes.** Estimate per-pixel Stokes by least squares from every frame taken so far,
+//!    through the rig's real analyzer rows ([`AptdConfig::instrument`]: principal
+//!    transmittances, offset, fore-optics), so that the estimate is of the light before the
+//!    analyzer and not scaled by its extinction.
 //! 2. **Target pixels**: a known region, a known Stokes signature (the pixels nearest it in
 //!    the background's Mahalanobis metric), or the top RX anomalies.
 //! 3. **Background.** The global mean and sample covariance of the other pixels, less the
 //!    sensor noise the estimate itself adds, `V (W^T W)^-1`. What remains is the scene
 //!    clutter `Sigma_b` the planner needs, projected onto the positive semidefinite cone.
-//! 4. **Optimise** the SCR for the next set ([`crate::optimize::optimise`]).
+//! 4. **Optimise** the SCR for the next set ([`crate::optimize::optimise`]) with the same real
+//!    rows ([`Contrast::with_instrument`]): the set is optimal under the contrast the loop
+//!    estimated, as the forecast of `plan --scene` scores sets.
 //! 5. **Stop** when the next set moves no angle by more than `angle_tol_rad` and the SCR
 //!    changes by less than `scr_rel_tol`, or when the frame budget is spent.
 
 use crate::optimize::{optimise, Constraints};
-use crate::scr::{row, Contrast};
+use crate::scr::{Contrast, Instrument};
 use crate::PlanError;
 use nalgebra::{Matrix3, Vector3};
 
@@ -46,8 +51,13 @@ pub struct AptdConfig {
     /// The first set, radians (a conventional set, e.g. 0/60/120).
     pub initial_angles_rad: Vec<f64>,
     /// Per-frame sensor noise variance, in the frames' units squared (from the calibrated
-    /// camera model), `>= 0`.
+    /// camera model), `>= 0`: the floor `V` of the instrument's noise model.
     pub noise_var: f64,
+    /// The rig's analyzer (its principal transmittances, so its real extinction, and offset)
+    /// and fore-optics, whose rows the Stokes estimate and the SCR use; its shot-noise term
+    /// `c` (frames' units per unit of transmitted light, 0 for a constant noise) follows the
+    /// estimated background mean. [`Instrument::ideal`] for an ideal analyzer.
+    pub instrument: Instrument,
     /// How the target is known.
     pub target: TargetSpec,
     /// Constraints on every set.
@@ -128,6 +138,15 @@ pub struct Aptd {
 /// `(W^T W)^-1` (the estimate's covariance per unit frame variance). Errors when fewer than 3
 /// distinct angles make `W^T W` singular.
 pub fn stokes_images(frames: &[AptdFrame]) -> Result<(Vec<Vector3<f64>>, Matrix3<f64>), PlanError> {
+    stokes_images_with(frames, &Instrument::ideal())
+}
+
+/// As [`stokes_images`] through `instrument`'s rows `w(psi)` (a real analyzer and fore-optics).
+pub fn stokes_images_with(
+    frames: &[AptdFrame],
+    instrument: &Instrument,
+) -> Result<(Vec<Vector3<f64>>, Matrix3<f64>), PlanError> {
+    let row = |psi: f64| instrument.row_and_derivative(psi).0;
     let a = frames.iter().fold(Matrix3::zeros(), |acc, f| {
         let w = row(f.angle_rad);
         acc + w * w.transpose()
@@ -239,6 +258,13 @@ impl Aptd {
                 allowed: "finite, >= 0",
             });
         }
+        // The instrument's own checks (finite, a polariser: k1 > k2), naming its field.
+        Contrast::with_instrument(
+            Vector3::zeros(),
+            Matrix3::identity(),
+            1.0,
+            config.instrument.clone(),
+        )?;
         if config.frame_budget < config.initial_angles_rad.len() {
             return Err(PlanError::invalid(
                 "frame_budget",
@@ -322,7 +348,7 @@ impl Aptd {
         }
         self.round += 1;
         self.frames.extend(frames);
-        let (s, a_inv) = stokes_images(&self.frames)?;
+        let (s, a_inv) = stokes_images_with(&self.frames, &self.config.instrument)?;
         let noise_stokes = a_inv * self.config.noise_var;
 
         // Target pixels.
@@ -360,7 +386,12 @@ impl Aptd {
         let (mu_b, cov_b) = mean_cov(&s, &background_mask)
             .ok_or_else(|| PlanError::invalid("target", "fewer than 4 background pixels"))?;
         let clutter = psd(&(cov_b - noise_stokes));
-        let contrast = Contrast::new(mu_t - mu_b, clutter, self.config.noise_var)?;
+        let instrument = Instrument {
+            shot_source: mu_b,
+            ..self.config.instrument.clone()
+        };
+        let contrast =
+            Contrast::with_instrument(mu_t - mu_b, clutter, self.config.noise_var, instrument)?;
         let scr_last = contrast.scr(&self.last_set);
         let next = optimise(
             &contrast,
@@ -490,6 +521,8 @@ mod tests {
         region: Vec<bool>,
         noise_var: f64,
         state: u64,
+        /// The analyzer the frames are taken through.
+        instrument: Instrument,
     }
 
     impl Synthetic {
@@ -513,6 +546,7 @@ mod tests {
                 region: Vec::new(),
                 noise_var,
                 state: 0x1234_5678_9abc_def1,
+                instrument: Instrument::ideal(),
             };
             let l = sigma_b.cholesky().expect("pd").l();
             let mu_b = Vector3::new(1000.0, 50.0, -20.0);
@@ -533,7 +567,7 @@ mod tests {
             angles
                 .iter()
                 .map(|&a| {
-                    let w = row(a);
+                    let w = self.instrument.row_and_derivative(a).0;
                     let pixels = (0..self.stokes.len())
                         .map(|p| w.dot(&self.stokes[p]) + sd * self.normal())
                         .collect();
@@ -570,6 +604,7 @@ mod tests {
             channels: 3,
             initial_angles_rad: deg(&[0.0, 60.0, 120.0]),
             noise_var: v,
+            instrument: Instrument::ideal(),
             target: TargetSpec::Region(scene.region.clone()),
             constraints: Constraints::default(),
             angle_tol_rad: 0.5f64.to_radians(),
@@ -618,6 +653,7 @@ mod tests {
             channels: 3,
             initial_angles_rad: deg(&[0.0, 45.0, 90.0]),
             noise_var: v,
+            instrument: Instrument::ideal(),
             target: TargetSpec::Anomalies {
                 fraction: 64.0 / 4096.0,
             },
@@ -659,6 +695,82 @@ mod tests {
         assert!(hits as f64 / 64.0 > 0.6, "{hits} of 64");
     }
 
+    /// Through a real analyzer (extinction ratio 20, transmittance 0.9, a 1.5-degree offset)
+    /// the loop's estimate is of the light before the analyzer: the target-background
+    /// difference within 15 % of the truth (64 target pixels against clutter of standard
+    /// deviation about 20 give a sampling error near 5 %). Each round's next set is optimal
+    /// under the contrast it estimated with those real rows: its SCR equals an independent
+    /// optimisation's (to 1e-9 relative, the refinement's flatness at the optimum), and no set
+    /// of an exhaustive 1-degree grid of 3 angles nor a conventional set does better (to 1e-9).
+    #[test]
+    fn optimal_under_the_contrast_estimated_with_the_real_rows() {
+        use polar_model::analyzer::AnalyzerModel;
+        let (sigma_b, d, v) = problem();
+        let instrument = Instrument {
+            analyzer: AnalyzerModel {
+                k1: 0.9,
+                k2: 0.045,
+                offset_rad: 1.5f64.to_radians(),
+            },
+            ..Instrument::ideal()
+        };
+        let mut scene = Synthetic::new(sigma_b, d, v);
+        scene.instrument = instrument.clone();
+        let (mut aptd, mut step) = Aptd::new(AptdConfig {
+            channels: 3,
+            initial_angles_rad: deg(&[0.0, 60.0, 120.0]),
+            noise_var: v,
+            instrument: instrument.clone(),
+            target: TargetSpec::Region(scene.region.clone()),
+            constraints: Constraints::default(),
+            angle_tol_rad: 0.5f64.to_radians(),
+            scr_rel_tol: 0.02,
+            frame_budget: 15,
+        })
+        .expect("config");
+        while let Step::Acquire(angles) = step {
+            let frames = scene.frames(&angles);
+            step = aptd.on_frames(frames).expect("round");
+        }
+        for dec in aptd.decisions() {
+            let est_d = Vector3::from(dec.d);
+            assert!(
+                (est_d - d).norm() < 0.15 * d.norm(),
+                "round {}: estimated d {est_d:?}, true {d:?}",
+                dec.round
+            );
+            let estimated = Contrast::with_instrument(
+                est_d,
+                Matrix3::from_row_slice(&dec.clutter_cov),
+                v,
+                instrument.clone(),
+            )
+            .expect("contrast");
+            let chosen = estimated.scr(&dec.next_angles_rad);
+            assert!(
+                (chosen - dec.scr_next).abs() <= 1e-12 * chosen,
+                "{chosen} vs {}",
+                dec.scr_next
+            );
+            let again = optimise(&estimated, 3, &Constraints::default(), 1e-4).expect("opt");
+            assert!(
+                (chosen - again.scr).abs() <= 1e-9 * again.scr,
+                "round {}: {chosen} vs re-optimised {}",
+                dec.round,
+                again.scr
+            );
+            let grid = crate::optimize::grid_search(&estimated, 3, 1f64.to_radians());
+            assert!(
+                chosen >= grid.scr * (1.0 - 1e-9),
+                "{chosen} < grid {}",
+                grid.scr
+            );
+            for set in [&[0.0, 45.0, 90.0][..], &[0.0, 60.0, 120.0]] {
+                assert!(chosen >= estimated.scr(&deg(set)) * (1.0 - 1e-9), "{set:?}");
+            }
+        }
+    }
+
     /// Bad inputs are refused naming the field.
     #[test]
     fn bad_inputs() {
@@ -666,6 +778,7 @@ mod tests {
             channels: 3,
             initial_angles_rad: deg(&[0.0, 90.0]),
             noise_var: 1.0,
+            instrument: Instrument::ideal(),
             target: TargetSpec::Anomalies { fraction: 0.01 },
             constraints: Constraints::default(),
             angle_tol_rad: 0.01,

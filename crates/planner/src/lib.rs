@@ -8,12 +8,16 @@
 //! * [`aptd`]: adaptive polarimetric target detection as a state machine (frames in, the next
 //!   set out, with a decision record).
 //! * [`optimize`]: the SCR-optimal set of `N = 1..6` angles under a rotator's or a wheel's
-//!   constraints, and the conventional sets it is compared with.
+//!   constraints (a Stokes set's condition bound among them), and the conventional sets it
+//!   is compared with.
+//! * [`stokes`]: when a set forms a Stokes image, the condition number of the ideal
+//!   analyzer's measurement matrix.
 #![warn(missing_docs)]
 
 pub mod aptd;
 pub mod optimize;
 pub mod scr;
+pub mod stokes;
 
 pub use optimize::{conventional, optimise, Constraints, Optimum};
 pub use scr::{Contrast, Instrument};

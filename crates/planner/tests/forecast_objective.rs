@@ -3,7 +3,8 @@
 //! Over random cameras (gain, read noise, dark current, analyzer extinction, transmittance and
 //! offset, a weakly diattenuating fore-optics), random class statistics (the Stokes inputs a
 //! scene evaluation would give: means, a clutter covariance), random integration times and
-//! random constraints (channels, separation, a rotator's range):
+//! random constraints (1 to 6 channels, separation, a rotator's range, the Stokes rule's
+//! condition bound):
 //!
 //! * the planner's SCR is the matched-filter SCR of the frames `SensorModel::signal` gives
 //!   (what `plan --scene` prints), to 1e-9 relative;
@@ -21,6 +22,7 @@ use polar_model::metrics::{matched_filter, ClassStats};
 use polar_model::polarization::Stokes;
 use polar_model::sensor::{Camera, Exposure, SensorModel};
 use polar_planner::optimize::{allowed, CONVENTIONAL};
+use polar_planner::stokes::STOKES_MAX_CONDITION;
 use polar_planner::{optimise, Constraints, Contrast};
 use proptest::prelude::*;
 use std::f64::consts::PI;
@@ -110,22 +112,30 @@ fn classes() -> impl Strategy<Value = Classes> {
 }
 
 /// Channels, separation (degrees, at most min(180/N - 1, 89) so that a set fits and stays
-/// below the 90 degrees two directions can be apart), an optional range.
+/// below the 90 degrees two directions can be apart), an optional range, and for 3 to 6
+/// channels half the time the Stokes rule (the ideal analyzer's condition number at most
+/// `STOKES_MAX_CONDITION`; then with a quarter of the separation, so that the bound, not the
+/// separation, shapes the set).
 fn constraints() -> impl Strategy<Value = (usize, Constraints)> {
     (
-        1usize..=3,
+        1usize..=6,
         0.0f64..1.0,
         prop::bool::ANY,
         0.0f64..90.0,
         60.0f64..179.0,
+        prop::bool::ANY,
     )
-        .prop_map(|(n, sep_frac, ranged, lo_deg, span_deg)| {
+        .prop_map(|(n, sep_frac, ranged, lo_deg, span_deg, stokes)| {
+            let stokes = stokes && n >= 3;
             // Half the cases without a separation (repeats allowed).
-            let sep_deg = if sep_frac < 0.5 {
+            let mut sep_deg = if sep_frac < 0.5 {
                 0.0
             } else {
                 (sep_frac - 0.5) * 2.0 * (180.0 / n as f64 - 1.0).min(89.0)
             };
+            if stokes {
+                sep_deg *= 0.25;
+            }
             let range_rad = ranged.then(|| {
                 let span = span_deg.max(sep_deg * (n as f64 - 1.0) + 1.0).min(179.0);
                 (lo_deg.to_radians(), (lo_deg + span).to_radians())
@@ -135,6 +145,7 @@ fn constraints() -> impl Strategy<Value = (usize, Constraints)> {
                 Constraints {
                     range_rad,
                     min_separation_rad: sep_deg.to_radians(),
+                    max_condition: stokes.then_some(STOKES_MAX_CONDITION),
                     ..Constraints::default()
                 },
             )
@@ -228,7 +239,20 @@ proptest! {
         let sensor = sensor(&cam);
         let t_int_s = 10f64.powf(log_t);
         let contrast = Contrast::from_sensor(&sensor, t_int_s, &c.mu_t, &c.mu_b, &c.cov_b).unwrap();
-        let opt = optimise(&contrast, n, &cons, 1e-3f64.to_radians()).unwrap();
+        // Finer than the optimiser's own coarse grid (3.75 deg for N = 3, 2 deg for N <= 2,
+        // 7.5, 11.25 and 13.8 deg for N = 4, 5, 6).
+        let m = [0, 720, 360, 120, 30, 18, 14][n];
+        let (grid, at) = grid_best(&contrast, n, &cons, m);
+        let opt = match optimise(&contrast, n, &cons, 1e-3f64.to_radians()) {
+            Ok(o) => o,
+            Err(e) => {
+                // Only a Stokes bound that no set within the range meets may be refused,
+                // and then the grid has no allowed set either.
+                prop_assert!(e.to_string().contains("max_condition"), "{e}");
+                prop_assert!(grid == f64::NEG_INFINITY, "{e}, yet the grid allows {at:?}");
+                return Ok(());
+            }
+        };
         prop_assert!(allowed(&opt.angles_rad, &cons), "{:?} breaks {cons:?}", opt.angles_rad);
 
         let (forecast, condition) = forecast(&sensor, &c, t_int_s, &opt.angles_rad);
@@ -248,9 +272,6 @@ proptest! {
             }
         }
 
-        // Finer than the optimiser's coarse grid (3.75 deg for N = 3, 2 deg for N <= 2).
-        let m = [0, 720, 360, 120][n];
-        let (grid, at) = grid_best(&contrast, n, &cons, m);
         prop_assert!(
             opt.scr >= grid * (1.0 - 1e-9),
             "grid {grid} at {at:?} > planner {} at {:?}", opt.scr, opt.angles_rad

@@ -117,6 +117,18 @@ pub(super) fn adaptive_start(
     let k = camera.gain_dn_per_e * 10f64.powf(a.gain_db / 20.0);
     let mid_e = 0.25 * camera.full_well_e;
     let noise_var = k * k * (mid_e + camera.read_noise_e.powi(2)) + 1.0 / 12.0;
+    // The rig's analyzer (the camera file's polarizer: its real extinction and offset) and
+    // fore-optics: the Stokes estimate and the SCR the loop optimises use its rows, as the
+    // forecast of `plan --scene` does.
+    let analyzer = camera
+        .polarizer
+        .analyzer()
+        .map_err(|e| RunError::Planner(format!("camera polarizer: {e}")))?;
+    let instrument = polar_planner::Instrument {
+        analyzer,
+        fore_optics: camera.fore_optics().0,
+        ..polar_planner::Instrument::ideal()
+    };
     let config = AptdConfig {
         channels: a.channels,
         initial_angles_rad: a
@@ -125,6 +137,7 @@ pub(super) fn adaptive_start(
             .map(|d| d.to_radians())
             .collect(),
         noise_var,
+        instrument,
         target,
         constraints: Constraints {
             min_separation_rad: a.min_separation_deg.to_radians(),

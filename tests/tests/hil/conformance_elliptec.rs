@@ -18,23 +18,16 @@ use polar_hil_mocks::faults::FaultProfile;
 use polar_hil_mocks::fw102c::{Fw102cConfig, Fw102cDevice};
 use polar_hil_mocks::serve::SimServer;
 use polar_hil_mocks::sim::{Simulator, Truth};
+use polar_hil_tests::repo_root;
 use std::f64::consts::TAU;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-
-/// The workspace root (this crate is one level below it).
-fn workspace() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("the workspace root")
-        .to_path_buf()
-}
 
 /// The venv's python: `POLARIMETER_PYTHON`, else `target/py-venv/bin/python`.
 fn client_python() -> PathBuf {
     std::env::var_os("POLARIMETER_PYTHON")
         .map(PathBuf::from)
-        .unwrap_or_else(|| workspace().join("target/py-venv/bin/python"))
+        .unwrap_or_else(|| repo_root().join("target/py-venv/bin/python"))
 }
 
 /// Whether `python` imports both client libraries.
@@ -139,7 +132,7 @@ async fn public_clients_drive_every_simulated_model() {
         servers.push((model, server));
     }
     let results = dir.join("results.tsv");
-    let script = workspace().join("scripts/conformance/elliptec_clients.py");
+    let script = repo_root().join("scripts/conformance/elliptec_clients.py");
     let t0 = std::time::Instant::now();
     let output = tokio::task::spawn_blocking(move || {
         Command::new(&python)
@@ -156,7 +149,7 @@ async fn public_clients_drive_every_simulated_model() {
     let table = String::from_utf8_lossy(&output.stdout).into_owned();
     let log = String::from_utf8_lossy(&output.stderr).into_owned();
     println!("{table}\n{log}\nscript time {elapsed:.1?}");
-    let _ = std::fs::write(workspace().join("target/client-conformance.md"), &table);
+    let _ = std::fs::write(repo_root().join("target/client-conformance.md"), &table);
     let rows = parse_rows(&std::fs::read_to_string(dir.join("results.tsv")).unwrap_or_default());
     let failed: Vec<&Row> = rows.iter().filter(|r| r.status == "FAILED").collect();
     assert!(failed.is_empty(), "failed: {failed:#?}\n{log}");

@@ -9,7 +9,7 @@
 //! frame is the one wanted. Incomplete buffers are counted and never handed out. A
 //! [`ErrorKind::Disconnected`] from the SDK ends the stream, and every later grab reports it.
 
-use polar_hal::{
+use crate::{
     BlockingCamera, Camera, CameraInfo, DeviceError, ErrorKind, Frame, Grabbed, PixelFormat, Roi,
     StreamStats, TriggerMode,
 };
@@ -437,7 +437,7 @@ fn run<C: BlockingCamera>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use polar_hal::GainUnit;
+    use crate::GainUnit;
     use std::sync::atomic::{AtomicU64, Ordering};
     use std::time::{Instant, SystemTime};
 

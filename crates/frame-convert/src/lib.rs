@@ -1,10 +1,13 @@
-//! Pure conversions from V4L2 buffers to luminance, and the host-side crop.
+//! Pure conversions from camera buffers to luminance, and the host-side crop, shared by the
+//! V4L2 backend (`polar-camera-v4l`) and the UVC backend on nokhwa (`polar-camera-uvc`).
 //!
 //! Every function checks sizes before it reads: a short buffer, a row stride shorter than a row,
 //! a size of zero or above [`MAX_PIXELS`], or a JPEG that does not decode to the expected size is
 //! an error, never a panic and never a partly filled image. The JPEG decoder (`zune-jpeg`, strict
 //! mode, luma output) is also run under `catch_unwind`, so that a panic inside the third-party
 //! decoder becomes [`ConvertError::DecoderPanicked`] instead of taking the camera thread down.
+//! Row strides are V4L2's `bytesperline` (0 = packed); a backend whose buffers are always packed
+//! (nokhwa's) passes 0.
 //!
 //! What the numbers mean:
 //!
@@ -15,6 +18,7 @@
 //!   16..=235 (MJPEG/JFIF uses the full 0..=255). They are delivered as they are, with no rescale.
 //!   A photometric measurement through a webcam needs its response calibrated first (the
 //!   photon-transfer calibration), or a camera that offers `GREY`/`Y16` raw data.
+#![warn(missing_docs)]
 
 use polar_hal::Roi;
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -369,7 +373,7 @@ pub fn mjpeg_to_luma(data: &[u8], width: u32, height: u32) -> Result<Vec<u16>, C
 }
 
 /// The text of a caught panic.
-pub(crate) fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
     if let Some(s) = payload.downcast_ref::<&str>() {
         (*s).to_string()
     } else if let Some(s) = payload.downcast_ref::<String>() {
@@ -379,8 +383,8 @@ pub(crate) fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
     }
 }
 
-/// The region `roi` of a row-major `width x height` image. V4L2 webcams have no sensor region of
-/// interest, so the backend reads the whole frame and crops it here.
+/// The region `roi` of a row-major `width x height` image. UVC and V4L2 webcams have no sensor
+/// region of interest, so the backends read the whole frame and crop it here.
 pub fn crop(pixels: &[u16], width: u32, height: u32, roi: Roi) -> Result<Vec<u16>, ConvertError> {
     let n = pixel_count(width, height)?;
     if pixels.len() != n {

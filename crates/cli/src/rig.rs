@@ -1,0 +1,244 @@
+//! `--rig FILE` in the commands: the rig file's site for a plan, its camera file for a
+//! forecast, calibrations written back to it (`polar_rig::file`), and the starting rig file
+//! `devices list --write-rig` writes.
+
+use crate::commands::CommandError;
+use polar_engine::plan::{Plan, PlanKind};
+use polar_rig::file::{starting_rig, CameraEntry, StageEntry};
+use polar_rig::Rig;
+use serde_json::{json, Value};
+use std::path::Path;
+
+/// Reads a rig file; the error names `--rig` and the file.
+pub fn load(path: &Path) -> Result<Rig, CommandError> {
+    Rig::load(path).map_err(|e| CommandError(format!("--rig: {e}")))
+}
+
+/// The rig's site for a plan that names none (a plan's own `[site]` wins).
+pub fn apply_site(plan: &mut Plan, rig: &Rig) {
+    if plan.site.is_none() {
+        plan.site = rig.file.site.clone();
+    }
+}
+
+/// The rig's camera file as a camera model (with the analyzer's extinction ratio, if the rig
+/// gives one), or `None` if the rig names no camera file.
+pub fn camera_model(rig: &Rig) -> Result<Option<polar_model::sensor::Camera>, CommandError> {
+    let Some(path) = &rig.camera_file else {
+        return Ok(None);
+    };
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        CommandError(format!(
+            "rig {}: camera.file = {}: cannot read: {e}",
+            rig.path.display(),
+            path.display()
+        ))
+    })?;
+    let mut camera = polar_model::sensor::Camera::from_toml_str(&text).map_err(|e| {
+        CommandError(format!(
+            "rig {}: camera.file = {}: {e}",
+            rig.path.display(),
+            path.display()
+        ))
+    })?;
+    if let Some(er) = rig.analyzer.as_ref().and_then(|a| a.extinction_ratio) {
+        camera.polarizer.extinction_ratio = Some(er);
+    }
+    Ok(Some(camera))
+}
+
+/// The stage's new zero offset after a calibrate-analyzer run made with zero offset
+/// `used_deg` measured `delta_deg` (the analyzer's true axis is the commanded angle plus
+/// `delta_deg`, `polar_engine::analyzer_cal`): the stage angle at which the axis is along x
+/// moves by `-delta_deg`. Reduced to `(-90, 90]` (the analyzer's period is half a turn).
+pub fn corrected_zero_offset_deg(used_deg: f64, delta_deg: f64) -> f64 {
+    let z = (used_deg - delta_deg).rem_euclid(180.0);
+    if z > 90.0 {
+        z - 180.0
+    } else {
+        z
+    }
+}
+
+/// After a finished run with `--rig`: a calibrate-analyzer run's zero offset and extinction
+/// ratio written as a new `analyzer.rN.toml` the rig then points to; a calibrate-noise run's
+/// measured camera (the rig's camera file with the measured detector fields) written as a new
+/// revision of that camera file, which the rig then points to. Returns what was written.
+pub fn write_back(
+    rig: &Rig,
+    plan: &Plan,
+    run_dir: &Path,
+    used_zero_offset_deg: f64,
+) -> Result<Option<Value>, CommandError> {
+    if plan.kind == PlanKind::CalibrateNoise {
+        return write_back_noise(rig, run_dir).map(Some);
+    }
+    if plan.kind != PlanKind::CalibrateAnalyzer {
+        return Ok(None);
+    }
+    let store = polar_engine::store::RunStore::open(run_dir)
+        .map_err(|e| CommandError(format!("{}: {e}", run_dir.display())))?;
+    let attrs = store
+        .attributes()
+        .map_err(|e| CommandError(format!("{}: {e}", run_dir.display())))?;
+    let cal = &attrs
+        .get("calibration")
+        .and_then(|c| c.get("analyzer"))
+        .cloned()
+        .unwrap_or(Value::Null);
+    let (Some(delta), Some(er)) = (
+        cal["zero_offset_deg"].as_f64(),
+        cal["extinction_ratio"].as_f64(),
+    ) else {
+        return Err(CommandError(format!(
+            "{}: the run finished without an analyzer calibration to write to the rig",
+            run_dir.display()
+        )));
+    };
+    let zero = corrected_zero_offset_deg(used_zero_offset_deg, delta);
+    let path = rig
+        .record_analyzer(zero, er, Some(run_dir))
+        .map_err(|e| CommandError(e.to_string()))?;
+    Ok(Some(json!({
+        "rig": rig.path.display().to_string(),
+        "analyzer_file": path.display().to_string(),
+        "zero_offset_deg": zero,
+        "extinction_ratio": er,
+    })))
+}
+
+/// A finished calibrate-noise run's photon transfer (the store's `calibration.noise`) applied
+/// to the rig's camera file; written first into the run directory as `measured_camera.toml`
+/// (never over an existing file), then as the camera file's new revision.
+fn write_back_noise(rig: &Rig, run_dir: &Path) -> Result<Value, CommandError> {
+    let store = polar_engine::store::RunStore::open(run_dir)
+        .map_err(|e| CommandError(format!("{}: {e}", run_dir.display())))?;
+    let attrs = store
+        .attributes()
+        .map_err(|e| CommandError(format!("{}: {e}", run_dir.display())))?;
+    let noise = attrs
+        .get("calibration")
+        .and_then(|c| c.get("noise"))
+        .cloned()
+        .ok_or_else(|| {
+            CommandError(format!(
+                "{}: the run finished without a noise calibration to write to the rig",
+                run_dir.display()
+            ))
+        })?;
+    let fit: polar_model::calibration::PhotonTransfer = serde_json::from_value(noise)
+        .map_err(|e| CommandError(format!("{}: calibration.noise: {e}", run_dir.display())))?;
+    let base_path = rig.camera_file.as_ref().ok_or_else(|| {
+        CommandError(format!(
+            "rig {}: camera.file is missing: the measured camera needs a base camera file",
+            rig.path.display()
+        ))
+    })?;
+    let text = std::fs::read_to_string(base_path).map_err(|e| {
+        CommandError(format!(
+            "rig {}: camera.file = {}: cannot read: {e}",
+            rig.path.display(),
+            base_path.display()
+        ))
+    })?;
+    let base = polar_model::sensor::Camera::from_toml_str(&text).map_err(|e| {
+        CommandError(format!(
+            "rig {}: camera.file = {}: {e}",
+            rig.path.display(),
+            base_path.display()
+        ))
+    })?;
+    let measured = run_dir.join("measured_camera.toml");
+    if measured.exists() {
+        return Err(CommandError(format!(
+            "{}: exists; not overwritten (the rig keeps its camera file)",
+            measured.display()
+        )));
+    }
+    let mut warnings = Vec::new();
+    crate::calibrate::measured_camera(&base, &fit, &measured, &mut warnings)
+        .map_err(|e| CommandError(e.to_string()))?;
+    let mut written = record_camera_file(rig, &measured)?;
+    written["gain_dn_per_e"] = json!(fit.k_dn_per_e.value);
+    written["warnings"] = json!(warnings);
+    Ok(written)
+}
+
+/// `calibrate noise --rig`: the measured camera file written as a new revision beside the
+/// rig's camera file, and the rig pointed at it.
+pub fn record_camera_file(rig: &Rig, measured: &Path) -> Result<Value, CommandError> {
+    let path = rig
+        .record_camera_file(measured)
+        .map_err(|e| CommandError(e.to_string()))?;
+    Ok(json!({
+        "rig": rig.path.display().to_string(),
+        "camera_file": path.display().to_string(),
+    }))
+}
+
+/// `devices list --write-rig FILE`: a starting rig file from what was found (the first stage
+/// that identified, the first camera listed), refusing to overwrite an existing file.
+pub fn write_starting_rig(
+    path: &Path,
+    stage: Option<StageEntry>,
+    cameras: &Value,
+) -> Result<Value, CommandError> {
+    let camera = cameras
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|c| c["camera"].as_str())
+        .map(|name| match name.split_once(':') {
+            Some((backend, id)) => CameraEntry {
+                backend: backend.to_string(),
+                id: Some(id.to_string()),
+                file: None,
+            },
+            None => CameraEntry {
+                backend: name.to_string(),
+                id: None,
+                file: None,
+            },
+        })
+        .next();
+    let text = starting_rig(stage.clone(), camera.clone());
+    use std::io::Write;
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(path)
+        .map_err(|e| {
+            CommandError(format!(
+                "--write-rig {}: {}",
+                path.display(),
+                if e.kind() == std::io::ErrorKind::AlreadyExists {
+                    "the file exists: allowed a new file (a rig file is never overwritten)"
+                        .to_string()
+                } else {
+                    format!("cannot create: {e}")
+                }
+            ))
+        })?;
+    f.write_all(text.as_bytes())
+        .map_err(|e| CommandError(format!("--write-rig {}: cannot write: {e}", path.display())))?;
+    Ok(json!({
+        "written": path.display().to_string(),
+        "stage": stage.map(|s| json!({ "dialect": s.dialect, "port": s.port, "model": s.model })),
+        "camera": camera.map(|c| json!({ "backend": c.backend, "id": c.id })),
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The correction subtracts the measured offset and keeps the result in the analyzer's
+    /// half-turn period: exact values, since they are sums of representable degrees.
+    #[test]
+    fn zero_offset_correction() {
+        assert_eq!(corrected_zero_offset_deg(0.0, 2.5), -2.5);
+        assert_eq!(corrected_zero_offset_deg(1.0, -1.5), 2.5);
+        assert_eq!(corrected_zero_offset_deg(89.0, -3.0), -88.0);
+        assert_eq!(corrected_zero_offset_deg(-89.0, 3.0), 88.0);
+    }
+}

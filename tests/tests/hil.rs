@@ -1,0 +1,31 @@
+//! The workspace's hardware-in-the-loop tests, one binary (`cargo test -p polar-hil-tests`):
+//!
+//! * [`hil::dialects`]: every dialect of `polar_drivers::registry` against its simulator from
+//!   `polar_hil_mocks::sim::SIMULATORS`, over a real pseudo-terminal, connected by its registry
+//!   constructor: identify, home, move or select, read back, and the simulator's truth agrees.
+//! * [`hil::cameras`]: the camera backends' registry, and Aravis's fake GigE Vision camera opened
+//!   through it (skipped, with the reason printed, where `arv-fake-gv-camera-0.8` is absent).
+//! * [`hil::plans`]: a capture plan end to end on `examples/rigs/sim.toml` (the simulated stage on
+//!   a pseudo-terminal, the camera rendering through the stage's true angle).
+//! * [`hil::plan_kinds`]: time-lapse and adaptive on the devices of `examples/rigs/sim.toml`, and
+//!   calibrate-analyzer (written back to a copy of the rig file) and calibrate-noise with it on
+//!   the simulated rig, through the `run` command's entry point (small plans, `tests/fixtures/`).
+//! * [`hil::k10cr1`]: a capture on `examples/rigs/sim_k10cr1.toml` (the simulated K10CR1 through
+//!   the APT driver) through the `run` command's entry point; its Stokes products against the
+//!   rendered truth.
+//! * [`hil::conformance_elliptec`], [`hil::conformance_apt`]: the public client libraries
+//!   (pylablib, thorlabs_elliptec, elliptec, thorlabs-apt-device) against the simulated devices
+//!   on pseudo-terminals, through `scripts/conformance/*.py` in the venv `POLARIMETER_PYTHON`
+//!   names.
+//!
+//! Crate-level tests stay in their crates.
+
+mod hil {
+    pub mod cameras;
+    pub mod conformance_apt;
+    pub mod conformance_elliptec;
+    pub mod dialects;
+    pub mod k10cr1;
+    pub mod plan_kinds;
+    pub mod plans;
+}
