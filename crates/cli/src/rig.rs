@@ -27,6 +27,15 @@ pub fn camera_model(rig: &Rig) -> Result<Option<polar_model::sensor::Camera>, Co
     let Some(path) = &rig.camera_file else {
         return Ok(None);
     };
+    let mut camera = read_camera_file(rig, path)?;
+    if let Some(er) = rig.analyzer.as_ref().and_then(|a| a.extinction_ratio) {
+        camera.polarizer.extinction_ratio = Some(er);
+    }
+    Ok(Some(camera))
+}
+
+/// The rig's camera file at `path`, as written (errors name the rig and `camera.file`).
+fn read_camera_file(rig: &Rig, path: &Path) -> Result<polar_model::sensor::Camera, CommandError> {
     let text = std::fs::read_to_string(path).map_err(|e| {
         CommandError(format!(
             "rig {}: camera.file = {}: cannot read: {e}",
@@ -34,17 +43,13 @@ pub fn camera_model(rig: &Rig) -> Result<Option<polar_model::sensor::Camera>, Co
             path.display()
         ))
     })?;
-    let mut camera = polar_model::sensor::Camera::from_toml_str(&text).map_err(|e| {
+    polar_model::sensor::Camera::from_toml_str(&text).map_err(|e| {
         CommandError(format!(
             "rig {}: camera.file = {}: {e}",
             rig.path.display(),
             path.display()
         ))
-    })?;
-    if let Some(er) = rig.analyzer.as_ref().and_then(|a| a.extinction_ratio) {
-        camera.polarizer.extinction_ratio = Some(er);
-    }
-    Ok(Some(camera))
+    })
 }
 
 /// The stage's new zero offset after a calibrate-analyzer run made with zero offset
@@ -134,20 +139,7 @@ fn write_back_noise(rig: &Rig, run_dir: &Path) -> Result<Value, CommandError> {
             rig.path.display()
         ))
     })?;
-    let text = std::fs::read_to_string(base_path).map_err(|e| {
-        CommandError(format!(
-            "rig {}: camera.file = {}: cannot read: {e}",
-            rig.path.display(),
-            base_path.display()
-        ))
-    })?;
-    let base = polar_model::sensor::Camera::from_toml_str(&text).map_err(|e| {
-        CommandError(format!(
-            "rig {}: camera.file = {}: {e}",
-            rig.path.display(),
-            base_path.display()
-        ))
-    })?;
+    let base = read_camera_file(rig, base_path)?;
     let measured = run_dir.join("measured_camera.toml");
     if measured.exists() {
         return Err(CommandError(format!(

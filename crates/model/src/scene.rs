@@ -3136,13 +3136,10 @@ mod tests {
         }
     }
 
-    /// A scene lit by its own band sky exported as a 10-degree table (Meng (2012)'s MODTRAN-P
-    /// grid) agrees with the analytic scene within the table's reported interpolation error,
-    /// and that error is reported (below 2 %: the grid is coarse, not wrong).
-    #[test]
-    fn own_sky_as_a_table_reproduces_the_scene() {
-        let s = spec(30.0, 50.0, 300.0, 4.0);
-        let p = Prepared::new(&s, 1e-6).unwrap();
+    /// `s` lit by its own band sky exported as a table on a 10-degree grid (zenith 0..90,
+    /// azimuth 0..350), read back as a tabulated sky.
+    fn lit_by_own_sky_table(s: &SceneSpec) -> SceneSpec {
+        let p = Prepared::new(s, 1e-6).unwrap();
         let sky = p.ground_sky();
         let mut csv = String::from("zenith_deg,azimuth_deg,S0,S1,S2\n");
         for i in 0..=9 {
@@ -3156,10 +3153,19 @@ mod tests {
         }
         let table =
             SkyTable::from_csv_str(&csv, crate::sky_table::StokesReference::Horizontal).unwrap();
-        let tabled = SceneSpec {
+        SceneSpec {
             sky: SkyModel::Table(Arc::new(table)),
             ..s.clone()
-        };
+        }
+    }
+
+    /// A scene lit by its own band sky exported as a 10-degree table (Meng (2012)'s MODTRAN-P
+    /// grid) agrees with the analytic scene within the table's reported interpolation error,
+    /// and that error is reported (below 2 %: the grid is coarse, not wrong).
+    #[test]
+    fn own_sky_as_a_table_reproduces_the_scene() {
+        let s = spec(30.0, 50.0, 300.0, 4.0);
+        let tabled = lit_by_own_sky_table(&s);
         let materials = [glass(0.1), asphalt()];
         let analytic = evaluate(&s, &materials, 1e-4).unwrap();
         let from_table = evaluate(&tabled, &materials, 1e-3).unwrap();
@@ -3189,24 +3195,7 @@ mod tests {
     #[test]
     fn tabulated_sky_floor_bounds_the_effort() {
         let s = spec(30.0, 50.0, 300.0, 4.0);
-        let p = Prepared::new(&s, 1e-6).unwrap();
-        let sky = p.ground_sky();
-        let mut csv = String::from("zenith_deg,azimuth_deg,S0,S1,S2\n");
-        for i in 0..=9 {
-            for j in 0..36 {
-                let (z, a) = (i as f64 * 10.0, j as f64 * 10.0);
-                let v = sky
-                    .stokes_from(&crate::angles::direction_from_deg(z.max(1e-7), a))
-                    .0;
-                csv += &format!("{z},{a},{:e},{:e},{:e}\n", v[0], v[1], v[2]);
-            }
-        }
-        let table =
-            SkyTable::from_csv_str(&csv, crate::sky_table::StokesReference::Horizontal).unwrap();
-        let tabled = SceneSpec {
-            sky: SkyModel::Table(Arc::new(table)),
-            ..s.clone()
-        };
+        let tabled = lit_by_own_sky_table(&s);
         let materials = [glass(0.1), asphalt()];
         let analytic = evaluate(&s, &materials, 1e-7).unwrap();
         assert!(analytic.iter().all(|r| r.floor.is_none()));

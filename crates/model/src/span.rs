@@ -177,25 +177,6 @@ mod tests {
         AnalyzerModel::from_extinction_ratio(300.0, 0.3_f64.to_radians()).unwrap()
     }
 
-    /// A fixed sampler for the tests' Monte Carlo (SplitMix64 and Box-Muller).
-    struct Normal(u64);
-
-    impl Normal {
-        fn uniform(&mut self) -> f64 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-        }
-
-        fn sample(&mut self) -> f64 {
-            let u1 = self.uniform().max(1e-300);
-            let u2 = self.uniform();
-            (-2.0 * u1.ln()).sqrt() * (2.0 * PI * u2).cos()
-        }
-    }
-
     /// The closed form against a brute-force midpoint average of Malus's law over the span
     /// (200 000 samples: the midpoint rule's error for these smooth rows is below 1e-10).
     #[test]
@@ -281,14 +262,14 @@ mod tests {
         let analyzer = real_analyzer();
         let s = Vector3::new(1000.0, 180.0, -90.0);
         let (a, b) = (0.3, 0.5);
-        let mut rng = Normal(42);
+        let mut rng = crate::stats::SplitMix64(42);
         for sigma_deg in [0.5, 20.0] {
             let sigma = f64::to_radians(sigma_deg);
             let (mean, var) = jittered_intensity(&analyzer, a, b, &s, sigma).unwrap();
             let n = 400_000;
             let (mut m1, mut m2) = (0.0, 0.0);
             for _ in 0..n {
-                let d = sigma * rng.sample();
+                let d = sigma * rng.normal_pair().0;
                 let i = span_row(&analyzer, a + d, b + d).dot(&s);
                 m1 += i;
                 m2 += i * i;
