@@ -11,6 +11,11 @@ What a reader of the dataset is promised, checked without any of our code:
 - the journal's frame records (RUN_DIR/journal.jsonl) are frames 0..N-1, each once, and the
   store holds exactly those N frames, each with its metadata (step, kind, hash) equal to the
   journal's and its pixels hashing (XXH3-64 of the little-endian bytes) to the recorded hash;
+- every frame's analyzer span (frames/angle_start_deg, angle_end_deg, angle_source,
+  angle_sigma_deg) has one value per frame; the start is in [0, 180) and end - start (the
+  span swept, unwrapped from the start) in [0, 180); step-and-shoot frames (source 0) have
+  end == start; the source is a known code (0 settled, 1 encoder trigger, 2 timestamps).
+  A run written before frames recorded spans has none of these arrays: that is not a problem;
 - no set has two product slots, and every set the journal records as done has one;
 - with --finished: the journal ends the run, every plan step between 0 and the last has
   exactly one accepted frame (but the steps of late time-lapse sets the plan skipped), and
@@ -135,6 +140,38 @@ def main(argv):
         bad = [i for i in range(n) if int(kinds[i]) != codes.get(frames[i]["kind"], -1)]
         if bad:
             problems.append(f"frames/kind differs from the journal at frames {bad[:10]}")
+
+    span_names = ("angle_start_deg", "angle_end_deg", "angle_source", "angle_sigma_deg")
+    span = {name: values.get(f"frames/{name}") for name in span_names}
+    present = [name for name in span_names if span[name] is not None]
+    if present and len(present) != len(span_names):
+        problems.append(f"frames: span arrays {present} present but not all of {span_names}")
+    elif present:
+        short = [name for name in span_names if len(span[name]) != n]
+        if short:
+            problems.append(f"frames/{short} do not hold one value per frame ({n} frames)")
+        else:
+            start = np.asarray(span["angle_start_deg"], dtype=float)
+            end = np.asarray(span["angle_end_deg"], dtype=float)
+            source = np.asarray(span["angle_source"])
+            known = np.isin(source, (0, 1, 2))
+            if not known.all():
+                problems.append(f"frames/angle_source: unknown codes at frames "
+                                f"{np.flatnonzero(~known)[:10].tolist()}")
+            both = np.isfinite(start) & np.isfinite(end)
+            swept = end - start
+            bad = both & ((start < 0) | (start >= 180) | (swept < 0) | (swept >= 180))
+            if bad.any():
+                problems.append(f"frames: analyzer span outside start in [0, 180), end - start "
+                                f"in [0, 180) at frames {np.flatnonzero(bad)[:10].tolist()}")
+            settled_bad = both & (source == 0) & (swept != 0)
+            if settled_bad.any():
+                problems.append(f"frames: step-and-shoot frames with end != start at frames "
+                                f"{np.flatnonzero(settled_bad)[:10].tolist()}")
+            one_sided = np.isfinite(start) != np.isfinite(end)
+            if one_sided.any():
+                problems.append(f"frames: span with one end missing at frames "
+                                f"{np.flatnonzero(one_sided)[:10].tolist()}")
 
     slot_sets = values.get("products/set")
     stored_sets = []

@@ -90,6 +90,21 @@ pub fn simulate(
     )))
 }
 
+/// The simulator of an APT `model` moving and homing at `deg_s` ([`AptSimConfig::fast`]),
+/// capped at [`AptSimConfig::max_protocol_velocity_deg_s`] (the K10CR1's 32-bit velocity
+/// parameter holds at most 293 deg/s), for the simulators' table; `None` for another model.
+pub fn simulate_at_speed(
+    model: &str,
+    deg_s: f64,
+    faults: FaultProfile,
+    seed: u64,
+) -> Option<Box<dyn crate::sim::Simulator>> {
+    let model = AptSimModel::parse(model).ok()?;
+    let config = AptSimConfig::of(model);
+    let deg_s = deg_s.min(config.max_protocol_velocity_deg_s());
+    Some(Box::new(AptDevice::new(config.fast(deg_s), faults, seed)))
+}
+
 impl AptSimModel {
     /// The model by its CLI name (`k10cr1`, `prm1z8`); an error names the allowed values.
     pub fn parse(name: &str) -> Result<Self, String> {
@@ -198,6 +213,13 @@ impl AptSimConfig {
             AptSimModel::K10cr1 => Self::k10cr1(),
             AptSimModel::Prm1z8 => Self::prm1z8(),
         }
+    }
+
+    /// The largest velocity `MOT_SET_VELPARAMS`' signed 32-bit field expresses for the model
+    /// (with its acceleration, ten times the velocity, well inside its field), deg/s: K10CR1
+    /// 293.0, PRM1Z8 50 000.
+    pub fn max_protocol_velocity_deg_s(&self) -> f64 {
+        f64::from(i32::MAX) / (self.counts_per_deg * self.model.velocity_units())
     }
 
     /// A faster mount for tests and demos (not a real mount's speed): `deg_s` velocity,

@@ -145,6 +145,31 @@ fn velocity_params_scale_and_cap() {
     assert_eq!((le_i32(&r, 12), le_i32(&r, 16)), (1000, 73_291_093));
 }
 
+/// The registry's speed constructor: a K10CR1 asked for 720 deg/s is capped at the 293.0
+/// deg/s its 32-bit velocity parameter holds (i32::MAX / (53.68 * 409600/3)), so it reports
+/// a positive velocity within one unit of i32::MAX rather than a wrapped one; a PRM1Z8 keeps
+/// the 720 deg/s asked (its limit is 50 000 deg/s), 720 * 1919.64 * 22.37 units to 1 unit.
+#[test]
+fn speed_constructor_caps_at_the_protocol_limit() {
+    let k = AptSimConfig::k10cr1().max_protocol_velocity_deg_s();
+    assert!((k - 293.0).abs() < 0.05, "{k}");
+    let p = AptSimConfig::prm1z8().max_protocol_velocity_deg_s();
+    assert!(p > 49_000.0 && p < 51_000.0, "{p}");
+    let mut d = simulate_at_speed("k10cr1", 720.0, FaultProfile::default(), 1).unwrap();
+    let r = d.receive(0.0, &req_short(id::MOT_REQ_VELPARAMS, 1, 0));
+    let v = i64::from(le_i32(&r, 16));
+    assert!((0..=1).contains(&(i64::from(i32::MAX) - v)), "{v}");
+    let mut d = simulate_at_speed("prm1z8", 720.0, FaultProfile::default(), 1).unwrap();
+    let r = d.receive(0.0, &req_short(id::MOT_REQ_VELPARAMS, 1, 0));
+    let want = 720.0 * 1_919.641_857_862_339 * KDC101_T_S * 65_536.0;
+    assert!(
+        (f64::from(le_i32(&r, 16)) - want).abs() <= 1.0,
+        "{}",
+        le_i32(&r, 16)
+    );
+    assert!(simulate_at_speed("ell14", 90.0, FaultProfile::default(), 1).is_none());
+}
+
 /// Faults: with every reply dropped nothing comes back; the same seed gives the same
 /// replies under corruption; a stall stops half way with the motion-error bit; a disabled
 /// channel ignores moves.

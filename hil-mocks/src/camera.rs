@@ -10,14 +10,21 @@
 //!   against.
 //! * [`SimCamera`]: a [`BlockingCamera`].
 //!   - It reads the analyzer's true angle from the simulated stage (an [`AngleSource`], usually
-//!     [`crate::serve::TruthHandle::angle_source`]) at the start and end of each exposure.
-//!   - It averages the two analyzer rows, so a move during the exposure smears the frame as it
-//!     would on a real camera.
+//!     [`crate::serve::TruthHandle::angle_source`]) through each exposure (every 1 ms).
+//!   - It integrates the analyzer's row along the path sampled through the exposure
+//!     ([`SimCamera::mean_electrons_along`]), so a move or a spin during the exposure smears
+//!     the frame as it would on a real camera.
 //!   - It turns the radiance into mean photo-electrons with the sensor model (camera equation,
 //!     real analyzer, fore-optics: `polar_model::sensor::SensorModel`).
 //!   - It draws the frame with `polar_model::montecarlo::expose_pixels`: Poisson electrons and
 //!     dark electrons, full well, read noise, gain, rounding and the ADC's range.
 //!   - The analog gain is in dB and scales the system gain `K` by `10^(gain_db / 20)`.
+//! * A hardware trigger input ([`SimCamera::wire_line`], GenICam `TriggerSource = Line`):
+//!   with trigger mode hardware, each rising edge of the wired [`LineSource`] starts an
+//!   exposure (of the set exposure time), which integrates the analyzer's true path as any
+//!   other. The camera polls the line every [`LINE_POLL`], so an exposure starts up to about
+//!   that much after its edge; an edge that arrives while the sensor is exposing is dropped
+//!   (GenICam `TriggerOverlap = Off`), and edges before [`BlockingCamera::start`] are ignored.
 //! * [`CameraFaults`]: dropped frames, truncated frames, stalls (timeouts), a stuck frame
 //!   (the same pixels again under a new id) and a disconnect, all seeded.
 
@@ -40,6 +47,13 @@ use std::time::{Duration, Instant, SystemTime};
 
 /// Where the analyzer is, radians (the simulated stage's true output angle).
 pub type AngleSource = Arc<dyn Fn() -> f64 + Send + Sync>;
+
+/// A trigger input line: the number of rising edges it has carried so far (never decreasing),
+/// e.g. a stage's position-compare output.
+pub type LineSource = Arc<dyn Fn() -> u64 + Send + Sync>;
+
+/// How often a camera in hardware-trigger mode looks at its line.
+pub const LINE_POLL: Duration = Duration::from_micros(50);
 
 impl TruthHandle {
     /// The stage's true angle as an [`AngleSource`] (a wheel or slider reads as angle 0).
@@ -393,6 +407,10 @@ pub struct SimCamera {
     illumination: Illumination,
     /// Told each exposure's end, before the frame is drawn.
     exposure_end: Option<ExposureEndHook>,
+    /// The trigger input, if wired.
+    line: Option<LineSource>,
+    /// Edges of the line already acted on (or ignored).
+    line_seen: u64,
 }
 
 /// A handle on the simulated scene's illumination: a factor on every pixel's radiance, 1 by
@@ -494,8 +512,16 @@ impl SimCamera {
             epoch: Instant::now(),
             illumination: Illumination::new(),
             exposure_end: None,
+            line: None,
+            line_seen: 0,
             config,
         })
+    }
+
+    /// Wires the hardware trigger input to `line` (GenICam `TriggerSource = Line`): trigger
+    /// mode hardware becomes available (module docs).
+    pub fn wire_line(&mut self, line: LineSource) {
+        self.line = Some(line);
     }
 
     /// The ground truth.
@@ -603,6 +629,25 @@ impl SimCamera {
             }
         }
         out
+    }
+
+    /// Waits for the line's next rising edge until `deadline`, polling every [`LINE_POLL`]:
+    /// the time it was seen, or `None`. Edges that came while the sensor was busy are
+    /// dropped (only the latest starts an exposure).
+    fn wait_edge(&mut self, deadline: Instant) -> Option<Instant> {
+        let line = self.line.clone()?;
+        loop {
+            let edges = line();
+            if edges > self.line_seen {
+                self.line_seen = edges;
+                return Some(Instant::now());
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return None;
+            }
+            std::thread::sleep(LINE_POLL.min(deadline - now));
+        }
     }
 
     fn error(&self, kind: ErrorKind, message: impl Into<String>) -> DeviceError {
@@ -744,10 +789,11 @@ impl BlockingCamera for SimCamera {
 
     fn set_trigger(&mut self, mode: TriggerMode) -> Result<(), DeviceError> {
         self.check_stopped("trigger")?;
-        if mode == TriggerMode::Hardware {
+        if mode == TriggerMode::Hardware && self.line.is_none() {
             return Err(self.error(
                 ErrorKind::OutOfRange,
-                "trigger = hardware is not offered: allowed free-run, software",
+                "trigger = hardware needs a wired trigger line (none is wired): allowed \
+                 free-run, software",
             ));
         }
         self.trigger_mode = mode;
@@ -760,6 +806,7 @@ impl BlockingCamera for SimCamera {
         }
         self.streaming = true;
         self.triggers = 0;
+        self.line_seen = self.line.as_ref().map_or(0, |line| line());
         self.exposing = None;
         self.next_start = Instant::now();
         Ok(())
@@ -784,6 +831,10 @@ impl BlockingCamera for SimCamera {
         // One trigger waits while the sensor is busy; more are ignored, as on real cameras.
         self.triggers = (self.triggers + 1).min(1 + u32::from(self.exposing.is_some()));
         Ok(())
+    }
+
+    fn supports_hardware_trigger(&self) -> bool {
+        self.line.is_some()
     }
 
     fn on_exposure_end(&mut self, hook: ExposureEndHook) -> bool {
@@ -815,7 +866,11 @@ impl BlockingCamera for SimCamera {
                     self.triggers -= 1;
                     Instant::now()
                 }
-                TriggerMode::Software | TriggerMode::Hardware => {
+                TriggerMode::Hardware => match self.wait_edge(deadline) {
+                    Some(at) => at,
+                    None => return Ok(Grabbed::Nothing),
+                },
+                TriggerMode::Software => {
                     std::thread::sleep(wait);
                     return Ok(Grabbed::Nothing);
                 }
@@ -872,4 +927,74 @@ pub fn noise_seed(seed: u64, stream: u64, id: u64) -> u64 {
         z ^ (z >> 31)
     };
     mix(mix(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ stream).wrapping_add(id))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::{AtomicU64, Ordering};
+
+    fn camera() -> SimCamera {
+        let n = 16 * 16;
+        let scene = SimScene {
+            width: 16,
+            height: 16,
+            stokes: vec![[1.0, 0.2, 0.0]; n],
+            region: vec![0; n],
+            materials: vec!["uniform".into()],
+            material_means: vec![[1.0, 0.2, 0.0]],
+            band: Band::flat(400.0, 700.0).expect("band"),
+        };
+        let camera = Camera::from_toml_str(include_str!("../../examples/cameras/cmos_modern.toml"))
+            .expect("camera file");
+        SimCamera::new(
+            SimCameraConfig {
+                id: "line".into(),
+                camera,
+                scene: Arc::new(scene),
+                max_frame_rate_hz: 1000.0,
+                faults: CameraFaults::default(),
+                seed: 3,
+                noise_stream: 0,
+            },
+            Arc::new(|| 0.0),
+        )
+        .expect("camera")
+    }
+
+    /// Hardware trigger (`TriggerSource = Line`): refused while no line is wired (the error
+    /// names the trigger and what is allowed); once wired, edges before the start are ignored,
+    /// no frame comes without an edge, one edge gives exactly one frame, and two edges that
+    /// arrive while the camera is not looking give one frame (the second dropped: trigger
+    /// overlap off), with consecutive frame ids.
+    #[test]
+    fn line_trigger_exposes_once_per_edge() {
+        let mut cam = camera();
+        assert!(!cam.supports_hardware_trigger());
+        let e = cam.set_trigger(TriggerMode::Hardware).expect_err("no line");
+        assert_eq!(e.kind(), ErrorKind::OutOfRange);
+        assert!(e.to_string().contains("trigger = hardware"), "{e}");
+        let edges = Arc::new(AtomicU64::new(5));
+        let reader = Arc::clone(&edges);
+        cam.wire_line(Arc::new(move || reader.load(Ordering::SeqCst)));
+        assert!(cam.supports_hardware_trigger());
+        cam.set_trigger(TriggerMode::Hardware).expect("wired");
+        cam.set_exposure_us(100.0).expect("exposure");
+        cam.start().expect("start");
+        let wait = Duration::from_millis(20);
+        assert!(matches!(cam.wait_frame(wait), Ok(Grabbed::Nothing)));
+        edges.fetch_add(1, Ordering::SeqCst);
+        let first = match cam.wait_frame(Duration::from_secs(2)) {
+            Ok(Grabbed::Frame(f)) => f,
+            other => panic!("expected a frame, got {other:?}"),
+        };
+        assert!(matches!(cam.wait_frame(wait), Ok(Grabbed::Nothing)));
+        edges.fetch_add(2, Ordering::SeqCst);
+        let second = match cam.wait_frame(Duration::from_secs(2)) {
+            Ok(Grabbed::Frame(f)) => f,
+            other => panic!("expected a frame, got {other:?}"),
+        };
+        assert_eq!(second.frame_id, first.frame_id + 1);
+        assert!(matches!(cam.wait_frame(wait), Ok(Grabbed::Nothing)));
+    }
 }

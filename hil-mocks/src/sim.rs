@@ -112,6 +112,12 @@ impl Simulator for Box<dyn Simulator> {
 /// device faults and a seed; `None` for a model the dialect does not have.
 pub type BuildSimulator = fn(&str, FaultProfile, u64) -> Option<Box<dyn Simulator>>;
 
+/// Builds a rotator simulator of one model moving and homing at `deg_s` degrees per second
+/// (a demo's or a test's speed, not the real mount's; a simulator may cap it where its
+/// protocol cannot express the speed, and says so in its documentation) with device faults
+/// and a seed; `None` for a model the dialect does not have or that is not a rotator.
+pub type BuildAtSpeed = fn(&str, f64, FaultProfile, u64) -> Option<Box<dyn Simulator>>;
+
 /// The simulators of one serial dialect, keyed by the dialect's name in
 /// `polar_drivers::registry::DIALECTS`.
 #[derive(Debug, Clone, Copy)]
@@ -122,6 +128,10 @@ pub struct SimDialect {
     pub models: &'static [&'static str],
     /// The constructor.
     pub build: BuildSimulator,
+    /// The constructor of its rotators at a chosen speed (the engine's simulated rig, whose
+    /// plan sets `simulation.stage_deg_per_s`); `None`: the dialect's rotators run at their
+    /// real speed only.
+    pub at_speed: Option<BuildAtSpeed>,
 }
 
 /// Every dialect's simulators, one line each.
@@ -137,6 +147,18 @@ pub static SIMULATORS: &[SimDialect] = &[
             };
             Some(Box::new(NativeDevice::new(config, faults, seed)))
         },
+        // Cruise at the speed, accelerate to it in 1/8 s, home in 0.1 s.
+        at_speed: Some(|model, deg_s, faults, seed| {
+            if model != "rotator" {
+                return None;
+            }
+            let mut config = NativeConfig::rotator();
+            let v = (deg_s * f64::from(config.counts_per_turn) / 360.0).round();
+            config.velocity_counts_per_s = v.clamp(1.0, f64::from(u32::MAX)) as u32;
+            config.acceleration_counts_per_s2 = config.velocity_counts_per_s.saturating_mul(8);
+            config.homing_s = 0.1;
+            Some(Box::new(NativeDevice::new(config, faults, seed)))
+        }),
     },
     SimDialect {
         dialect: "elliptec",
@@ -151,6 +173,7 @@ pub static SIMULATORS: &[SimDialect] = &[
             };
             Some(Box::new(ElliptecDevice::new(config, faults, seed)))
         },
+        at_speed: None,
     },
     SimDialect {
         dialect: "fw102c",
@@ -163,11 +186,13 @@ pub static SIMULATORS: &[SimDialect] = &[
             };
             Some(Box::new(Fw102cDevice::new(config, faults, seed)))
         },
+        at_speed: None,
     },
     SimDialect {
         dialect: "apt",
         models: &["k10cr1", "prm1z8"],
         build: crate::apt::simulate,
+        at_speed: Some(crate::apt::simulate_at_speed),
     },
 ];
 

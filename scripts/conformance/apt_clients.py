@@ -227,14 +227,24 @@ def apt_device(model, port):
             wait_for(lambda: still() and abs(abs(st["position"] - start) - step) <= TOL_COUNTS, "one jog step")
 
         def velocity_stop():
-            dev.move_velocity("forward")
-            wait_for(lambda: not still(), "moving at velocity")
-            time.sleep(0.3)
-            dev.stop()
-            wait_for(still, "stopped")
-            p = st["position"]
-            time.sleep(0.3)
-            check(abs(st["position"] - p) <= TOL_COUNTS, "still after the stop")
+            # MOT_MOVE_VELOCITY both ways (param2 1 forward, 2 reverse), each ended by
+            # MOT_MOVE_STOP: profiled after the forward run, immediate after the reverse one.
+            # The KDC101 class inverts by default (invert_direction_logic=True: its "forward"
+            # sends param2 2, toward negative counts, and it swaps the moving bits to match);
+            # the counts must move the way the client's flag says.
+            invert = -1 if dev.invert_direction_logic else 1
+            for direction, sign, immediate in (("forward", invert, False), ("reverse", -invert, True)):
+                start = st["position"]
+                bit = "moving_" + direction
+                dev.move_velocity(direction)
+                wait_for(lambda: st[bit], f"the {bit} bit at velocity")
+                time.sleep(0.3)
+                dev.stop(immediate=immediate)
+                wait_for(still, "stopped")
+                p = st["position"]
+                check(sign * (p - start) > 0, f"a {direction} velocity move went {start} -> {p} counts")
+                time.sleep(0.3)
+                check(abs(st["position"] - p) <= TOL_COUNTS, "still after the stop")
 
         def home_params():
             hp = dev.homeparams_[0][0]

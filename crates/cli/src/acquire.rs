@@ -8,7 +8,7 @@
 //! for `resume` (exit status 3).
 
 use crate::commands::CommandError;
-use polar_engine::plan::Plan;
+use polar_engine::plan::{Plan, SimStage};
 use polar_engine::run::{self, Control, Controller, Event, Outcome, Rig, RunState};
 use polar_engine::sim::SimRig;
 use polar_hal::{Analyzer, Camera};
@@ -434,10 +434,54 @@ seed = 7
 stage_deg_per_s = 720
 "#;
 
-/// `demo`: a short adaptive acquisition on simulated devices into `out` (replaced).
+/// The `demo --stage` values: `native` (our firmware's rotator, the default) and every other
+/// simulated rotator's model (`k10cr1`, `ell14`, ...), from the simulators' registry.
+pub fn demo_stages() -> Vec<&'static str> {
+    std::iter::once("native")
+        .chain(
+            SimStage::rotators()
+                .into_iter()
+                .filter(|(d, _)| *d != "native")
+                .map(|(_, m)| m),
+        )
+        .collect()
+}
+
+/// The `[simulation] stage` of `demo --stage NAME`: `None` for `native`; an error naming
+/// `--stage`, the value and the allowed values otherwise.
+pub fn demo_stage(name: &str) -> Result<Option<SimStage>, CommandError> {
+    if name == "native" {
+        return Ok(None);
+    }
+    SimStage::rotators()
+        .into_iter()
+        .find(|(d, m)| *d != "native" && *m == name)
+        .map(|(d, m)| {
+            Some(SimStage {
+                dialect: d.to_string(),
+                model: Some(m.to_string()),
+            })
+        })
+        .ok_or_else(|| {
+            CommandError(format!(
+                "--stage {name:?} is not a simulated rotation stage: allowed {}",
+                demo_stages().join(", ")
+            ))
+        })
+}
+
+/// `demo`: a short adaptive acquisition on simulated devices into `out` (replaced), the
+/// analyzer on our firmware's simulated rotator.
 pub fn demo(out: &Path, ui: Ui) -> Result<String, CommandError> {
+    demo_on_stage(out, "native", ui)
+}
+
+/// `demo --stage NAME`: the demo with the analyzer on the simulated stage `NAME` (one of
+/// [`demo_stages`]), driven through its dialect's real driver over a pseudo-terminal.
+pub fn demo_on_stage(out: &Path, stage: &str, ui: Ui) -> Result<String, CommandError> {
     let t0 = Instant::now();
     let mut plan = Plan::from_toml_str(DEMO_PLAN).map_err(err)?;
+    plan.simulation.stage = demo_stage(stage)?;
     // Only an earlier demo's run is replaced; any other run in `--out` is refused.
     if !run::run_parts(out).is_empty() {
         let earlier_demo = run::plan_of(out).is_ok_and(|p| p.name == plan.name);
@@ -458,7 +502,7 @@ pub fn demo(out: &Path, ui: Ui) -> Result<String, CommandError> {
     let _log = crate::logging::to_run_dir(out);
     let rt = runtime()?;
     let local = tokio::task::LocalSet::new();
-    let (outcome, truth, sensor, camera_model) = local.block_on(&rt, async {
+    let (outcome, truth, sensor, camera_model, stage_line) = local.block_on(&rt, async {
         // The exposure from the truth: the brightest pixel at half the full well.
         let link_dir = out.join(".sim");
         let (probe, cam) =
@@ -477,11 +521,22 @@ pub fn demo(out: &Path, ui: Ui) -> Result<String, CommandError> {
                 .max(10.0);
         }
         let (o, rig) = run_simulated(&plan, Path::new("."), out, false, ui).await?;
+        let stage_line = match plan.simulation.stage {
+            None => "our firmware's protocol, simulated behind a pseudo-terminal, driven by \
+                     the real driver"
+                .to_string(),
+            Some(_) => format!(
+                "{} ({} dialect), simulated behind a pseudo-terminal, driven by the real {} driver",
+                rig.server.describe(),
+                rig.stage_dialect,
+                rig.stage_dialect
+            ),
+        };
         let truth = rig.scene.clone();
         let sensor = rig.sensor.clone();
         let cm = rig.camera_model.clone();
         rig.shutdown().await;
-        Ok::<_, CommandError>((o, truth, sensor, cm))
+        Ok::<_, CommandError>((o, truth, sensor, cm, stage_line))
     })?;
     let summary = match outcome {
         Outcome::Done(s) => s,
@@ -493,16 +548,20 @@ pub fn demo(out: &Path, ui: Ui) -> Result<String, CommandError> {
         }
         Outcome::Aborted(r) => return Err(CommandError(format!("the demo was aborted: {r}"))),
     };
-    demo_report(out, &plan, &summary, &truth, &sensor, &camera_model, t0)
+    let models = (&sensor, &camera_model);
+    demo_report(out, &plan, &stage_line, &summary, &truth, models, t0)
 }
 
 fn demo_report(
     out: &Path,
     plan: &Plan,
+    stage_line: &str,
     summary: &run::Summary,
     truth: &polar_hil_mocks::camera::SimScene,
-    sensor: &polar_model::sensor::SensorModel,
-    camera: &polar_model::sensor::Camera,
+    (sensor, camera): (
+        &polar_model::sensor::SensorModel,
+        &polar_model::sensor::Camera,
+    ),
     t0: Instant,
 ) -> Result<String, CommandError> {
     use std::fmt::Write as _;
@@ -518,7 +577,7 @@ fn demo_report(
     let _ = writeln!(
         s,
         "Demo: adaptive polarimetric target detection on simulated devices\n\
-         - stage: our firmware's protocol, simulated behind a pseudo-terminal, driven by the real driver\n\
+         - stage: {stage_line}\n\
          - camera: simulated, {}x{} frames rendered from the rooftop scene model through the stage's true angle\n\
          - target: the metal panel against everything else (asphalt, grass, glass, paint)\n\
          - exposure: {:.0} us ({:.1} % of the exposure that puts the brightest pixel at half \

@@ -15,6 +15,7 @@ pub mod devices;
 pub mod figures;
 pub mod logging;
 pub mod plan;
+pub mod plan_continuous;
 pub mod rig;
 pub mod study;
 pub mod study_aptd;

@@ -5,9 +5,10 @@
 //! GUI hold a stage of any dialect without being generic over it, and a new dialect needs no
 //! change here (its registry line in [`crate::registry`] boxes its driver).
 
-use polar_hal::{DeviceError, FilterWheel, Rotator, RotatorInfo};
+use polar_hal::{ContinuousSupport, DeviceError, FilterWheel, Rotator, RotatorInfo, TriggerPulse};
 use std::future::Future;
 use std::pin::Pin;
+use std::time::Duration;
 
 /// A boxed future that may hold the device borrowed (drivers run on local tasks: not `Send`).
 pub type LocalFuture<'a, T> = Pin<Box<dyn Future<Output = T> + 'a>>;
@@ -20,6 +21,20 @@ trait DynRotator {
     fn position_rad(&mut self) -> LocalFuture<'_, Result<f64, DeviceError>>;
     fn supports_velocity(&self) -> bool;
     fn set_velocity(&mut self, rad_per_s: f64) -> LocalFuture<'_, Result<(), DeviceError>>;
+    fn continuous_support(&self) -> ContinuousSupport;
+    fn spin(&mut self, rad_per_s: f64) -> LocalFuture<'_, Result<(), DeviceError>>;
+    fn stop_spin(&mut self) -> LocalFuture<'_, Result<f64, DeviceError>>;
+    fn spin_position_rad(&mut self) -> LocalFuture<'_, Result<f64, DeviceError>>;
+    fn arm_trigger(
+        &mut self,
+        first_rad: f64,
+        interval_rad: f64,
+        count: u32,
+    ) -> LocalFuture<'_, Result<(), DeviceError>>;
+    fn next_trigger(
+        &mut self,
+        timeout: Duration,
+    ) -> LocalFuture<'_, Result<TriggerPulse, DeviceError>>;
 }
 
 impl<R: Rotator> DynRotator for R {
@@ -40,6 +55,32 @@ impl<R: Rotator> DynRotator for R {
     }
     fn set_velocity(&mut self, rad_per_s: f64) -> LocalFuture<'_, Result<(), DeviceError>> {
         Box::pin(Rotator::set_velocity(self, rad_per_s))
+    }
+    fn continuous_support(&self) -> ContinuousSupport {
+        Rotator::continuous_support(self)
+    }
+    fn spin(&mut self, rad_per_s: f64) -> LocalFuture<'_, Result<(), DeviceError>> {
+        Box::pin(Rotator::spin(self, rad_per_s))
+    }
+    fn stop_spin(&mut self) -> LocalFuture<'_, Result<f64, DeviceError>> {
+        Box::pin(Rotator::stop_spin(self))
+    }
+    fn spin_position_rad(&mut self) -> LocalFuture<'_, Result<f64, DeviceError>> {
+        Box::pin(Rotator::spin_position_rad(self))
+    }
+    fn arm_trigger(
+        &mut self,
+        first_rad: f64,
+        interval_rad: f64,
+        count: u32,
+    ) -> LocalFuture<'_, Result<(), DeviceError>> {
+        Box::pin(Rotator::arm_trigger(self, first_rad, interval_rad, count))
+    }
+    fn next_trigger(
+        &mut self,
+        timeout: Duration,
+    ) -> LocalFuture<'_, Result<TriggerPulse, DeviceError>> {
+        Box::pin(Rotator::next_trigger(self, timeout))
     }
 }
 
@@ -76,6 +117,35 @@ impl Rotator for AnyRotator {
 
     async fn set_velocity(&mut self, rad_per_s: f64) -> Result<(), DeviceError> {
         self.0.set_velocity(rad_per_s).await
+    }
+
+    fn continuous_support(&self) -> ContinuousSupport {
+        self.0.continuous_support()
+    }
+
+    async fn spin(&mut self, rad_per_s: f64) -> Result<(), DeviceError> {
+        self.0.spin(rad_per_s).await
+    }
+
+    async fn stop_spin(&mut self) -> Result<f64, DeviceError> {
+        self.0.stop_spin().await
+    }
+
+    async fn spin_position_rad(&mut self) -> Result<f64, DeviceError> {
+        self.0.spin_position_rad().await
+    }
+
+    async fn arm_trigger(
+        &mut self,
+        first_rad: f64,
+        interval_rad: f64,
+        count: u32,
+    ) -> Result<(), DeviceError> {
+        self.0.arm_trigger(first_rad, interval_rad, count).await
+    }
+
+    async fn next_trigger(&mut self, timeout: Duration) -> Result<TriggerPulse, DeviceError> {
+        self.0.next_trigger(timeout).await
     }
 }
 

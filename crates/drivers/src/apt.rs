@@ -20,6 +20,15 @@
 //!   a verdict: the status bits are polled until the motion ends.
 //! * **Datum**: the status bits' `homed` flag is read before every move; a controller that lost
 //!   it (a reset, a power cycle) is homed again. A reopened port is identified and homed again.
+//! * **Velocity mode** ([`Rotator::spin`], [`Rotator::stop_spin`]): `MOT_SET_VELPARAMS` sets
+//!   the speed (read back with `MOT_REQ_VELPARAMS`), `MOT_MOVE_VELOCITY` (param2 1 forward,
+//!   2 reverse) starts the motion, which runs until `MOT_MOVE_STOP` (profiled, param2 2; the
+//!   end is `MOT_MOVE_STOPPED`); the status bits must show motion in the asked direction, and
+//!   the velocity parameters are restored after the stop. The mounts have no position-compare
+//!   trigger output: continuous acquisition runs a free-running camera
+//!   ([`polar_hal::ContinuousSupport::Velocity`]). The position counter is a signed 32-bit
+//!   count that the controllers do not wrap: a K10CR1 spinning one way overflows it after 43
+//!   turns (a PRM1Z8 after a million).
 //! * Every request that expects a reply is idempotent and retried with backoff; input is
 //!   purged before each; unsolicited status updates, stale replies and bytes that do not form
 //!   a plausible message are skipped (and counted, [`AptRotator::skipped`]).
@@ -33,7 +42,10 @@ use crate::registry::{
     DeviceKind, Dialect, FlowControl, Identity, LineSettings, Position, LINE_8N1,
 };
 use codec::{status, Decoded, HwInfo, Message, VelParams};
-use polar_hal::{signed_difference, wrap, DeviceError, ErrorKind, Rotator, RotatorInfo, TURN_RAD};
+use polar_hal::{
+    signed_difference, wrap, ContinuousSupport, DeviceError, ErrorKind, Rotator, RotatorInfo,
+    TURN_RAD,
+};
 use std::io;
 use std::time::Duration;
 use tokio::time::Instant;
@@ -214,6 +226,9 @@ pub struct AptRotator {
     tolerance_rad: f64,
     hw: Option<HwInfo>,
     velocity: Option<VelParams>,
+    /// The velocity parameters before velocity mode changed them (restored by
+    /// [`Rotator::stop_spin`]).
+    spin_restore: Option<VelParams>,
     needs_init: bool,
     rehomes: u32,
     skipped: u64,
@@ -266,6 +281,7 @@ impl AptRotator {
             tolerance_rad,
             hw: None,
             velocity: None,
+            spin_restore: None,
             needs_init: true,
             rehomes: 0,
             skipped: 0,
@@ -630,6 +646,102 @@ impl AptRotator {
         Ok(self.angle(p))
     }
 
+    /// Sets the velocity parameters' max velocity to `deg_s` and checks it reads back (the
+    /// controller's rounding: one unit).
+    async fn write_max_velocity(&mut self, deg_s: f64) -> Result<(), DeviceError> {
+        let mut params = self.known_velocity_params().await?;
+        params.max_velocity = self.model.velocity_to_device(deg_s).round() as i32;
+        self.write_velocity_params(params).await
+    }
+
+    /// The velocity parameters, read from the controller if none are known.
+    async fn known_velocity_params(&mut self) -> Result<VelParams, DeviceError> {
+        if self.velocity.is_none() {
+            self.velocity_params().await?;
+        }
+        self.velocity
+            .ok_or_else(|| self.error(ErrorKind::Protocol, "no velocity parameters"))
+    }
+
+    /// Writes `params` (`MOT_SET_VELPARAMS`) and checks the max velocity reads back.
+    async fn write_velocity_params(&mut self, params: VelParams) -> Result<(), DeviceError> {
+        self.send(&params.set_message()).await?;
+        self.velocity_params().await?;
+        let got = self.velocity.map_or(0, |v| v.max_velocity);
+        if (i64::from(got) - i64::from(params.max_velocity)).abs() > 1 {
+            return Err(self.error(
+                ErrorKind::Other,
+                format!(
+                    "max velocity reads {got} after setting {}: refused",
+                    params.max_velocity
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Checks a speed against the model's top speed: `|deg/s|` in `(0, max]`, positive unless
+    /// `signed`. Returns deg/s.
+    fn check_speed(&self, rad_per_s: f64, signed: bool) -> Result<f64, DeviceError> {
+        let deg_s = rad_per_s.to_degrees();
+        let max = self.model.max_velocity_deg_s();
+        let size_ok = deg_s.is_finite() && deg_s != 0.0 && deg_s.abs() <= max * (1.0 + 1e-9);
+        if size_ok && (signed || deg_s > 0.0) {
+            return Ok(deg_s);
+        }
+        let allowed = if signed {
+            format!("0 < |deg/s| <= {max} (the sign is the direction)")
+        } else {
+            format!("(0, {max}] deg/s")
+        };
+        Err(self.error(
+            ErrorKind::OutOfRange,
+            format!(
+                "rad_per_s = {rad_per_s} ({deg_s} deg/s) is out of range for the {}: allowed {allowed}",
+                self.model.name()
+            ),
+        ))
+    }
+
+    /// Starts velocity mode at `deg_s` (signed) and checks the status bits show motion in
+    /// that direction; retried (the start has no reply to lose, so a start that does not show
+    /// is sent again).
+    async fn start_spin(&mut self, deg_s: f64) -> Result<(), DeviceError> {
+        self.ensure_ready().await?;
+        let before = self.known_velocity_params().await?;
+        // The move parameters to restore: those before the first spin of a series.
+        if self.spin_restore.is_none() {
+            self.spin_restore = Some(before);
+        }
+        self.write_max_velocity(deg_s.abs()).await?;
+        let (direction, moving) = if deg_s > 0.0 {
+            (1, status::MOVING_FWD)
+        } else {
+            (2, status::MOVING_REV)
+        };
+        let mut bits = 0;
+        for k in 0..self.policy.attempts.max(1) {
+            self.policy.pause_before(k).await;
+            self.send(&Message::short(
+                codec::MOT_MOVE_VELOCITY,
+                codec::CHANNEL,
+                direction,
+            ))
+            .await?;
+            tokio::time::sleep(Duration::from_millis(20)).await;
+            bits = self.status_bits().await?;
+            if bits & moving != 0 {
+                return Ok(());
+            }
+        }
+        Err(self.error(
+            ErrorKind::Stalled,
+            format!(
+                "velocity mode at {deg_s} deg/s did not start (status {bits:#010x}, want bit {moving:#x})"
+            ),
+        ))
+    }
+
     /// One absolute move to `target` counts from `start`, judged by readback.
     async fn move_once(&mut self, start: i32, target: i32) -> Result<i32, DeviceError> {
         self.link.discard_input().await?;
@@ -702,6 +814,7 @@ pub async fn probe(connector: Box<dyn Connector>, policy: Policy) -> Result<Prob
         tolerance_rad: 0.0,
         hw: None,
         velocity: None,
+        spin_restore: None,
         needs_init: false,
         rehomes: 0,
         skipped: 0,
@@ -832,40 +945,36 @@ impl Rotator for AptRotator {
     }
 
     async fn set_velocity(&mut self, rad_per_s: f64) -> Result<(), DeviceError> {
-        let deg_s = rad_per_s.to_degrees();
-        let max = self.model.max_velocity_deg_s();
-        if !(deg_s.is_finite() && deg_s > 0.0 && deg_s <= max * (1.0 + 1e-9)) {
-            return Err(self.error(
-                ErrorKind::OutOfRange,
-                format!(
-                    "rad_per_s = {rad_per_s} ({deg_s} deg/s) is out of range for the {}: allowed (0, {max}] deg/s",
-                    self.model.name()
-                ),
-            ));
-        }
+        let deg_s = self.check_speed(rad_per_s, false)?;
         self.ensure_ready().await?;
-        let mut params = match self.velocity {
-            Some(p) => p,
-            None => {
-                self.velocity_params().await?;
-                self.velocity
-                    .ok_or_else(|| self.error(ErrorKind::Protocol, "no velocity parameters"))?
-            }
-        };
-        params.max_velocity = self.model.velocity_to_device(deg_s).round() as i32;
-        self.send(&params.set_message()).await?;
-        self.velocity_params().await?;
-        let got = self.velocity.map_or(0, |v| v.max_velocity);
-        if (i64::from(got) - i64::from(params.max_velocity)).abs() > 1 {
-            return Err(self.error(
-                ErrorKind::Other,
-                format!(
-                    "max velocity reads {got} after setting {}: refused",
-                    params.max_velocity
-                ),
-            ));
+        self.write_max_velocity(deg_s).await
+    }
+
+    fn continuous_support(&self) -> ContinuousSupport {
+        ContinuousSupport::Velocity
+    }
+
+    /// Velocity mode at `rad_per_s` (signed: positive is forward), at most the model's top
+    /// speed (K10CR1 10 deg/s, PRM1Z8 25 deg/s); a second call changes the speed and
+    /// direction.
+    async fn spin(&mut self, rad_per_s: f64) -> Result<(), DeviceError> {
+        let deg_s = self.check_speed(rad_per_s, true)?;
+        self.start_spin(deg_s).await
+    }
+
+    /// A profiled stop (`MOT_MOVE_STOP` until `MOT_MOVE_STOPPED` and no motion bit), then the
+    /// velocity parameters of before the spin are written back.
+    async fn stop_spin(&mut self) -> Result<f64, DeviceError> {
+        let at = self.stop().await?;
+        if let Some(p) = self.spin_restore.take() {
+            self.write_velocity_params(p).await?;
         }
-        Ok(())
+        Ok(at)
+    }
+
+    async fn spin_position_rad(&mut self) -> Result<f64, DeviceError> {
+        let p = self.position_counts().await?;
+        Ok((f64::from(p) / self.model.counts_per_deg()).to_radians())
     }
 }
 

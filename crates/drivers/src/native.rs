@@ -14,8 +14,8 @@ use polar_firmware_protocol::{
     PROTOCOL_VERSION,
 };
 use polar_hal::{
-    angle_from_counts, counts_toward, DeviceError, ErrorKind, FilterWheel, Rotator, RotatorInfo,
-    TURN_RAD,
+    angle_from_counts, counts_toward, ContinuousSupport, DeviceError, ErrorKind, FilterWheel,
+    Rotator, RotatorInfo, TURN_RAD,
 };
 use std::collections::VecDeque;
 use std::time::Duration;
@@ -48,17 +48,7 @@ pub struct Identity {
     pub serial: u32,
 }
 
-/// One position-compare trigger pulse, as the controller reported it.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TriggerPulse {
-    /// The pulse's index from the arming, from 0.
-    pub index: u32,
-    /// The encoder position latched at the pulse, radians, unwrapped (it keeps counting past a
-    /// turn while the stage spins).
-    pub angle_rad: f64,
-    /// The controller's clock at the pulse, microseconds (wraps at 2^32).
-    pub device_time_us: u32,
-}
+pub use polar_hal::TriggerPulse;
 
 /// A status reading.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -229,6 +219,7 @@ impl NativeSession {
                             p.seq,
                             TriggerPulse {
                                 index,
+                                counts: i64::from(position_counts),
                                 angle_rad: f64::from(position_counts)
                                     / f64::from(counts_per_turn.max(1))
                                     * TURN_RAD,
@@ -926,6 +917,38 @@ impl Rotator for NativeRotator {
 
     fn supports_velocity(&self) -> bool {
         true
+    }
+
+    fn continuous_support(&self) -> ContinuousSupport {
+        ContinuousSupport::VelocityAndTrigger
+    }
+
+    async fn spin(&mut self, rad_per_s: f64) -> Result<(), DeviceError> {
+        NativeRotator::spin(self, rad_per_s).await
+    }
+
+    async fn stop_spin(&mut self) -> Result<f64, DeviceError> {
+        NativeRotator::stop_spin(self).await
+    }
+
+    /// A status round trip (the count is the controller's, unwrapped).
+    async fn spin_position_rad(&mut self) -> Result<f64, DeviceError> {
+        self.session.ensure_ready().await?;
+        let p = self.session.status().await?.position_counts;
+        Ok(f64::from(p) / f64::from(self.info.counts_per_turn.max(1)) * TURN_RAD)
+    }
+
+    async fn arm_trigger(
+        &mut self,
+        first_rad: f64,
+        interval_rad: f64,
+        count: u32,
+    ) -> Result<(), DeviceError> {
+        NativeRotator::arm_trigger(self, first_rad, interval_rad, count).await
+    }
+
+    async fn next_trigger(&mut self, timeout: Duration) -> Result<TriggerPulse, DeviceError> {
+        NativeRotator::next_trigger(self, timeout).await
     }
 
     /// Cruise at `rad_per_s` (up to 10 turns/s), accelerating to it in 0.25 s.

@@ -466,6 +466,75 @@ fn class_forecast(
     })
 }
 
+/// The classes of a continuous plan: each half turn's frames through the span rows
+/// (`polar_model::span::span_signal`), sigmas per half turn, the saturation margin from the
+/// brightest span over the analyzer's phase (`polar_model::span::span_peak`, mean + 3 sigma).
+fn continuous_classes(
+    scene: &Scene,
+    camera: &Camera,
+    c: &crate::continuous::Continuous,
+    names: &[&str],
+    notes: &mut Vec<String>,
+) -> Result<Vec<ClassForecast>, ForecastError> {
+    use polar_model::span::{span_peak, span_signal, SpanExposure};
+    let camera = camera_at_gain(camera, c.gain_db);
+    let sensor = SensorModel::new(&camera, &scene.spec.band).map_err(model_err("camera"))?;
+    notes.extend(sensor.warnings().iter().cloned());
+    let spans = c.spans_rad();
+    let t = c.exposure_us * 1e-6;
+    notes.push(format!(
+        "continuous: {} frames per half turn, each sweeping {:.4} deg (span rows, sinc {:.6});          sigmas are per half turn; the duration is at speed ({} deg/s), the stage's spin-up          not included",
+        c.frames_per_half_turn,
+        c.span_deg(),
+        polar_model::span::sinc(c.span_deg().to_radians()),
+        c.speed_deg_per_s
+    ));
+    let mut out = Vec::new();
+    for r in evaluate_materials(scene, names)? {
+        let field = format!("material {}", r.name);
+        let s = span_signal(
+            &sensor,
+            &spans,
+            &SpanExposure {
+                t_int_s: t,
+                radiance_w_m2_sr: r.mean.0,
+                angle_sigma_rad: c.angle_sigma_rad(),
+            },
+        )
+        .map_err(model_err(field.clone()))?;
+        let stats = dolp_aop_stats(&s.stokes_dn, &s.stokes_cov_dn2, RegimeChoice::Auto)
+            .map_err(model_err(field.clone()))?;
+        let cov = 0.5 * (r.cov + r.cov.transpose());
+        let (peak, peak_sigma) = span_peak(&sensor, c.span_deg().to_radians(), t, &r.mean.0, &cov)
+            .map_err(model_err(field.clone()))?;
+        let saturation = sensor.camera().saturation_dn();
+        let margin = (saturation - (peak + 3.0 * peak_sigma)) / saturation;
+        if margin < 0.0 {
+            notes.push(format!(
+                "{}: mean + 3 sigma of the brightest span exceeds saturation ({saturation} DN)",
+                r.name
+            ));
+        }
+        let p = s.stokes_dn[1].hypot(s.stokes_dn[2]);
+        out.push(ClassForecast {
+            material: r.name.clone(),
+            mean_dn: s.mean_dn.clone(),
+            s0_dn: s.stokes_dn[0],
+            dolp: if s.stokes_dn[0] > 0.0 {
+                p / s.stokes_dn[0]
+            } else {
+                0.0
+            },
+            aop_deg: stats.aop_mean_rad.to_degrees(),
+            sigma_s0_dn: s.stokes_cov_dn2[(0, 0)].max(0.0).sqrt(),
+            sigma_dolp: stats.dolp_std,
+            sigma_aop_deg: stats.aop_std_rad.to_degrees(),
+            saturation_margin: margin,
+        });
+    }
+    Ok(out)
+}
+
 /// `(saturation - max_i(mean_i + 3 sigma_i)) / saturation`.
 fn saturation_margin(s: &polar_model::sensor::SensorSignal) -> f64 {
     let top = (0..s.mean_dn.len())
@@ -540,6 +609,8 @@ pub fn forecast(
             .adaptive
             .as_ref()
             .map(|a| (a.initial_angles_deg.clone(), vec![a.exposure_us], a.gain_db)),
+        // Span rows, not point rows: classes below from `continuous_classes`.
+        PlanKind::Continuous => None,
         PlanKind::CalibrateNoise => {
             notes.push(
                 "calibrate-noise: a uniform unpolarised source (an integrating sphere) fills \
@@ -598,6 +669,11 @@ pub fn forecast(
     }
 
     let mut classes = Vec::new();
+    if let (PlanKind::Continuous, Some(c)) = (plan.kind, &plan.continuous) {
+        // The schedule above is step-and-shoot's; at speed the half turns take their time.
+        duration_s = c.duration_at_speed_s();
+        classes = continuous_classes(scene, camera, c, &names, &mut notes)?;
+    }
     let angles_deg = at.as_ref().map(|(a, _, _)| a.clone());
     if let Some((angles, exposures, gain_db)) = at {
         let camera = camera_at_gain(camera, gain_db);
@@ -678,6 +754,36 @@ repeats = 2
 darks_before = 1
 darks_after = 1
 "#;
+
+    /// The example continuous plan (4 frames per half turn, 20 half turns at 360 deg/s, 2 ms
+    /// each): 80 frames in 20 sets, 10 s at speed (exact: 20 x 180 / 360); one class per
+    /// material with finite sigmas. Its S1/S2 rows are scaled by sinc(0.72 deg); the same
+    /// section spun at 20000 deg/s (beyond a plan's range, taken here for its 40-deg span at
+    /// the same exposure) predicts a larger DoLP sigma for every class: the polarised terms
+    /// shrink by sinc(40 deg) = 0.92 and nothing else changes.
+    #[test]
+    fn continuous_frames_duration_and_span_rows() {
+        let (scene, camera) = models();
+        let plan =
+            Plan::from_toml_str(include_str!("../../../examples/plans/continuous.toml")).unwrap();
+        let f = forecast(&plan, &scene, &camera, &Timing::simulated(&plan)).expect("forecast");
+        assert_eq!((f.frames, f.sets, f.darks), (80, 20, 0));
+        assert!((f.duration_s - 10.0).abs() < 1e-12, "{}", f.duration_s);
+        assert_eq!(f.classes.len(), scene.materials.len());
+        let mut wide = plan.clone();
+        if let Some(c) = wide.continuous.as_mut() {
+            c.speed_deg_per_s = 20_000.0;
+        }
+        let w = forecast(&wide, &scene, &camera, &Timing::simulated(&wide)).expect("forecast");
+        for (a, b) in f.classes.iter().zip(&w.classes) {
+            assert!(a.sigma_dolp.is_finite() && a.sigma_s0_dn > 0.0, "{a:?}");
+            assert!(
+                b.sigma_dolp > a.sigma_dolp,
+                "{}: {b:?} vs {a:?}",
+                a.material
+            );
+        }
+    }
 
     /// A capture of 4 angles x 2 repeats with a dark before and after: the frames are the
     /// steps, and the duration is the sum of the parts by hand (tolerance 1e-12 relative:

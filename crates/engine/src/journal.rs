@@ -166,7 +166,7 @@ impl Entry {
 
 /// Frame records in JSON: NaN (written as `null`) reads back as NaN.
 mod frame_json {
-    use crate::{FrameKind, FrameRecord};
+    use crate::{AngleSource, FrameKind, FrameRecord};
     use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
     pub fn serialize<S: Serializer>(r: &FrameRecord, s: S) -> Result<S::Ok, S::Error> {
@@ -183,6 +183,16 @@ mod frame_json {
         label: String,
         commanded_angle_deg: Option<f64>,
         measured_angle_deg: Option<f64>,
+        // Absent in journals written before frames recorded their span: a step-and-shoot
+        // frame, whose span is its settled reading.
+        #[serde(default)]
+        angle_start_deg: Option<f64>,
+        #[serde(default)]
+        angle_end_deg: Option<f64>,
+        #[serde(default)]
+        angle_source: Option<AngleSource>,
+        #[serde(default)]
+        angle_sigma_deg: Option<f64>,
         exposure_us: Option<f64>,
         gain: Option<f64>,
         host_time_unix_ns: i64,
@@ -197,6 +207,15 @@ mod frame_json {
 
     pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<FrameRecord, D::Error> {
         let j = Json::deserialize(d)?;
+        let measured = j.measured_angle_deg.unwrap_or(f64::NAN);
+        let source = j.angle_source.unwrap_or(AngleSource::Settled);
+        let (start, end) = match j.angle_source {
+            Some(_) => (
+                j.angle_start_deg.unwrap_or(f64::NAN),
+                j.angle_end_deg.unwrap_or(f64::NAN),
+            ),
+            None => (measured, measured),
+        };
         Ok(FrameRecord {
             index: j.index,
             step: j.step,
@@ -204,7 +223,11 @@ mod frame_json {
             set: j.set,
             label: j.label,
             commanded_angle_deg: j.commanded_angle_deg.unwrap_or(f64::NAN),
-            measured_angle_deg: j.measured_angle_deg.unwrap_or(f64::NAN),
+            measured_angle_deg: measured,
+            angle_start_deg: start,
+            angle_end_deg: end,
+            angle_source: source,
+            angle_sigma_deg: j.angle_sigma_deg.unwrap_or(f64::NAN),
             exposure_us: j.exposure_us.unwrap_or(f64::NAN),
             gain: j.gain.unwrap_or(f64::NAN),
             host_time_unix_ns: j.host_time_unix_ns,
@@ -703,6 +726,10 @@ mod tests {
             label: format!("set 0 angle {}", index * 45),
             commanded_angle_deg: index as f64 * 45.0,
             measured_angle_deg: f64::NAN,
+            angle_start_deg: index as f64 * 45.0,
+            angle_end_deg: index as f64 * 45.0 + 2.5,
+            angle_source: crate::AngleSource::EncoderTrigger,
+            angle_sigma_deg: 0.01,
             exposure_us: 1000.0,
             gain: 0.0,
             host_time_unix_ns: 1_700_000_000_000_000_000 + index as i64,
@@ -809,6 +836,30 @@ mod tests {
         assert!(r.is_finished());
         assert_eq!(r.aborted(), None);
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A frame entry written before frames recorded their span reads back as a step-and-shoot
+    /// frame: start and end both the settled reading (exactly), source settled, sigma NaN;
+    /// a frame entry with a span keeps it (the JSON round trip is exact for these values).
+    #[test]
+    fn frame_without_span_reads_as_settled() {
+        let old = r#"{"index":3,"step":3,"kind":"light","set":0,"label":"set 0 angle 45",
+            "commanded_angle_deg":45.0,"measured_angle_deg":44.99,"exposure_us":1000.0,
+            "gain":0.0,"host_time_unix_ns":5,"device_timestamp_ns":null,"frame_id":3,
+            "sun_zenith_deg":null,"sun_azimuth_deg":null,"width":4,"height":2,"hash":1}"#;
+        let mut d = serde_json::Deserializer::from_str(old);
+        let r = frame_json::deserialize(&mut d).unwrap();
+        assert_eq!(r.angle_start_deg, 44.99);
+        assert_eq!(r.angle_end_deg, 44.99);
+        assert_eq!(r.angle_source, crate::AngleSource::Settled);
+        assert!(r.angle_sigma_deg.is_nan());
+        let text = serde_json::to_string(&record(2, 5)).unwrap();
+        let mut d = serde_json::Deserializer::from_str(&text);
+        let back = frame_json::deserialize(&mut d).unwrap();
+        assert_eq!(back.angle_start_deg, 90.0);
+        assert_eq!(back.angle_end_deg, 92.5);
+        assert_eq!(back.angle_source, crate::AngleSource::EncoderTrigger);
+        assert_eq!(back.angle_sigma_deg, 0.01);
     }
 
     #[test]

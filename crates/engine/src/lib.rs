@@ -9,6 +9,7 @@
 //! - [`store`]: the run's Zarr v3 store (one chunk per frame), its metadata and products.
 //! - [`products`]: live Stokes, DoLP, AoP and their predicted per-pixel sigma.
 //! - [`export`]: TIFF export for viewers.
+//! - [`continuous`]: continuous-rotation plans, their spans and the span-row Stokes estimate.
 //! - [`analyzer_cal`]: the analyzer's zero offset and extinction ratio from Malus's law.
 //! - [`sim`]: the simulated devices a run uses with `--simulate` (and `demo`).
 
@@ -16,6 +17,7 @@
 
 pub mod analyzer_cal;
 pub mod check;
+pub mod continuous;
 pub mod export;
 pub mod flags;
 pub mod forecast;
@@ -57,6 +59,46 @@ impl FrameKind {
     }
 }
 
+/// How a frame's analyzer span (`angle_start_deg`, `angle_end_deg`) was measured: the code
+/// of `frames/angle_source`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AngleSource {
+    /// Step and shoot: the stage's reading after the move settled (start and end equal).
+    Settled,
+    /// Continuous rotation with a position-compare trigger: the start is the encoder count
+    /// latched at the trigger pulse, the end that count plus the speed times the exposure.
+    EncoderTrigger,
+    /// Continuous rotation with a free-running camera: start and end from the frame's
+    /// timestamps and the stage's position samples (uncertainty in `angle_sigma_deg`).
+    Timestamps,
+}
+
+impl AngleSource {
+    /// Every source with its code and name, in code order.
+    pub const CODES: [(u8, &'static str); 3] =
+        [(0, "settled"), (1, "encoder_trigger"), (2, "timestamps")];
+
+    /// The code stored in `frames/angle_source`.
+    pub fn code(self) -> u8 {
+        match self {
+            AngleSource::Settled => 0,
+            AngleSource::EncoderTrigger => 1,
+            AngleSource::Timestamps => 2,
+        }
+    }
+
+    /// The source of a stored code.
+    pub fn from_code(code: u8) -> Option<AngleSource> {
+        match code {
+            0 => Some(AngleSource::Settled),
+            1 => Some(AngleSource::EncoderTrigger),
+            2 => Some(AngleSource::Timestamps),
+            _ => None,
+        }
+    }
+}
+
 /// Everything recorded about one stored frame (journal entry and `frames/*` arrays).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FrameRecord {
@@ -76,6 +118,16 @@ pub struct FrameRecord {
     pub commanded_angle_deg: f64,
     /// Analyzer angle read back after the move, degrees in `[0, 180)` (NaN if not read).
     pub measured_angle_deg: f64,
+    /// Analyzer angle when the exposure started, degrees in `[0, 180)` (NaN if not known).
+    /// Step and shoot: the settled reading, equal to `measured_angle_deg`.
+    pub angle_start_deg: f64,
+    /// Analyzer angle when the exposure ended, degrees, unwrapped from `angle_start_deg`:
+    /// `angle_end_deg - angle_start_deg` is the span swept, in `[0, 180)`.
+    pub angle_end_deg: f64,
+    /// How the span was measured.
+    pub angle_source: AngleSource,
+    /// Standard uncertainty of each end of the span, degrees (NaN: not estimated).
+    pub angle_sigma_deg: f64,
     /// Exposure the camera applied, microseconds.
     pub exposure_us: f64,
     /// Gain the camera applied, in the camera's gain unit.

@@ -79,6 +79,9 @@ pub enum PlanKind {
     TimeLapse,
     /// The APTD loop: the planner re-aims the analyzer from the frames taken.
     Adaptive,
+    /// The analyzer spins; frames are exposed while it turns, one Stokes set per half turn
+    /// ([`crate::continuous`]).
+    Continuous,
 }
 
 impl PlanKind {
@@ -90,6 +93,7 @@ impl PlanKind {
             PlanKind::CalibrateAnalyzer => "calibrate-analyzer",
             PlanKind::TimeLapse => "time-lapse",
             PlanKind::Adaptive => "adaptive",
+            PlanKind::Continuous => "continuous",
         }
     }
 }
@@ -374,6 +378,11 @@ pub struct Simulation {
     pub seed: u64,
     /// Stage speed, degrees per second, (0, 3600].
     pub stage_deg_per_s: f64,
+    /// The simulated stage: a rotator of a dialect's simulator
+    /// (`polar_hil_mocks::sim::SIMULATORS`), e.g. `stage = { dialect = "apt", model =
+    /// "k10cr1" }`, driven through its dialect's driver; none: our firmware's rotator.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stage: Option<SimStage>,
     /// Fault profile of the stage's serial link (hil-mocks `FaultProfile` fields).
     pub stage_faults: Option<toml::Table>,
     /// Camera faults (hil-mocks `CameraFaults` fields).
@@ -394,10 +403,80 @@ impl Default for Simulation {
             height: 120,
             seed: 1,
             stage_deg_per_s: 720.0,
+            stage: None,
             stage_faults: None,
             camera_faults: None,
             cloud_at_set: None,
             cloud_depth: 0.3,
+        }
+    }
+}
+
+/// `[simulation] stage`: which simulated rotation stage the simulated rig drives.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimStage {
+    /// The dialect (`native`, `elliptec`, `apt`, ...: one with a rotator simulator).
+    pub dialect: String,
+    /// The model, lower case (`k10cr1`, `ell14`, ...); none: the dialect's first rotator.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<String>,
+}
+
+impl SimStage {
+    /// Every simulated rotator as (dialect, model), in the simulators' table order: the
+    /// models whose simulator reports an angle (wheels and sliders report a slot).
+    pub fn rotators() -> Vec<(&'static str, &'static str)> {
+        use polar_hil_mocks::faults::FaultProfile;
+        use polar_hil_mocks::sim::{Truth, SIMULATORS};
+        SIMULATORS
+            .iter()
+            .flat_map(|s| s.models.iter().map(move |m| (s.dialect, *m, s.build)))
+            .filter(|(_, m, build)| {
+                build(m, FaultProfile::default(), 0)
+                    .is_some_and(|sim| matches!(sim.truth(0.0), Truth::Angle { .. }))
+            })
+            .map(|(d, m, _)| (d, m))
+            .collect()
+    }
+
+    /// The stage as (dialect, model), checked against [`SimStage::rotators`]; an error names
+    /// `simulation.stage.dialect` or `simulation.stage.model`, the value and what is allowed.
+    pub fn resolve(&self) -> Result<(&'static str, &'static str), PlanError> {
+        let rotators = Self::rotators();
+        let mut dialects: Vec<&str> = rotators.iter().map(|r| r.0).collect();
+        dialects.dedup();
+        let Some(dialect) = dialects.iter().copied().find(|d| *d == self.dialect) else {
+            return Err(invalid(
+                "simulation.stage.dialect",
+                format!("{:?}", self.dialect),
+                format!(
+                    "one of {} (dialects with a simulated rotator)",
+                    dialects.join(", ")
+                ),
+            ));
+        };
+        let models: Vec<&'static str> = rotators
+            .iter()
+            .filter(|r| r.0 == dialect)
+            .map(|r| r.1)
+            .collect();
+        match &self.model {
+            None => Ok((dialect, models[0])),
+            Some(m) => models
+                .iter()
+                .find(|x| **x == m.as_str())
+                .map(|x| (dialect, *x))
+                .ok_or_else(|| {
+                    invalid(
+                        "simulation.stage.model",
+                        format!("{m:?}"),
+                        format!(
+                            "one of {} (the simulated {dialect} rotators)",
+                            models.join(", ")
+                        ),
+                    )
+                }),
         }
     }
 }
@@ -427,6 +506,9 @@ pub struct Plan {
     /// `kind = "adaptive"`.
     #[serde(default)]
     pub adaptive: Option<Adaptive>,
+    /// `kind = "continuous"`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub continuous: Option<crate::continuous::Continuous>,
     /// Deadlines and retries.
     #[serde(default)]
     pub policy: Policy,
@@ -582,6 +664,7 @@ impl Plan {
             ),
             (PlanKind::TimeLapse, self.time_lapse.is_some()),
             (PlanKind::Adaptive, self.adaptive.is_some()),
+            (PlanKind::Continuous, self.continuous.is_some()),
         ];
         for (kind, present) in sections {
             if kind == self.kind && !present {
@@ -651,11 +734,17 @@ impl Plan {
             3600.0,
             true,
         )?;
+        if let Some(stage) = &sim.stage {
+            stage.resolve()?;
+        }
         check("simulation.cloud_depth", sim.cloud_depth, 0.0, 1.0, true)?;
         if sim.cloud_depth >= 1.0 {
             return Err(invalid("simulation.cloud_depth", sim.cloud_depth, "(0, 1)"));
         }
         let gain = |field: &str, g: f64| check(field, g, 0.0, 48.0, false);
+        if let Some(c) = &self.continuous {
+            c.validate()?;
+        }
         if let Some(c) = &self.capture {
             match (&c.angles_deg, &c.from_planner) {
                 (Some(a), None) => {
@@ -991,6 +1080,25 @@ impl Plan {
                     ));
                 }
             }
+            PlanKind::Continuous => {
+                // One set per half turn; each step a frame triggered at its angle.
+                let c = self
+                    .continuous
+                    .as_ref()
+                    .ok_or_else(|| invalid("continuous", "(missing)", "a [continuous] section"))?;
+                let angles = c.trigger_angles_deg();
+                for h in 0..u64::from(c.half_turns) {
+                    for (k, &a) in angles.iter().enumerate() {
+                        steps.push(light(
+                            Some(h),
+                            format!("half turn {h} frame {k} {a} deg"),
+                            a,
+                            c.exposure_us,
+                            c.gain_db,
+                        ));
+                    }
+                }
+            }
         }
         Ok(steps)
     }
@@ -1144,6 +1252,7 @@ target = { material = "panel" }
             include_str!("../../../examples/plans/calibrate_analyzer.toml"),
             include_str!("../../../examples/plans/timelapse.toml"),
             include_str!("../../../examples/plans/adaptive.toml"),
+            include_str!("../../../examples/plans/continuous.toml"),
         ];
         for text in examples {
             Plan::from_toml_str(text).expect("example plan");

@@ -1,6 +1,13 @@
-//! The simulated rig of `--simulate`, `demo` and the tests: our firmware's rotation stage
-//! simulated behind a real pseudo-terminal (driven by the real `NativeRotator` driver) and the
-//! simulated camera, which renders every frame from the model through the stage's true angle.
+//! The simulated rig of `--simulate`, `demo` and the tests: a rotation stage simulated behind
+//! a real pseudo-terminal, driven by its dialect's real driver, and the simulated camera, which
+//! renders every frame from the model through the stage's true angle (the stage simulator's
+//! truth). The plan's `simulation.stage` chooses the stage among the simulators' registry's
+//! rotators (`polar_hil_mocks::sim::SIMULATORS`; by default our firmware's rotator, `native`)
+//! and the driver comes from the dialects' registry (`polar_drivers::registry::DIALECTS`), so a
+//! new simulated rotator needs no change here. The stage moves and homes at
+//! `simulation.stage_deg_per_s` where its simulator offers a chosen speed
+//! (`SimDialect::at_speed`; the APT K10CR1 is capped at 293 deg/s, the most its velocity
+//! parameter expresses), otherwise at the real device's speed.
 //!
 //! The scene depends on the plan: the plan's scene file (by default the rooftop panels) for
 //! captures, time-lapses and adaptive runs; a uniform unpolarised source (an integrating
@@ -9,17 +16,17 @@
 //! `simulation.cloud_at_set` dims the scene in the middle of that set.
 
 use crate::plan::{Plan, PlanKind};
-use polar_drivers::link::SerialPath;
-use polar_drivers::native::{self, NativeRotator};
+use polar_drivers::any::AnyRotator;
+use polar_drivers::registry;
 use polar_hal::camera_thread::{ThreadPolicy, ThreadedCamera};
 use polar_hal::{Approach, OnRotator};
 use polar_hal::{DeviceError, Roi};
 use polar_hil_mocks::camera::{
-    CameraFaults, Illumination, Layout, SimCamera, SimCameraConfig, SimScene,
+    CameraFaults, Illumination, Layout, LineSource, SimCamera, SimCameraConfig, SimScene,
 };
 use polar_hil_mocks::faults::FaultProfile;
-use polar_hil_mocks::native::{NativeConfig, NativeDevice};
 use polar_hil_mocks::serve::SimServer;
+use polar_hil_mocks::sim::{Simulator, SIMULATORS};
 use polar_model::scene_file::Scene;
 use polar_model::sensor::{Camera as CameraModel, SensorModel};
 use std::path::{Path, PathBuf};
@@ -29,9 +36,6 @@ use std::sync::Arc;
 pub const DEFAULT_SCENE: &str = include_str!("../../../examples/rooftop_panels.toml");
 /// The default simulated camera: the modern CMOS example.
 pub const DEFAULT_CAMERA: &str = include_str!("../../../examples/cameras/cmos_modern.toml");
-
-/// Stage counts per turn of the simulated rotator.
-const COUNTS_PER_TURN: f64 = 144_000.0;
 
 /// Why the simulated rig did not start.
 #[derive(Debug, thiserror::Error)]
@@ -65,6 +69,10 @@ pub struct SimRig {
     pub server: SimServer,
     /// The pseudo-terminal the driver opens.
     pub link: PathBuf,
+    /// The stage's dialect (its driver's registry name).
+    pub stage_dialect: &'static str,
+    /// The stage's model, as the simulators' registry names it.
+    pub stage_model: &'static str,
     /// The scene (ground truth).
     pub scene: Arc<SimScene>,
     /// The camera model the frames are drawn from.
@@ -130,6 +138,81 @@ fn fault_profiles(plan: &Plan) -> Result<(FaultProfile, CameraFaults), SimError>
     };
     Ok((stage, camera))
 }
+
+/// The plan's simulated stage (dialect, model, simulator) from the simulators' registry: at
+/// `simulation.stage_deg_per_s` where the dialect offers a chosen speed, otherwise at the
+/// real device's; an error names `simulation.stage` and what is allowed.
+fn stage_simulator(
+    plan: &Plan,
+    faults: FaultProfile,
+) -> Result<(&'static str, &'static str, Box<dyn Simulator>), SimError> {
+    let sim = &plan.simulation;
+    let (dialect, model) = match &sim.stage {
+        Some(stage) => stage
+            .resolve()
+            .map_err(|e| SimError::Input(e.to_string()))?,
+        None => ("native", "rotator"),
+    };
+    let entry = SIMULATORS
+        .iter()
+        .find(|s| s.dialect == dialect)
+        .ok_or_else(|| {
+            SimError::Input(format!(
+                "simulation.stage.dialect = {dialect:?} has no simulator"
+            ))
+        })?;
+    let device = match entry.at_speed {
+        Some(at_speed) => at_speed(model, sim.stage_deg_per_s, faults, sim.seed),
+        None => (entry.build)(model, faults, sim.seed),
+    }
+    .ok_or_else(|| {
+        SimError::Input(format!(
+            "simulation.stage.model = {model:?}: the {dialect} simulators build no such rotator"
+        ))
+    })?;
+    Ok((dialect, model, device))
+}
+
+/// The camera's trigger line wired to the stage's position-compare output, for a continuous
+/// plan: a rising edge each time the stage's true angle crosses a whole multiple of
+/// `interval_rad` (180 / N degrees) in the positive direction while the camera watches the
+/// line. The continuous run arms the stage's pulses at exactly these positions (whole
+/// multiples of the interval from the datum), so each edge is the exposure of the stage's
+/// pulse at the same position; the edge comes from the true angle, so the exposure starts
+/// where the analyzer really is when the pulse fires (up to the camera's line poll,
+/// `polar_hil_mocks::camera::LINE_POLL`). The camera reads the line only while it waits for
+/// an edge: a crossing while it exposes, reads out or is stopped is not seen (a busy camera
+/// ignores a trigger), so reads more than [`LINE_GAP`] apart count no crossing between them.
+pub fn compare_line(truth: polar_hil_mocks::serve::TruthHandle, interval_rad: f64) -> LineSource {
+    let angle = truth.angle_source();
+    // (time and wrapped angle of the last read, edges so far)
+    let state = std::sync::Mutex::new((None::<(std::time::Instant, f64)>, 0u64));
+    Arc::new(move || {
+        let now = angle();
+        let at = std::time::Instant::now();
+        let Ok(mut guard) = state.lock() else {
+            return 0;
+        };
+        let (last, edges) = &mut *guard;
+        if let Some((then, before)) = *last {
+            if at.duration_since(then) <= LINE_GAP {
+                // Less than a half turn passes in LINE_GAP at any plan's speed (3600 deg/s).
+                let step = polar_hal::signed_difference(now, before, polar_hal::TURN_RAD);
+                let crossed =
+                    ((before + step) / interval_rad).floor() - (before / interval_rad).floor();
+                if step > 0.0 && crossed > 0.0 {
+                    *edges += crossed as u64;
+                }
+            }
+        }
+        *last = Some((at, now));
+        *edges
+    })
+}
+
+/// The longest time between two reads of [`compare_line`] that still counts the crossings
+/// between them (the camera polls every 50 us while it waits for an edge).
+pub const LINE_GAP: std::time::Duration = std::time::Duration::from_millis(2);
 
 /// The adaptive target's material as a mask of the simulated scene (row-major), if the plan
 /// names one; an error naming `adaptive.target.material` if the scene has no such material.
@@ -278,12 +361,7 @@ impl SimRig {
             scene_file,
         } = SimRig::world(plan, plan_dir)?;
         let (stage_faults, camera_faults) = fault_profiles(plan)?;
-        let mut config = NativeConfig::rotator();
-        let v = (sim.stage_deg_per_s * COUNTS_PER_TURN / 360.0).round();
-        config.velocity_counts_per_s = v.clamp(1.0, f64::from(u32::MAX)) as u32;
-        config.acceleration_counts_per_s2 = config.velocity_counts_per_s.saturating_mul(8);
-        config.homing_s = 0.1;
-        let device = NativeDevice::new(config, stage_faults, sim.seed);
+        let (stage_dialect, stage_model, device) = stage_simulator(plan, stage_faults)?;
         std::fs::create_dir_all(link_dir)
             .map_err(|e| SimError::Stage(format!("{}: {e}", link_dir.display())))?;
         let link = link_dir.join("stage");
@@ -302,6 +380,17 @@ impl SimRig {
             server.truth_handle().angle_source(),
         )
         .map_err(|e| SimError::Camera(e.to_string()))?;
+        let mut cam = cam;
+        if let Some(c) = plan
+            .continuous
+            .as_ref()
+            .filter(|_| plan.kind == PlanKind::Continuous)
+        {
+            cam.wire_line(compare_line(
+                server.truth_handle(),
+                c.interval_deg().to_radians(),
+            ));
+        }
         let sensor = cam.sensor().clone();
         let illumination = cam.illumination();
         let camera = ThreadedCamera::spawn(cam, ThreadPolicy::default())
@@ -310,6 +399,8 @@ impl SimRig {
             SimRig {
                 server,
                 link,
+                stage_dialect,
+                stage_model,
                 scene,
                 camera_model,
                 sensor,
@@ -320,16 +411,23 @@ impl SimRig {
         ))
     }
 
-    /// Connects the real driver to the simulated stage (homes it).
-    pub async fn connect_stage(&self) -> Result<NativeRotator, DeviceError> {
-        NativeRotator::connect(
-            Box::new(SerialPath {
-                path: self.link.to_string_lossy().into_owned(),
-                baud: 115_200,
-            }),
-            native::default_policy(),
-        )
-        .await
+    /// Connects the stage's dialect's real driver (its registry constructor, line settings
+    /// and policy) to the simulated stage (homes it).
+    pub async fn connect_stage(&self) -> Result<AnyRotator, DeviceError> {
+        let not_found = |what: &str| {
+            DeviceError::new(
+                polar_hal::ErrorKind::OutOfRange,
+                self.stage_dialect,
+                format!(
+                    "simulation.stage.dialect = {:?} has no {what} in the dialects' registry: allowed {}",
+                    self.stage_dialect,
+                    registry::names()
+                ),
+            )
+        };
+        let d = registry::find(self.stage_dialect).ok_or_else(|| not_found("driver"))?;
+        let connect = d.rotator.ok_or_else(|| not_found("rotator driver"))?;
+        connect(d.connector(&self.link.to_string_lossy()), 0, (d.policy)()).await
     }
 
     /// Starts the rig for `plan` and connects the real driver to the stage: the engine's
@@ -343,7 +441,7 @@ impl SimRig {
     ) -> Result<
         (
             SimRig,
-            crate::run::Rig<OnRotator<NativeRotator>, ThreadedCamera>,
+            crate::run::Rig<OnRotator<AnyRotator>, ThreadedCamera>,
         ),
         SimError,
     > {
@@ -363,14 +461,25 @@ impl SimRig {
             }
         };
         let target_mask = target_mask(plan, &rig.scene)?;
-        let devices = serde_json::json!({
-            "kind": "simulated",
-            "plan_dir": plan_dir.display().to_string(),
-            "stage": {
+        let stage_json = if plan.simulation.stage.is_none() {
+            serde_json::json!({
                 "dialect": "native",
                 "model": "simulated native rotator (144000 counts/turn, 0.05 deg backlash)",
                 "link": rig.link.display().to_string(),
-            },
+            })
+        } else {
+            serde_json::json!({
+                "dialect": rig.stage_dialect,
+                "model": rig.stage_model,
+                "simulator": rig.server.describe(),
+                "driver": polar_hal::Rotator::info(&stage).model,
+                "link": rig.link.display().to_string(),
+            })
+        };
+        let devices = serde_json::json!({
+            "kind": "simulated",
+            "plan_dir": plan_dir.display().to_string(),
+            "stage": stage_json,
             "camera": {
                 "model": rig.camera_model.name,
                 "width": rig.scene.width,

@@ -334,3 +334,55 @@ seed = 6
     outside_check(&dir, true);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Every frame of a finished step-and-shoot run records its analyzer span as the settled
+/// reading (start = end = measured angle, exactly: the same value; source settled), which
+/// `scripts/check_run.py` accepts; a store whose span runs backwards (end 1 deg before start)
+/// or that lacks one of the four span arrays is refused, naming what is wrong.
+#[test]
+fn frames_record_their_span_and_the_outside_check_reads_it() {
+    let plan = Plan::from_toml_str(CAPTURE).unwrap();
+    let dir = temp_dir("span");
+    let (o, _, _) = go(&plan, &dir, false, Script::Watch);
+    done(&o);
+    let store = RunStore::open(&dir).unwrap();
+    let mut records = store.read_frame_metadata().unwrap();
+    assert_eq!(records.len(), 14);
+    for r in &records {
+        assert_eq!(r.angle_source, polar_engine::AngleSource::Settled);
+        assert_eq!(r.angle_start_deg.to_bits(), r.measured_angle_deg.to_bits());
+        assert_eq!(r.angle_end_deg.to_bits(), r.measured_angle_deg.to_bits());
+    }
+    outside_check(&dir, true);
+    let Some(py) = common::python() else {
+        let _ = std::fs::remove_dir_all(&dir);
+        return;
+    };
+    let script =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scripts/check_run.py");
+    let check = || {
+        let out = std::process::Command::new(&py)
+            .arg(&script)
+            .arg(&dir)
+            .output()
+            .unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stdout).into_owned(),
+        )
+    };
+    records[3].angle_end_deg = records[3].angle_start_deg - 1.0;
+    store.write_frame_metadata(&records).unwrap();
+    let (code, text) = check();
+    assert_eq!(code, Some(1), "{text}");
+    assert!(
+        text.contains("analyzer span") && text.contains("[3]"),
+        "{text}"
+    );
+    // A span array one value short.
+    std::fs::remove_dir_all(dir.join("run.zarr/frames/angle_sigma_deg")).unwrap();
+    let (code, text) = check();
+    assert_eq!(code, Some(1), "{text}");
+    assert!(text.contains("angle_sigma_deg"), "{text}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -5,7 +5,7 @@
 use polar_engine::export::{export_tiff, CSV_HEADER};
 use polar_engine::journal::{self, Entry, Journal};
 use polar_engine::store::{RunStore, StoreError};
-use polar_engine::{pixel_hash, FrameKind, FrameRecord};
+use polar_engine::{pixel_hash, AngleSource, FrameKind, FrameRecord};
 use serde_json::{json, Map, Value};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -78,6 +78,26 @@ fn record(i: u64) -> FrameRecord {
         } else {
             (i % 3) as f64 * 60.0 + 0.01
         },
+        // Frame 4 is a continuous-rotation frame (span 7.5 deg from its trigger), the others
+        // step and shoot (start = end = the settled reading).
+        angle_start_deg: if i == 1 {
+            f64::NAN
+        } else {
+            (i % 3) as f64 * 60.0 + 0.01
+        },
+        angle_end_deg: if i == 1 {
+            f64::NAN
+        } else if i == 4 {
+            (i % 3) as f64 * 60.0 + 7.51
+        } else {
+            (i % 3) as f64 * 60.0 + 0.01
+        },
+        angle_source: if i == 4 {
+            AngleSource::EncoderTrigger
+        } else {
+            AngleSource::Settled
+        },
+        angle_sigma_deg: if i == 4 { 0.0025 } else { f64::NAN },
         exposure_us: 1500.0,
         gain: 2.5,
         host_time_unix_ns: 1_700_000_000_000_000_000 + i as i64 * 1_000_000,
@@ -231,6 +251,46 @@ fn store_round_trip() {
         RunStore::open(&tmp.path().join("nowhere")),
         Err(StoreError::NotFound { .. })
     ));
+}
+
+/// A store written before frames recorded their analyzer span (no `frames/angle_*` arrays)
+/// reads back with every frame's span equal to its settled reading (exactly: the same stored
+/// value), source settled, sigma NaN; the other columns are unchanged.
+#[test]
+fn store_without_span_arrays_reads_as_step_and_shoot() {
+    let tmp = TempDir::new("no-span");
+    drop(write_run(tmp.path()));
+    for name in [
+        "angle_start_deg",
+        "angle_end_deg",
+        "angle_source",
+        "angle_sigma_deg",
+    ] {
+        std::fs::remove_dir_all(tmp.path().join("run.zarr/frames").join(name)).unwrap();
+    }
+    let store = RunStore::open(tmp.path()).unwrap();
+    let back = store.read_frame_metadata().unwrap();
+    assert_eq!(back.len(), N as usize);
+    for (b, r) in back.iter().zip((0..N).map(record)) {
+        assert_eq!(b.angle_source, AngleSource::Settled);
+        assert!(b.angle_sigma_deg.is_nan());
+        assert_eq!(
+            b.angle_start_deg.to_bits(),
+            r.measured_angle_deg.to_bits(),
+            "frame {}",
+            r.index
+        );
+        assert_eq!(b.angle_end_deg.to_bits(), r.measured_angle_deg.to_bits());
+        assert_eq!(b.hash, r.hash);
+    }
+    // A new store written with a timestamps source keeps it.
+    drop(store);
+    let store = write_run(&tmp.path().join("again"));
+    let mut records: Vec<FrameRecord> = (0..N).map(record).collect();
+    records[2].angle_source = AngleSource::Timestamps;
+    store.write_frame_metadata(&records).unwrap();
+    let back = store.read_frame_metadata().unwrap();
+    assert_eq!(back[2].angle_source, AngleSource::Timestamps);
 }
 
 #[test]
@@ -477,6 +537,22 @@ fn expected_for_python(store: &RunStore) -> Value {
             "float64",
             col(&|r| json!(r.measured_angle_deg)),
         ),
+        (
+            "angle_start_deg",
+            "float64",
+            col(&|r| json!(r.angle_start_deg)),
+        ),
+        ("angle_end_deg", "float64", col(&|r| json!(r.angle_end_deg))),
+        (
+            "angle_source",
+            "uint8",
+            col(&|r| json!(r.angle_source.code())),
+        ),
+        (
+            "angle_sigma_deg",
+            "float64",
+            col(&|r| json!(r.angle_sigma_deg)),
+        ),
         ("exposure_us", "float64", col(&|r| json!(r.exposure_us))),
         ("gain", "float64", col(&|r| json!(r.gain))),
         (
@@ -648,4 +724,48 @@ fn write_frame_timing_full_size() {
             .collect::<Vec<_>>()
             .join(", ")
     );
+}
+
+/// A process killed between storing a small array's chunk and its metadata leaves the
+/// newer chunk beside the older metadata. Every index array keeps a fixed chunk shape, so
+/// that pair still reads (as the older values), and the next writer carries on from it.
+#[test]
+fn an_index_array_torn_between_chunk_and_metadata_reads_as_its_older_state() {
+    let tmp = TempDir::new("torn-index");
+    let store = write_run(tmp.path());
+    let set_meta = tmp.path().join("run.zarr/products/set/zarr.json");
+    let frames_meta = tmp.path().join("run.zarr/frames/hash/zarr.json");
+    let older_set_meta = std::fs::read(&set_meta).unwrap();
+    let older_frames_meta = std::fs::read(&frames_meta).unwrap();
+    // A third slot and two more frame records, then the crash: both arrays' metadata revert
+    // to what it was, while their chunks hold the newer values.
+    let images: Vec<(&str, Vec<f32>)> = PRODUCT_NAMES.iter().map(|n| (*n, product(99.0))).collect();
+    let refs: Vec<(&str, &[f32])> = images.iter().map(|(n, v)| (*n, v.as_slice())).collect();
+    store.write_products(7, &slot_angles(2), &refs).unwrap();
+    let records: Vec<FrameRecord> = (0..N + 2).map(record).collect();
+    for i in N..N + 2 {
+        store.write_frame(i, &pixels(i)).unwrap();
+    }
+    store.write_frame_metadata(&records).unwrap();
+    drop(store);
+    std::fs::write(&set_meta, older_set_meta).unwrap();
+    std::fs::write(&frames_meta, older_frames_meta).unwrap();
+
+    let reopened = RunStore::open(tmp.path()).unwrap();
+    let slots = reopened.product_slots().unwrap();
+    let sets: Vec<Option<u64>> = slots.iter().map(|s| s.set).collect();
+    assert_eq!(sets, vec![Some(3), Some(4)], "the older index: two slots");
+    // The frame arrays now disagree in length (hash has the older 6, the rest 8): the
+    // reader names the mismatch instead of failing to decode a chunk.
+    let err = reopened.read_frame_metadata().unwrap_err().to_string();
+    assert!(err.contains("frames/"), "{err}");
+    // The next writer rewrites from its own records and everything reads again.
+    reopened.write_frame_metadata(&records).unwrap();
+    assert!(same_records(
+        &reopened.read_frame_metadata().unwrap(),
+        &records
+    ));
+    let slot = reopened.write_products(7, &slot_angles(2), &refs).unwrap();
+    assert_eq!(slot, 2, "set 7 takes the third slot again");
+    assert_eq!(reopened.product_slots().unwrap().len(), 3);
 }

@@ -74,6 +74,15 @@ pub enum Command {
         /// The plan, TOML.
         plan_text: String,
     },
+    /// Start a live mode on the connected devices (see [`crate::live`]).
+    LiveStart {
+        /// Live camera or live polarimetry.
+        mode: crate::live::LiveMode,
+        /// How live polarimetry spins and exposes.
+        spin: crate::live::SpinSettings,
+    },
+    /// Stop the live mode.
+    LiveStop,
 }
 
 /// The latest products of a run, with the last stored raw frame.
@@ -159,6 +168,8 @@ pub enum Reply {
     Log(String),
     /// A forecast (text) or why there is none.
     Forecast(Result<String, String>),
+    /// News from a live mode.
+    Live(crate::live::LiveUpdate),
 }
 
 /// The UI's end of the engine worker.
@@ -232,13 +243,13 @@ impl Drop for EngineHandle {
 }
 
 /// The worker's end of the reply channel.
-struct Out {
+pub(crate) struct Out {
     tx: mpsc::Sender<Reply>,
     wake: Option<Box<dyn Fn() + Send>>,
 }
 
 impl Out {
-    async fn send(&self, r: Reply) -> bool {
+    pub(crate) async fn send(&self, r: Reply) -> bool {
         let ok = self.tx.send(r).await.is_ok();
         if let Some(w) = &self.wake {
             w();
@@ -247,7 +258,7 @@ impl Out {
     }
 
     /// Sends `r` if there is room, else drops it (for the run's loop, which must not wait).
-    fn note(&self, r: Reply) {
+    pub(crate) fn note(&self, r: Reply) {
         let _ = self.tx.try_send(r);
         if let Some(w) = &self.wake {
             w();
@@ -267,12 +278,12 @@ pub enum Devices {
 }
 
 /// Devices connected from the device panel (not held by a run).
-struct Connected {
+pub(crate) struct Connected {
     /// The simulated devices' servers (`None` on hardware).
     sim: Option<SimRig>,
     /// A hardware rig's simulated stage (its port `sim`).
     stage_sim: Option<polar_hil_mocks::serve::SimServer>,
-    rig: HardwareRig,
+    pub(crate) rig: HardwareRig,
     /// The `[simulation]` section and plan folder the simulated rig was built from.
     built_from: Option<(polar_engine::plan::Simulation, PathBuf)>,
     /// The folder of the simulated stage's pseudo-terminal link (removed on release).
@@ -298,7 +309,7 @@ impl Connected {
 
 impl Connected {
     /// The status, reading the stage's position.
-    async fn status(&mut self, last: String) -> DeviceStatus {
+    pub(crate) async fn status(&mut self, last: String) -> DeviceStatus {
         let info = self.rig.camera.info().clone();
         let mut st = DeviceStatus {
             connected: true,
@@ -476,8 +487,46 @@ async fn worker(
     // The exposure and gain last applied (the camera trait has no getters).
     let mut settings = (None, None);
     let mut plan_dir = PathBuf::from(".");
-    while let Some(cmd) = commands.recv().await {
+    // Commands a live mode left for this loop.
+    let mut pending: std::collections::VecDeque<Command> = std::collections::VecDeque::new();
+    loop {
+        let cmd = match pending.pop_front() {
+            Some(c) => c,
+            None => match commands.recv().await {
+                Some(c) => c,
+                None => break,
+            },
+        };
         match cmd {
+            Command::LiveStart { mode, spin } => match connected.as_mut() {
+                Some(c) => {
+                    let left = crate::live_worker::run_live(
+                        c,
+                        mode,
+                        spin,
+                        &mut commands,
+                        &out,
+                        &mut settings,
+                        &plan_dir,
+                    )
+                    .await;
+                    pending.extend(left);
+                    let mut st = c.status(format!("{} stopped", mode.label())).await;
+                    st.exposure_us = settings.0;
+                    st.gain = settings.1;
+                    out.send(Reply::Devices(st)).await;
+                }
+                None => {
+                    out.send(Reply::Live(crate::live::LiveUpdate::Stopped {
+                        mode,
+                        error: Some(format!("{}: connect the devices first", mode.label())),
+                    }))
+                    .await;
+                }
+            },
+            Command::LiveStop => {
+                out.send(Reply::Log("no live mode is running".into())).await;
+            }
             Command::PlanDir(d) => plan_dir = d,
             Command::Start { plan_text } => {
                 // A plan that does not parse leaves the devices as they are.
@@ -636,7 +685,10 @@ async fn worker(
 
 /// The forecast of a plan on the simulated rig, as text (on a blocking thread: a large
 /// simulated scene takes a while to build).
-async fn compute_forecast(plan_text: String, plan_dir: PathBuf) -> Result<String, String> {
+pub(crate) async fn compute_forecast(
+    plan_text: String,
+    plan_dir: PathBuf,
+) -> Result<String, String> {
     tokio::task::spawn_blocking(move || forecast_text(&plan_text, &plan_dir))
         .await
         .map_err(|e| format!("forecast: {e}"))?
@@ -842,7 +894,8 @@ async fn run_one(
                 }
                 Some(Command::Connect { .. } | Command::Disconnect | Command::Home
                     | Command::MoveAnalyzer { .. } | Command::SetExposure { .. }
-                    | Command::SetGain { .. } | Command::Snapshot) => {
+                    | Command::SetGain { .. } | Command::Snapshot | Command::LiveStart { .. }
+                    | Command::LiveStop) => {
                     out.note(Reply::Log("the run holds the devices: device commands wait until it ends".into()));
                 }
                 Some(Command::Forecast { .. }) => {

@@ -4,15 +4,26 @@
 //! a current-thread tokio runtime with a `LocalSet`, see [`engine`]) and the two talk through
 //! bounded channels that the UI polls once per frame.
 //!
+//! The device panel also runs the two live modes ([`live`]): the camera streaming with its
+//! histogram, saturation and frame rate, and live polarimetry (the analyzer spinning, a
+//! Stokes estimate every half turn); their device loop runs on the same worker.
+//!
 //! [`App`] holds the whole UI state and draws itself into any [`egui::Ui`], so the tests
 //! drive it with `egui_kittest` without a window or a GPU.
 
 #![warn(missing_docs)]
 
 pub mod colour;
+mod device_panel;
 pub mod engine;
+pub mod live;
+mod live_worker;
 pub mod planner_panel;
 pub mod rooftop;
+pub mod view;
+
+pub(crate) use view::{colour_bar, finite_mean, histogram};
+pub use view::{fit_texture, probe_text, render, Rendered, View, HIST_BINS};
 
 use eframe::egui;
 use engine::{Command, DeviceStatus, EngineHandle, LiveProducts, Reply, Snapshot};
@@ -44,9 +55,6 @@ const MAX_PLAN_BYTES: u64 = 1 << 20;
 
 /// Lines the log keeps.
 const LOG_LINES: usize = 500;
-
-/// Bins of the histogram.
-pub const HIST_BINS: usize = 48;
 
 /// Where the UI's idea of the run is.
 #[derive(Debug, Clone, PartialEq)]
@@ -81,76 +89,6 @@ impl Status {
     }
 }
 
-/// The image the live view shows.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum View {
-    /// The last stored raw frame, DN.
-    Raw,
-    /// S0, DN.
-    S0,
-    /// DoLP.
-    Dolp,
-    /// AoP as hue with DoLP as saturation.
-    Aop,
-    /// Predicted sigma of S0, DN.
-    SigmaS0,
-    /// Predicted sigma of DoLP.
-    SigmaDolp,
-    /// Predicted sigma of AoP, degrees.
-    SigmaAop,
-}
-
-impl View {
-    /// Every view, in the selector's order.
-    pub const ALL: [View; 7] = [
-        View::Raw,
-        View::S0,
-        View::Dolp,
-        View::Aop,
-        View::SigmaS0,
-        View::SigmaDolp,
-        View::SigmaAop,
-    ];
-
-    /// The selector's label.
-    pub fn label(self) -> &'static str {
-        match self {
-            View::Raw => "Raw frame",
-            View::S0 => "S0",
-            View::Dolp => "DoLP",
-            View::Aop => "AoP",
-            View::SigmaS0 => "sigma S0",
-            View::SigmaDolp => "sigma DoLP",
-            View::SigmaAop => "sigma AoP",
-        }
-    }
-
-    /// The unit of the view's values.
-    pub fn unit(self) -> &'static str {
-        match self {
-            View::Raw | View::S0 | View::SigmaS0 => "DN",
-            View::Dolp | View::SigmaDolp => "",
-            View::Aop | View::SigmaAop => "deg",
-        }
-    }
-
-    /// The view's values of `live` (AoP in degrees), if it has them.
-    pub fn values(self, live: &LiveProducts) -> Option<Vec<f32>> {
-        let p = &live.products;
-        let v = match self {
-            View::Raw => live.raw.as_ref()?.iter().map(|&x| f32::from(x)).collect(),
-            View::S0 => p.s0.clone(),
-            View::Dolp => p.dolp.clone(),
-            View::Aop => p.aop_rad.iter().map(|a| a.to_degrees()).collect(),
-            View::SigmaS0 => p.sigma_s0.clone(),
-            View::SigmaDolp => p.sigma_dolp.clone(),
-            View::SigmaAop => p.sigma_aop_rad.iter().map(|a| a.to_degrees()).collect(),
-        };
-        let n = p.width as usize * p.height as usize;
-        (v.len() == n && n > 0).then_some(v)
-    }
-}
-
 /// The central panel's tabs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Tab {
@@ -177,123 +115,6 @@ impl Tab {
             Tab::Rooftop => "Rooftop",
         }
     }
-}
-
-/// A view in false colour: the RGB pixels and the scale they were drawn with.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Rendered {
-    /// Width, pixels.
-    pub width: usize,
-    /// Height, pixels.
-    pub height: usize,
-    /// RGB, row-major.
-    pub rgb: Vec<u8>,
-    /// The view's values (for the histogram).
-    pub values: Vec<f32>,
-    /// Display range of the values.
-    pub range: (f32, f32),
-    /// For AoP: the DoLP drawn at full saturation.
-    pub dolp_full: Option<f32>,
-    /// The histogram of the values over `range` ([`HIST_BINS`] bins), counted once.
-    pub histogram: Vec<u32>,
-    /// How many values are finite.
-    pub finite: usize,
-}
-
-/// An RGB image decimated so that neither side exceeds `max_side` (the GPU's texture limit):
-/// `(rgb, width, height, step)`, every `step`-th pixel of every `step`-th row.
-pub fn fit_texture(
-    rgb: &[u8],
-    width: usize,
-    height: usize,
-    max_side: usize,
-) -> (Vec<u8>, usize, usize, usize) {
-    let step = width.max(height).div_ceil(max_side.max(1)).max(1);
-    if step == 1 {
-        return (rgb.to_vec(), width, height, 1);
-    }
-    let (w, h) = (width.div_ceil(step), height.div_ceil(step));
-    let mut out = Vec::with_capacity(w * h * 3);
-    for y in (0..height).step_by(step) {
-        for x in (0..width).step_by(step) {
-            let i = 3 * (y * width + x);
-            out.extend_from_slice(rgb.get(i..i + 3).unwrap_or(&[0, 0, 0]));
-        }
-    }
-    (out, w, h, step)
-}
-
-/// Draws `view` of `live` in false colour: scalar views on viridis over their 1st..99th
-/// percentile, AoP as hue with DoLP as saturation (full at the 99th percentile of DoLP).
-pub fn render(live: &LiveProducts, view: View) -> Option<Rendered> {
-    let p = &live.products;
-    let values = view.values(live)?;
-    let (width, height) = (p.width as usize, p.height as usize);
-    let mut rgb = Vec::with_capacity(width * height * 3);
-    if view == View::Aop && p.dolp.len() != p.aop_rad.len() {
-        return None;
-    }
-    let (range, dolp_full) = if view == View::Aop {
-        let full = colour::robust_range(&p.dolp)
-            .map_or(1.0, |(_, hi)| hi)
-            .clamp(0.01, 1.0);
-        for (a, d) in p.aop_rad.iter().zip(&p.dolp) {
-            rgb.extend_from_slice(&colour::aop_dolp(*a, *d, full));
-        }
-        ((-90.0, 90.0), Some(full))
-    } else {
-        let range = colour::robust_range(&values).unwrap_or((0.0, 1.0));
-        for &v in &values {
-            rgb.extend_from_slice(&colour::scalar(v, range.0, range.1));
-        }
-        (range, None)
-    };
-    let histogram = colour::histogram(&values, range.0, range.1, HIST_BINS);
-    let finite = values.iter().filter(|v| v.is_finite()).count();
-    Some(Rendered {
-        width,
-        height,
-        rgb,
-        values,
-        range,
-        dolp_full,
-        histogram,
-        finite,
-    })
-}
-
-/// The pixel probe's text for pixel `(x, y)` of `live`: Stokes, DoLP and AoP with their
-/// predicted sigma.
-pub fn probe_text(live: &LiveProducts, x: usize, y: usize) -> Option<String> {
-    let p = &live.products;
-    let (w, h) = (p.width as usize, p.height as usize);
-    if x >= w || y >= h {
-        return None;
-    }
-    let i = y * w + x;
-    let at = |v: &[f32]| v.get(i).copied().unwrap_or(f32::NAN);
-    let mut s = format!(
-        "pixel ({x}, {y})\n\
-         S0 = {:.1} +/- {:.1} DN\n\
-         S1 = {:.1} +/- {:.1} DN\n\
-         S2 = {:.1} +/- {:.1} DN\n\
-         DoLP = {:.4} +/- {:.4}\n\
-         AoP = {:.2} +/- {:.2} deg",
-        at(&p.s0),
-        at(&p.sigma_s0),
-        at(&p.s1),
-        at(&p.sigma_s1),
-        at(&p.s2),
-        at(&p.sigma_s2),
-        at(&p.dolp),
-        at(&p.sigma_dolp),
-        at(&p.aop_rad).to_degrees(),
-        at(&p.sigma_aop_rad).to_degrees(),
-    );
-    if let Some(raw) = live.raw.as_ref().and_then(|r| r.get(i)) {
-        s.push_str(&format!("\nraw = {raw} DN"));
-    }
-    Some(s)
 }
 
 /// The last snapshot as the device panel shows it.
@@ -343,6 +164,7 @@ pub struct App {
     snapshot: Option<ShownSnapshot>,
     planner: planner_panel::PlannerPanel,
     rooftop: rooftop::RooftopPanel,
+    live_panel: live::LivePanel,
 }
 
 impl App {
@@ -396,6 +218,7 @@ impl App {
             snapshot: None,
             planner: planner_panel::PlannerPanel::new(),
             rooftop: rooftop::RooftopPanel::new(),
+            live_panel: live::LivePanel::new(),
         })
     }
 
@@ -412,6 +235,36 @@ impl App {
     /// The rooftop panel.
     pub fn rooftop(&self) -> &rooftop::RooftopPanel {
         &self.rooftop
+    }
+
+    /// The device panel's live modes.
+    pub fn live_panel(&self) -> &live::LivePanel {
+        &self.live_panel
+    }
+
+    /// Starts a live mode (as the device panel's Live buttons do); `false` if it cannot
+    /// start now (no devices, a run or a device command in progress, a mode running, or the
+    /// engine's queue full).
+    pub fn start_live(&mut self, mode: live::LiveMode) -> bool {
+        if self.active
+            || !self.devices.connected
+            || self.device_pending
+            || self.live_panel.running().is_some()
+        {
+            return false;
+        }
+        let cmd = self.live_panel.start(mode);
+        let ok = self.engine.send(cmd);
+        if !ok {
+            self.live_panel.start_refused();
+        }
+        ok
+    }
+
+    /// Stops the live mode (as the Stop button does); `false` if the engine's queue is full.
+    pub fn stop_live(&mut self) -> bool {
+        let cmd = self.live_panel.stop();
+        self.engine.send(cmd)
     }
 
     /// A device command is on its way (the device buttons are disabled until it answers).
@@ -561,6 +414,25 @@ impl App {
                     self.gain = g;
                 }
                 self.devices = d;
+            }
+            Reply::Live(u) => {
+                match &u {
+                    live::LiveUpdate::Started { note, .. } => self.say(note.clone()),
+                    live::LiveUpdate::Stopped { mode, error } => match error {
+                        Some(e) => self.say(format!("{} stopped: {e}", mode.label())),
+                        None => self.say(format!("{} stopped", mode.label())),
+                    },
+                    live::LiveUpdate::HalfTurn(h) => {
+                        let p = &h.products;
+                        self.say(format!(
+                            "half turn {}: mean DoLP {:.4}",
+                            h.index,
+                            finite_mean(&p.dolp)
+                        ));
+                    }
+                    live::LiveUpdate::Frame(_) => {}
+                }
+                self.live_panel.on_update(u);
             }
             Reply::Snapshot(f) => {
                 let values: Vec<f32> = f.pixels.iter().map(|&p| f32::from(p)).collect();
@@ -712,7 +584,11 @@ impl App {
             self.forecast_pending = true;
             self.forecast_for = Some(self.plan_text.clone());
         }
-        if self.active || self.forecast_pending || self.device_pending {
+        if self.active
+            || self.forecast_pending
+            || self.device_pending
+            || self.live_panel.running().is_some()
+        {
             ui.ctx().request_repaint_after(Duration::from_millis(100));
         }
         egui::Panel::top("controls").show(ui, |ui| self.controls(ui));
@@ -745,152 +621,6 @@ impl App {
                 }
             }
         });
-    }
-
-    fn device_panel(&mut self, ui: &mut egui::Ui) {
-        let idle = !self.active;
-        let connected = self.devices.connected;
-        let can = idle && connected && !self.device_pending;
-        ui.horizontal(|ui| {
-            if ui
-                .add_enabled(
-                    idle && !connected && !self.device_pending,
-                    egui::Button::new("Connect"),
-                )
-                .on_hover_text(if self.hardware {
-                    "connect the stage and the camera given on the command line"
-                } else {
-                    "start the simulated devices of the plan's [simulation] section"
-                })
-                .clicked()
-            {
-                self.device(Command::Connect {
-                    plan_text: self.plan_text.clone(),
-                    exposure_us: self.exposure_us,
-                    gain: self.gain,
-                });
-            }
-            if ui
-                .add_enabled(can, egui::Button::new("Disconnect"))
-                .clicked()
-            {
-                self.device(Command::Disconnect);
-            }
-            if ui.add_enabled(can, egui::Button::new("Home")).clicked() {
-                self.device(Command::Home);
-            }
-            if self.device_pending {
-                ui.spinner();
-            }
-        });
-        let d = &self.devices;
-        ui.label(format!(
-            "Devices: {}",
-            if self.active && d.connected {
-                "held by the run"
-            } else {
-                d.description.as_str()
-            }
-        ));
-        if let (Some(s), Some(a)) = (d.stage_deg, d.analyzer_deg) {
-            ui.label(format!("Stage at {s:.3} deg; analyzer at {a:.3} deg"));
-        }
-        let settings = match (d.exposure_us, d.gain) {
-            (Some(e), Some(g)) => format!("Camera: exposure {e:.1} us, gain {g:.2}"),
-            (Some(e), None) => format!("Camera: exposure {e:.1} us"),
-            _ => "Camera: settings not read yet (set them or take a snapshot)".into(),
-        };
-        ui.label(settings);
-        if let Some(e) = &d.error {
-            ui.colored_label(ui.visuals().error_fg_color, format!("Device error: {e}"));
-        }
-        let (exp_range, gain_range) = (
-            d.exposure_range_us.unwrap_or([1.0, 1e7]),
-            d.gain_range.unwrap_or([0.0, 48.0]),
-        );
-        egui::Grid::new("device controls")
-            .num_columns(3)
-            .show(ui, |ui| {
-                let l = ui.label("Analyzer angle (deg)");
-                ui.add(
-                    egui::DragValue::new(&mut self.move_deg)
-                        .range(0.0..=180.0)
-                        .speed(0.5),
-                )
-                .labelled_by(l.id);
-                if ui.add_enabled(can, egui::Button::new("Move")).clicked() {
-                    self.device(Command::MoveAnalyzer {
-                        angle_deg: self.move_deg,
-                    });
-                }
-                ui.end_row();
-                let l = ui.label("Exposure (us)");
-                ui.add(
-                    egui::DragValue::new(&mut self.exposure_us)
-                        .range(exp_range[0]..=exp_range[1])
-                        .speed(5.0),
-                )
-                .labelled_by(l.id);
-                if ui
-                    .add_enabled(can, egui::Button::new("Set exposure"))
-                    .clicked()
-                {
-                    self.device(Command::SetExposure {
-                        exposure_us: self.exposure_us,
-                    });
-                }
-                ui.end_row();
-                let l = ui.label("Gain");
-                ui.add(
-                    egui::DragValue::new(&mut self.gain)
-                        .range(gain_range[0]..=gain_range[1])
-                        .speed(0.1),
-                )
-                .labelled_by(l.id);
-                if ui.add_enabled(can, egui::Button::new("Set gain")).clicked() {
-                    self.device(Command::SetGain { gain: self.gain });
-                }
-                ui.end_row();
-            });
-        if ui.add_enabled(can, egui::Button::new("Snapshot")).clicked() {
-            self.device(Command::Snapshot);
-        }
-        let max_side = ui.ctx().input(|i| i.max_texture_side);
-        if let Some(ShownSnapshot {
-            frame: snap,
-            texture: tex,
-            range,
-            mean,
-        }) = &mut self.snapshot
-        {
-            let mean = *mean;
-            let (w, h) = (snap.width as usize, snap.height as usize);
-            if tex.is_none() && w * h == snap.pixels.len() && w * h > 0 {
-                let mut rgb = Vec::with_capacity(w * h * 3);
-                for &p in &snap.pixels {
-                    rgb.extend_from_slice(&colour::scalar(f32::from(p), range.0, range.1));
-                }
-                let (rgb, tw, th, _) = fit_texture(&rgb, w, h, max_side);
-                let img = egui::ColorImage::from_rgb([tw, th], &rgb);
-                *tex = Some(
-                    ui.ctx()
-                        .load_texture("snapshot", img, egui::TextureOptions::NEAREST),
-                );
-            }
-            ui.label(format!(
-                "Snapshot: frame {}, {}x{}, exposure {:.1} us, mean {mean:.1} DN (viridis {:.0} .. {:.0} DN)",
-                snap.frame_id, w, h, snap.exposure_us, range.0, range.1
-            ));
-            if let Some(t) = tex {
-                let scale = ((ui.available_width() - 16.0).max(64.0) / w as f32).min(6.0);
-                let size = egui::vec2(w as f32 * scale, h as f32 * scale);
-                ui.add(
-                    egui::Image::from_texture((t.id(), size))
-                        .fit_to_exact_size(size)
-                        .alt_text("snapshot image"),
-                );
-            }
-        }
     }
 
     fn controls(&mut self, ui: &mut egui::Ui) {
@@ -1185,53 +915,6 @@ impl App {
     }
 }
 
-/// The colour of a value at fraction `t` of the view's scale.
-fn scale_rgb(view: View, t: f32) -> colour::Rgb {
-    if view == View::Aop {
-        colour::hsv(t, 1.0, colour::AOP_VALUE)
-    } else {
-        colour::viridis(t)
-    }
-}
-
-fn colour_bar(ui: &mut egui::Ui, view: View, r: &Rendered) {
-    let unit = view.unit();
-    ui.label(format!("{} {}", view.label(), unit));
-    rooftop::paint_bar(ui, 160.0, |t| scale_rgb(view, t));
-    ui.label(format!("{:.4} .. {:.4} {unit}", r.range.0, r.range.1));
-    if let Some(full) = r.dolp_full {
-        ui.label("saturation: DoLP");
-        rooftop::paint_bar(ui, 160.0, |t| colour::hsv(0.0, t, colour::AOP_VALUE));
-        ui.label(format!("DoLP 0 .. {full:.3}"));
-    }
-}
-
-fn histogram(ui: &mut egui::Ui, view: View, r: &Rendered) {
-    let (lo, hi) = r.range;
-    let counts = &r.histogram;
-    let max = counts.iter().copied().max().unwrap_or(0).max(1) as f32;
-    let width = ui.available_width().clamp(120.0, 480.0);
-    let (rect, _) = ui.allocate_exact_size(egui::vec2(width, 80.0), egui::Sense::hover());
-    ui.painter()
-        .rect_filled(rect, 0.0, ui.visuals().extreme_bg_color);
-    let bw = rect.width() / HIST_BINS as f32;
-    for (i, &c) in counts.iter().enumerate() {
-        let h = rect.height() * c as f32 / max;
-        let bar = egui::Rect::from_min_max(
-            egui::pos2(rect.left() + i as f32 * bw, rect.bottom() - h),
-            egui::pos2(rect.left() + (i + 1) as f32 * bw - 1.0, rect.bottom()),
-        );
-        let t = (i as f32 + 0.5) / HIST_BINS as f32;
-        ui.painter()
-            .rect_filled(bar, 0.0, rooftop::color32(scale_rgb(view, t)));
-    }
-    ui.label(format!(
-        "{lo:.4} .. {hi:.4} {} ({} finite pixels)",
-        view.unit(),
-        r.finite
-    ));
-}
-
 impl eframe::App for App {
     fn logic(&mut self, ctx: &egui::Context, _frame: &mut eframe::Frame) {
         // Also while the window is hidden, so the engine's replies never back up.
@@ -1250,7 +933,7 @@ mod tests {
     use super::*;
     use polar_engine::products::Products;
 
-    fn live(w: u32, h: u32) -> LiveProducts {
+    pub(crate) fn live(w: u32, h: u32) -> LiveProducts {
         let n = (w * h) as usize;
         let ramp: Vec<f32> = (0..n).map(|i| i as f32).collect();
         LiveProducts {
@@ -1274,36 +957,6 @@ mod tests {
             raw: Some(vec![100; n]),
             raw_index: Some(0),
         }
-    }
-
-    /// Every view renders to `width * height` RGB pixels; the probe names the pixel.
-    #[test]
-    fn views_render_and_probe() {
-        let l = live(8, 4);
-        for v in View::ALL {
-            let r = render(&l, v).unwrap();
-            assert_eq!(r.rgb.len(), 8 * 4 * 3, "{v:?}");
-        }
-        let t = probe_text(&l, 3, 2).unwrap();
-        assert!(t.contains("pixel (3, 2)"), "{t}");
-        assert!(t.contains("S0 = 19.0 +/- 2.0 DN"), "{t}");
-        assert!(probe_text(&l, 8, 0).is_none());
-    }
-
-    /// Images wider or taller than the GPU's texture limit are decimated to fit, keeping
-    /// every `step`-th pixel; images that fit are unchanged.
-    #[test]
-    fn textures_fit_the_gpu_limit() {
-        let (w, h) = (10_000, 3);
-        let rgb: Vec<u8> = (0..w * h).flat_map(|i| [(i % 251) as u8, 0, 0]).collect();
-        let (out, tw, th, step) = fit_texture(&rgb, w, h, 4096);
-        assert_eq!((tw, th, step), (3334, 1, 3));
-        assert_eq!(out.len(), tw * th * 3);
-        // Pixel k of the texture is pixel 3k of the first row.
-        assert_eq!(out[3 * 5], rgb[3 * 15]);
-        let (same, sw, sh, s1) = fit_texture(&rgb[..30], 10, 1, 4096);
-        assert_eq!((sw, sh, s1), (10, 1, 1));
-        assert_eq!(same, rgb[..30].to_vec());
     }
 
     /// The status label's texts.

@@ -21,7 +21,8 @@ const USAGE: &str =
                      overrides the rig file's entry
   --out DIR          base folder of the run directories (default: the current folder)
   --plan FILE        open this plan (TOML or YAML) in the editor
-  --screenshots DIR  run the plan, then save PNGs of the live view, the device, planner and
+  --screenshots DIR  run the plan, then save PNGs of the live view, the device panel (a
+                     snapshot, the live camera stream, live polarimetry), the planner and
                      rooftop panels into DIR and quit (CI runs this under Xvfb)";
 
 /// How long the screenshot tour may take before it gives up.
@@ -249,14 +250,45 @@ struct Tour {
     run_started: bool,
     /// Where the device panel's preparation is (see [`Tour::devices_ready`]).
     device_step: u8,
+    /// Where the live shots' preparation is (see [`Tour::live_ready`]).
+    live_step: u8,
 }
 
-/// The shots: file name, tab, live view.
-const SHOTS: [(&str, Tab, View); 4] = [
-    ("gui-live-aop.png", Tab::Live, View::Aop),
-    ("gui-devices.png", Tab::Devices, View::Aop),
-    ("gui-planner.png", Tab::Planner, View::Aop),
-    ("gui-rooftop.png", Tab::Rooftop, View::Aop),
+/// The live camera shot's exposure, microseconds: long enough that the scene's brightest
+/// pixels saturate (about 690 DN at 250 us against a threshold near 3500 DN).
+const LIVE_SHOT_EXPOSURE_US: f64 = 1400.0;
+
+/// What a shot needs before it is taken.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Prep {
+    /// Nothing more than the finished run.
+    Nothing,
+    /// Devices connected, the analyzer moved, a snapshot taken.
+    Devices,
+    /// The camera streaming (live mode) with its frame rate measured.
+    LiveCamera,
+    /// Live polarimetry with a half turn's estimate shown.
+    LivePolarimetry,
+}
+
+/// The shots: file name, tab, live view, what is prepared first.
+const SHOTS: [(&str, Tab, View, Prep); 6] = [
+    ("gui-live-aop.png", Tab::Live, View::Aop, Prep::Nothing),
+    ("gui-devices.png", Tab::Devices, View::Aop, Prep::Devices),
+    (
+        "gui-live-camera.png",
+        Tab::Devices,
+        View::Aop,
+        Prep::LiveCamera,
+    ),
+    (
+        "gui-live-polarimetry.png",
+        Tab::Devices,
+        View::Aop,
+        Prep::LivePolarimetry,
+    ),
+    ("gui-planner.png", Tab::Planner, View::Aop, Prep::Nothing),
+    ("gui-rooftop.png", Tab::Rooftop, View::Aop, Prep::Nothing),
 ];
 
 impl Tour {
@@ -270,6 +302,7 @@ impl Tour {
             report,
             run_started: false,
             device_step: 0,
+            live_step: 0,
         }
     }
 
@@ -309,10 +342,23 @@ impl Tour {
             _ => return,
         }
         if self.next < SHOTS.len() {
-            let (name, tab, view) = SHOTS[self.next];
+            let (name, tab, view, prep) = SHOTS[self.next];
             app.set_tab(tab);
             app.set_view(view);
-            if tab == Tab::Devices && !self.devices_ready(app) {
+            let ready = match prep {
+                Prep::Nothing => true,
+                Prep::Devices => self.devices_ready(app),
+                Prep::LiveCamera | Prep::LivePolarimetry => {
+                    if let Some(e) = app.live_panel().error() {
+                        let e = e.to_string();
+                        self.fail(ctx, format!("screenshots: live mode failed: {e}"));
+                        self.tour_over();
+                        return;
+                    }
+                    self.live_ready(app, prep)
+                }
+            };
+            if !ready {
                 return;
             }
             self.settle += 1;
@@ -372,6 +418,45 @@ impl Tour {
             }
         }
         self.device_step >= 4
+    }
+
+    /// For the live shots: the camera streaming at a longer exposure (the brightest pixels
+    /// saturate and show red) with its frame rate measured; then live polarimetry at the
+    /// plan's exposure (the stream stopped first) with its second half turn shown.
+    fn live_ready(&mut self, app: &mut App, prep: Prep) -> bool {
+        use polar_gui::engine::Command;
+        use polar_gui::live::LiveMode;
+        let running = app.live_panel().running();
+        let idle = running.is_none() && !app.device_pending();
+        let step = self.live_step;
+        let advance = match (prep, step) {
+            (Prep::LiveCamera, 0) => app.start_live(LiveMode::Camera),
+            (Prep::LiveCamera, 1) => {
+                app.live_panel().frame().is_some()
+                    && app.device_command(Command::SetExposure {
+                        exposure_us: LIVE_SHOT_EXPOSURE_US,
+                    })
+            }
+            (Prep::LiveCamera, _) => {
+                return app
+                    .live_panel()
+                    .frame()
+                    .is_some_and(|f| f.exposure_us == LIVE_SHOT_EXPOSURE_US && f.rate_hz.is_some())
+            }
+            (Prep::LivePolarimetry, 2) => running.is_none() || app.stop_live(),
+            (Prep::LivePolarimetry, 3) => {
+                idle && app.device_command(Command::SetExposure { exposure_us: 250.0 })
+            }
+            (Prep::LivePolarimetry, 4) => idle && app.start_live(LiveMode::Polarimetry),
+            (Prep::LivePolarimetry, _) => {
+                return app.live_panel().half_turn().is_some_and(|h| h.index >= 1)
+            }
+            _ => return true,
+        };
+        if advance {
+            self.live_step += 1;
+        }
+        false
     }
 
     fn tour_over(&mut self) {

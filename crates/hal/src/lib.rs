@@ -1,7 +1,9 @@
 //! Device traits of the polarimeter and the error kinds every device shares
 //! (`ARCHITECTURE.md`, "Device abstraction").
 //!
-//! * [`Rotator`]: a rotation stage (home, move to an absolute angle, read the position back).
+//! * [`Rotator`]: a rotation stage (home, move to an absolute angle, read the position back;
+//!   where the stage can, spin at a set speed and fire position-compare trigger pulses:
+//!   [`ContinuousSupport`], [`TriggerPulse`]).
 //! * [`FilterWheel`]: a wheel (or slider) of labelled slots.
 //! * [`Camera`]: a camera (exposure, gain, pixel format, region, trigger, grab with a deadline).
 //! * [`Analyzer`]: the view plans use. It speaks analyzer angles whether a rotator turns one
@@ -26,6 +28,7 @@ pub use camera::{
 };
 
 use std::f64::consts::PI;
+use std::time::Duration;
 
 /// What went wrong, as the engine needs to know it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -109,7 +112,73 @@ pub struct RotatorInfo {
     pub tolerance_rad: f64,
 }
 
+/// What a rotator offers for continuous-rotation acquisition.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum ContinuousSupport {
+    /// Moves and stops only ([`Rotator::spin`] refuses).
+    None,
+    /// Velocity mode ([`Rotator::spin`], [`Rotator::stop_spin`]) without a trigger output:
+    /// a camera runs free and the span of each frame comes from timestamps.
+    Velocity,
+    /// Velocity mode and a position-compare trigger output ([`Rotator::arm_trigger`],
+    /// [`Rotator::next_trigger`]): each pulse reports the encoder count it fired at.
+    VelocityAndTrigger,
+}
+
+impl ContinuousSupport {
+    /// Whether the stage can spin.
+    pub fn can_spin(self) -> bool {
+        !matches!(self, ContinuousSupport::None)
+    }
+
+    /// Whether the stage can fire position-compare trigger pulses.
+    pub fn can_trigger(self) -> bool {
+        matches!(self, ContinuousSupport::VelocityAndTrigger)
+    }
+}
+
+impl std::fmt::Display for ContinuousSupport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            ContinuousSupport::None => "none",
+            ContinuousSupport::Velocity => "velocity",
+            ContinuousSupport::VelocityAndTrigger => "velocity and trigger",
+        })
+    }
+}
+
+/// One position-compare trigger pulse, as the stage reported it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TriggerPulse {
+    /// The pulse's index from the arming, from 0.
+    pub index: u32,
+    /// The encoder count latched at the pulse, unwrapped (it keeps counting past a turn while
+    /// the stage spins).
+    pub counts: i64,
+    /// The same position, radians, unwrapped.
+    pub angle_rad: f64,
+    /// The controller's clock at the pulse, microseconds (wraps at 2^32).
+    pub device_time_us: u32,
+}
+
+/// The error a stage without continuous rotation gives for `what` (kind
+/// [`ErrorKind::OutOfRange`]: the request is outside what the stage offers).
+fn unsupported(info: &RotatorInfo, what: &str, support: ContinuousSupport) -> DeviceError {
+    DeviceError::new(
+        ErrorKind::OutOfRange,
+        info.model.clone(),
+        format!(
+            "{what} is not supported by stage {}: its continuous-rotation support is \"{support}\"",
+            info.model
+        ),
+    )
+}
+
 /// A rotation stage.
+///
+/// The continuous-rotation methods ([`Rotator::spin`] and the rest) refuse by default with
+/// an [`ErrorKind::OutOfRange`] error naming the stage; a stage that offers them says so in
+/// [`Rotator::continuous_support`].
 #[allow(async_fn_in_trait)] // used through generics; Send-ness is the implementor's business
 pub trait Rotator {
     /// Identity and resolution.
@@ -129,6 +198,57 @@ pub trait Rotator {
     /// Sets the cruise velocity, rad/s; by default a no-op (see [`Rotator::supports_velocity`]).
     async fn set_velocity(&mut self, _rad_per_s: f64) -> Result<(), DeviceError> {
         Ok(())
+    }
+    /// What the stage offers for continuous rotation (by default nothing).
+    fn continuous_support(&self) -> ContinuousSupport {
+        ContinuousSupport::None
+    }
+    /// Velocity mode: turns continuously at `rad_per_s` (signed) until [`Rotator::stop_spin`];
+    /// a second call changes the speed. Refuses by default.
+    async fn spin(&mut self, _rad_per_s: f64) -> Result<(), DeviceError> {
+        Err(unsupported(self.info(), "spin", self.continuous_support()))
+    }
+    /// Ends velocity mode and returns where the stage stopped, radians in `[0, 2 pi)`.
+    /// Refuses by default.
+    async fn stop_spin(&mut self) -> Result<f64, DeviceError> {
+        Err(unsupported(
+            self.info(),
+            "stop_spin",
+            self.continuous_support(),
+        ))
+    }
+    /// The position while spinning, radians, unwrapped (it keeps counting past a turn), read
+    /// from the device now (never a cached value). Refuses by default.
+    async fn spin_position_rad(&mut self) -> Result<f64, DeviceError> {
+        Err(unsupported(
+            self.info(),
+            "spin_position_rad",
+            self.continuous_support(),
+        ))
+    }
+    /// Arms the position-compare trigger: `count` pulses, at `first_rad` (unwrapped, from the
+    /// datum) and then every `interval_rad` (signed: the direction of motion that fires).
+    /// Pulses of an earlier arming are dropped. Refuses by default.
+    async fn arm_trigger(
+        &mut self,
+        _first_rad: f64,
+        _interval_rad: f64,
+        _count: u32,
+    ) -> Result<(), DeviceError> {
+        Err(unsupported(
+            self.info(),
+            "arm_trigger",
+            self.continuous_support(),
+        ))
+    }
+    /// The next pulse of the current arming, waiting up to `timeout` (then an error of kind
+    /// [`ErrorKind::Timeout`]). Refuses by default.
+    async fn next_trigger(&mut self, _timeout: Duration) -> Result<TriggerPulse, DeviceError> {
+        Err(unsupported(
+            self.info(),
+            "next_trigger",
+            self.continuous_support(),
+        ))
     }
 }
 
@@ -190,6 +310,61 @@ pub fn counts_toward(current: i32, angle_rad: f64, counts_per_turn: u32) -> i32 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A stage with moves only.
+    struct Fixed(RotatorInfo);
+
+    impl Rotator for Fixed {
+        fn info(&self) -> &RotatorInfo {
+            &self.0
+        }
+        async fn home(&mut self) -> Result<(), DeviceError> {
+            Ok(())
+        }
+        async fn move_to(&mut self, angle_rad: f64) -> Result<f64, DeviceError> {
+            Ok(angle_rad)
+        }
+        async fn position_rad(&mut self) -> Result<f64, DeviceError> {
+            Ok(0.0)
+        }
+    }
+
+    /// A stage that does not override the continuous-rotation methods reports no support and
+    /// refuses every one of them with an OutOfRange error naming the stage and the method.
+    #[test]
+    fn continuous_rotation_refused_by_default() {
+        let mut r = Fixed(RotatorInfo {
+            model: "test stage 7".into(),
+            counts_per_turn: 360,
+            tolerance_rad: 0.01,
+        });
+        assert_eq!(r.continuous_support(), ContinuousSupport::None);
+        assert!(!r.continuous_support().can_spin());
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .expect("runtime");
+        let errors = rt.block_on(async {
+            vec![
+                ("spin", r.spin(1.0).await.err()),
+                ("stop_spin", r.stop_spin().await.err()),
+                ("spin_position_rad", r.spin_position_rad().await.err()),
+                ("arm_trigger", r.arm_trigger(0.0, 0.1, 3).await.err()),
+                (
+                    "next_trigger",
+                    r.next_trigger(Duration::from_millis(1)).await.err(),
+                ),
+            ]
+        });
+        for (what, e) in errors {
+            let e = e.unwrap_or_else(|| panic!("{what} should be refused"));
+            assert_eq!(e.kind(), ErrorKind::OutOfRange, "{what}");
+            let text = e.to_string();
+            assert!(
+                text.contains("test stage 7") && text.contains(what),
+                "{text}"
+            );
+        }
+    }
 
     /// Counts and angles: a quarter of 143360 counts is 90 deg; a move from just below a full
     /// turn to 1 deg goes forward across the turn (short way), and from 1 deg to 359 deg

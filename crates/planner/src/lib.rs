@@ -10,11 +10,14 @@
 //! * [`optimize`]: the SCR-optimal set of `N = 1..6` angles under a rotator's or a wheel's
 //!   constraints (a Stokes set's condition bound among them), and the conventional sets it
 //!   is compared with.
+//! * [`continuous`]: frames per half turn, exposure and speed of a spinning analyzer under the
+//!   camera's and the stage's limits, and which limit binds.
 //! * [`stokes`]: when a set forms a Stokes image, the condition number of the ideal
 //!   analyzer's measurement matrix.
 #![warn(missing_docs)]
 
 pub mod aptd;
+pub mod continuous;
 pub mod optimize;
 pub mod scr;
 pub mod stokes;

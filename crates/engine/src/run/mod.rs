@@ -266,7 +266,9 @@ fn now_unix_ns(t: SystemTime) -> i64 {
 mod actors;
 mod adaptive;
 mod calibration;
+mod continuous_loop;
 mod run_dir;
+mod simulated;
 mod step_loop;
 mod writer;
 
@@ -274,8 +276,10 @@ use actors::*;
 pub use adaptive::replayed_decisions;
 use adaptive::*;
 use calibration::*;
+pub use continuous_loop::{run_continuous, RUN_UP_S};
 use run_dir::*;
 pub use run_dir::{default_run_dir, is_finished, noise_stream, plan_of, run_parts};
+pub use simulated::{run_simulated, SimRunError};
 use step_loop::*;
 use writer::*;
 
@@ -297,6 +301,18 @@ where
     let info = rig.camera.info().clone();
     let (width, height) = (info.sensor_width, info.sensor_height);
     plan.check_frame(width, height)?;
+    if plan.kind == PlanKind::Continuous {
+        // The step loop moves, settles and shoots: it must not run a spinning plan.
+        return Err(crate::plan::PlanError::Invalid {
+            field: "kind".into(),
+            value: "continuous".into(),
+            allowed: "capture, calibrate-noise, calibrate-analyzer, time-lapse or adaptive \
+                      for `run` (the step loop does not spin the analyzer: a continuous plan \
+                      runs through `run_continuous` or `run_simulated`)"
+                .into(),
+        }
+        .into());
+    }
     let stage = spawn_stage(rig.analyzer);
     // A new run that starts with a set: the stage goes to its first angle while the store is
     // created (about 30 fsyncs).
@@ -800,6 +816,7 @@ where
                     exposure_us: members[0].1.exposure_us,
                     gain_db: members[0].1.gain_db,
                     frames: frames.clone(),
+                    rows: None,
                 };
                 lp.send_store(ToStore::ProcessSet(job))?;
                 checking.insert(set, (members, frames));

@@ -36,6 +36,9 @@ pub(super) struct SetJob {
     pub(super) commanded_deg: Vec<f64>,
     pub(super) exposure_us: f64,
     pub(super) gain_db: f64,
+    /// The analyzer rows of the frames, when not the still analyzer's at `measured_deg`
+    /// (continuous rotation: the span rows of `crate::continuous::SpanEstimator`).
+    pub(super) rows: Option<Vec<[f64; 3]>>,
 }
 
 pub(super) struct FinishChecks {
@@ -132,14 +135,20 @@ impl Writer {
             frames.push(self.pixels(i)?);
         }
         let (w, h) = (self.store.width(), self.store.height());
-        let angles_rad: Vec<f64> = job.measured_deg.iter().map(|d| d.to_radians()).collect();
-        let rows_m = self
-            .sensor
-            .intensities_from_stokes(&angles_rad)
-            .map_err(|e| format!("analyzer rows: {e}"))?;
-        let rows: Vec<[f64; 3]> = (0..rows_m.nrows())
-            .map(|i| [rows_m[(i, 0)], rows_m[(i, 1)], rows_m[(i, 2)]])
-            .collect();
+        let rows: Vec<[f64; 3]> = match &job.rows {
+            Some(rows) => rows.clone(),
+            None => {
+                let angles_rad: Vec<f64> =
+                    job.measured_deg.iter().map(|d| d.to_radians()).collect();
+                let rows_m = self
+                    .sensor
+                    .intensities_from_stokes(&angles_rad)
+                    .map_err(|e| format!("analyzer rows: {e}"))?;
+                (0..rows_m.nrows())
+                    .map(|i| [rows_m[(i, 0)], rows_m[(i, 1)], rows_m[(i, 2)]])
+                    .collect()
+            }
+        };
         let geometry = SetGeometry::new(&rows).map_err(|e| e.to_string())?;
         let (noise, k) = self.noise(job.gain_db);
         let dark_scalar = self.camera_model.offset_dn

@@ -32,6 +32,10 @@
 //!     set                   int64   [N]   angle set, -1: none
 //!     commanded_angle_deg   float64 [N]
 //!     measured_angle_deg    float64 [N]   NaN: not read back
+//!     angle_start_deg       float64 [N]   analyzer angle at the exposure's start, [0, 180)
+//!     angle_end_deg         float64 [N]   at its end, unwrapped: end - start in [0, 180)
+//!     angle_source          uint8   [N]   0 settled, 1 encoder trigger, 2 timestamps
+//!     angle_sigma_deg       float64 [N]   uncertainty of each end, NaN: not estimated
 //!     exposure_us           float64 [N]
 //!     gain                  float64 [N]
 //!     host_time_unix_ns     int64   [N]
@@ -53,8 +57,10 @@
 //!
 //! Every chunk carries a `crc32c` checksum (a core Zarr v3 codec; no compression), so a
 //! damaged chunk fails to read instead of returning wrong numbers. The per-frame metadata
-//! arrays and `products/set`, `products/angles_deg` are small: each is one chunk, rewritten
-//! whole ([`RunStore::write_frame_metadata`] mirrors the journal's frame records).
+//! arrays and `products/set`, `products/angles_deg` are small and rewritten whole
+//! ([`RunStore::write_frame_metadata`] mirrors the journal's frame records), in chunks of a
+//! fixed 4096 rows (32 columns): a chunk's size never depends on the array's length, so a
+//! crash between a chunk and its array's metadata leaves an array that still reads.
 //!
 //! # Durability
 //!
@@ -83,7 +89,7 @@ mod schema;
 
 pub use schema::{conventions, HASH_ALGORITHM, KIND_CODES};
 
-use crate::{pixel_hash, FrameKind, FrameRecord};
+use crate::{pixel_hash, AngleSource, FrameKind, FrameRecord};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Map, Value};
 use std::collections::{BTreeMap, BTreeSet, HashMap};
@@ -308,6 +314,65 @@ struct ProductsState {
     angles: Vec<Vec<f64>>,
     arrays: HashMap<String, Array<DurableStore>>,
     names: Vec<String>,
+}
+
+/// Rows per chunk of the small index arrays (the per-frame metadata, `products/set`,
+/// `products/angles_deg`): fixed, so an array's chunks keep their size as it grows.
+const INDEX_ROWS_PER_CHUNK: u64 = 4096;
+/// Columns per chunk of the two-dimensional index array `products/angles_deg`.
+const INDEX_COLUMNS_PER_CHUNK: u64 = 32;
+
+/// The chunk shape of a small index array of `rank` dimensions.
+fn index_chunk(rank: usize) -> Vec<u64> {
+    let mut chunk = vec![INDEX_COLUMNS_PER_CHUNK; rank];
+    if let Some(rows) = chunk.first_mut() {
+        *rows = INDEX_ROWS_PER_CHUNK;
+    }
+    chunk
+}
+
+/// The chunks of a regular grid covering `shape`: each chunk's grid indices and, for each of
+/// its elements in C order, the element's index in the whole array in C order (`None`
+/// outside the shape, in an edge chunk's padding).
+fn chunks_of(shape: &[u64], chunk: &[u64]) -> Vec<(Vec<u64>, Vec<Option<usize>>)> {
+    let grid: Vec<u64> = shape
+        .iter()
+        .zip(chunk)
+        .map(|(&s, &c)| s.div_ceil(c.max(1)))
+        .collect();
+    let count: u64 = grid.iter().product();
+    let per_chunk: u64 = chunk.iter().product();
+    let mut out = Vec::with_capacity(count as usize);
+    for flat_chunk in 0..count {
+        let indices = unravel(flat_chunk, &grid);
+        let elements = (0..per_chunk)
+            .map(|flat_element| {
+                let within = unravel(flat_element, chunk);
+                let mut index = 0u64;
+                for d in 0..shape.len() {
+                    let at = indices[d] * chunk[d] + within[d];
+                    if at >= shape[d] {
+                        return None;
+                    }
+                    index = index * shape[d] + at;
+                }
+                Some(index as usize)
+            })
+            .collect();
+        out.push((indices, elements));
+    }
+    out
+}
+
+/// The C-order multi-index of `flat` in an array of `shape`.
+fn unravel(mut flat: u64, shape: &[u64]) -> Vec<u64> {
+    let mut index = vec![0u64; shape.len()];
+    for d in (0..shape.len()).rev() {
+        let n = shape[d].max(1);
+        index[d] = flat % n;
+        flat /= n;
+    }
+    index
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -598,6 +663,10 @@ impl RunStore {
         let mut set = Vec::with_capacity(n);
         let mut commanded = Vec::with_capacity(n);
         let mut measured = Vec::with_capacity(n);
+        let mut start = Vec::with_capacity(n);
+        let mut end = Vec::with_capacity(n);
+        let mut source = Vec::with_capacity(n);
+        let mut angle_sigma = Vec::with_capacity(n);
         let mut exposure = Vec::with_capacity(n);
         let mut gain = Vec::with_capacity(n);
         let mut host_time = Vec::with_capacity(n);
@@ -647,6 +716,10 @@ impl RunStore {
             });
             commanded.push(r.commanded_angle_deg);
             measured.push(r.measured_angle_deg);
+            start.push(r.angle_start_deg);
+            end.push(r.angle_end_deg);
+            source.push(r.angle_source.code());
+            angle_sigma.push(r.angle_sigma_deg);
             exposure.push(r.exposure_us);
             gain.push(r.gain);
             host_time.push(r.host_time_unix_ns);
@@ -665,6 +738,7 @@ impl RunStore {
         self.write_whole(
             "/frames/kind",
             vec![n],
+            index_chunk(1),
             &dims,
             data_type::uint8(),
             0u8,
@@ -673,6 +747,7 @@ impl RunStore {
         self.write_whole(
             "/frames/step",
             vec![n],
+            index_chunk(1),
             &dims,
             data_type::uint64(),
             0u64,
@@ -681,6 +756,7 @@ impl RunStore {
         self.write_whole(
             "/frames/set",
             vec![n],
+            index_chunk(1),
             &dims,
             data_type::int64(),
             -1i64,
@@ -689,6 +765,9 @@ impl RunStore {
         for (name, values) in [
             ("commanded_angle_deg", &commanded),
             ("measured_angle_deg", &measured),
+            ("angle_start_deg", &start),
+            ("angle_end_deg", &end),
+            ("angle_sigma_deg", &angle_sigma),
             ("exposure_us", &exposure),
             ("gain", &gain),
             ("sun_zenith_deg", &zenith),
@@ -697,6 +776,7 @@ impl RunStore {
             self.write_whole(
                 &format!("{FRAMES}/{name}"),
                 vec![n],
+                index_chunk(1),
                 &dims,
                 data_type::float64(),
                 ZARR_NAN_F64,
@@ -704,8 +784,18 @@ impl RunStore {
             )?;
         }
         self.write_whole(
+            "/frames/angle_source",
+            vec![n],
+            index_chunk(1),
+            &dims,
+            data_type::uint8(),
+            0u8,
+            &source,
+        )?;
+        self.write_whole(
             "/frames/host_time_unix_ns",
             vec![n],
+            index_chunk(1),
             &dims,
             data_type::int64(),
             0i64,
@@ -714,6 +804,7 @@ impl RunStore {
         self.write_whole(
             "/frames/device_timestamp_ns",
             vec![n],
+            index_chunk(1),
             &dims,
             data_type::int64(),
             -1i64,
@@ -722,6 +813,7 @@ impl RunStore {
         self.write_whole(
             "/frames/frame_id",
             vec![n],
+            index_chunk(1),
             &dims,
             data_type::uint64(),
             0u64,
@@ -730,6 +822,7 @@ impl RunStore {
         self.write_whole(
             "/frames/hash",
             vec![n],
+            index_chunk(1),
             &dims,
             data_type::uint64(),
             0u64,
@@ -750,42 +843,66 @@ impl RunStore {
         Ok(())
     }
 
-    /// Creates (or replaces) a small array stored as one chunk holding all of `data`.
-    #[allow(clippy::too_many_arguments)]
-    fn write_whole<T: Element>(
+    /// Writes a small array whole (the per-frame metadata, the products' index, the dark
+    /// mean). The chunk shape is fixed by the array's kind ([`index_chunk`], or one chunk for
+    /// an image), never by its current length: chunks are stored before the metadata when the
+    /// array grows and after it when it shrinks, so a crash between the two leaves metadata
+    /// whose every chunk decodes, and readers see the older or the newer values, never a
+    /// chunk of the wrong size.
+    #[allow(clippy::too_many_arguments)] // one call shape for every small array
+    fn write_whole<T: Element + Copy + Into<ArrayBuilderFillValue>>(
         &self,
         node: &str,
         shape: Vec<u64>,
+        chunk: Vec<u64>,
         dims: &[&str],
         data_type: DataType,
-        fill: impl Into<ArrayBuilderFillValue>,
+        fill: T,
         data: &[T],
     ) -> Result<(), StoreError> {
-        let chunk: Vec<u64> = shape.iter().map(|&s| s.max(1)).collect();
-        let empty = shape.contains(&0);
+        let shrinks = Array::open(self.store.clone(), node)
+            .ok()
+            .and_then(|old| old.shape().first().copied())
+            .is_some_and(|old_len| old_len > shape.first().copied().unwrap_or(0));
         let array = schema::array(
             self.store.clone(),
             node,
-            shape,
-            chunk,
+            shape.clone(),
+            chunk.clone(),
             data_type,
             fill,
             dims,
         )
         .map_err(zarr_err(self.node(node), "creating the array"))?;
-        if !empty {
-            let origin = vec![0u64; dims.len()];
+        let store_metadata = || {
             array
-                .store_chunk_opt(&origin, data, &codec_options())
+                .store_metadata()
+                .map_err(zarr_err(self.node(node), "writing the array metadata"))
+        };
+        if shrinks {
+            store_metadata()?;
+        }
+        for (indices, elements) in chunks_of(&shape, &chunk) {
+            let values: Vec<T> = elements
+                .iter()
+                .map(|e| e.map_or(fill, |i| data[i]))
+                .collect();
+            array
+                .store_chunk_opt(&indices, values, &codec_options())
                 .map_err(zarr_err(self.node(node), "writing the array"))?;
         }
-        array
-            .store_metadata()
-            .map_err(zarr_err(self.node(node), "writing the array metadata"))
+        if !shrinks {
+            store_metadata()?;
+        }
+        Ok(())
     }
 
-    /// Reads a small array written by [`Self::write_whole`]: (shape, values).
-    fn read_whole<T: ElementOwned>(&self, node: &str) -> Result<(Vec<u64>, Vec<T>), StoreError> {
+    /// Reads a small array written by [`Self::write_whole`]: (shape, values in C order). Every
+    /// chunk the shape covers must exist and pass its checksum.
+    fn read_whole<T: ElementOwned + Copy>(
+        &self,
+        node: &str,
+    ) -> Result<(Vec<u64>, Vec<T>), StoreError> {
         let array =
             Array::open(self.store.clone(), node).map_err(zarr_err(self.node(node), "opening"))?;
         let shape = array.shape().to_vec();
@@ -793,12 +910,34 @@ impl RunStore {
             return Ok((shape, Vec::new()));
         }
         let origin = vec![0u64; shape.len()];
-        let values = array
-            .retrieve_chunk_if_exists_opt::<Vec<T>>(&origin, &codec_options())
-            .map_err(zarr_err(self.node(node), "reading"))?
-            .ok_or_else(|| StoreError::MissingChunk {
-                path: self.chunk_path(&array, &origin),
-                what: format!("the values of {}", node.trim_start_matches('/')),
+        let chunk: Vec<u64> = array
+            .chunk_shape(&origin)
+            .map_err(zarr_err(self.node(node), "reading the chunk grid"))?
+            .iter()
+            .map(|c| c.get())
+            .collect();
+        let total = shape.iter().product::<u64>() as usize;
+        let mut values: Vec<Option<T>> = vec![None; total];
+        for (indices, elements) in chunks_of(&shape, &chunk) {
+            let stored = array
+                .retrieve_chunk_if_exists_opt::<Vec<T>>(&indices, &codec_options())
+                .map_err(zarr_err(self.node(node), "reading"))?
+                .ok_or_else(|| StoreError::MissingChunk {
+                    path: self.chunk_path(&array, &indices),
+                    what: format!("the values of {}", node.trim_start_matches('/')),
+                })?;
+            for (value, element) in stored.into_iter().zip(elements) {
+                if let Some(i) = element {
+                    values[i] = Some(value);
+                }
+            }
+        }
+        let values = values
+            .into_iter()
+            .collect::<Option<Vec<T>>>()
+            .ok_or_else(|| StoreError::Layout {
+                path: self.node(node),
+                message: "its chunks do not cover its shape".into(),
             })?;
         Ok((shape, values))
     }
@@ -806,7 +945,7 @@ impl RunStore {
     /// Reads the per-frame metadata back as frame records (labels from the `labels`
     /// attribute of `frames/`; width and height from the store).
     pub fn read_frame_metadata(&self) -> Result<Vec<FrameRecord>, StoreError> {
-        fn column<T: ElementOwned>(
+        fn column<T: ElementOwned + Copy>(
             s: &RunStore,
             name: &str,
             n: &mut Option<usize>,
@@ -839,6 +978,18 @@ impl RunStore {
         let zenith: Vec<f64> = column(self, "sun_zenith_deg", &mut n)?;
         let azimuth: Vec<f64> = column(self, "sun_azimuth_deg", &mut n)?;
         let hash: Vec<u64> = column(self, "hash", &mut n)?;
+        // Runs written before frames recorded their span have no span arrays: their frames
+        // are step-and-shoot frames, whose span is the settled reading.
+        let span = if self.node_exists(&format!("{FRAMES}/angle_source")) {
+            Some((
+                column::<f64>(self, "angle_start_deg", &mut n)?,
+                column::<f64>(self, "angle_end_deg", &mut n)?,
+                column::<u8>(self, "angle_source", &mut n)?,
+                column::<f64>(self, "angle_sigma_deg", &mut n)?,
+            ))
+        } else {
+            None
+        };
         let n = n.unwrap_or(0);
         let attrs = self.group_attributes(FRAMES)?;
         let labels = match attrs.get("labels") {
@@ -870,6 +1021,20 @@ impl RunStore {
                 })?
                 .to_string();
             let opt = |v: f64| if v.is_nan() { None } else { Some(v) };
+            let (angle_start_deg, angle_end_deg, angle_source, angle_sigma_deg) = match &span {
+                Some((a, b, c, d)) => (
+                    a[i],
+                    b[i],
+                    AngleSource::from_code(c[i]).ok_or_else(|| StoreError::Metadata {
+                        field: format!("frames/angle_source[{i}]"),
+                        value: c[i].to_string(),
+                        message: "expected 0 (settled), 1 (encoder trigger) or 2 (timestamps)"
+                            .into(),
+                    })?,
+                    d[i],
+                ),
+                None => (measured[i], measured[i], AngleSource::Settled, f64::NAN),
+            };
             records.push(FrameRecord {
                 index: i as u64,
                 step: step[i],
@@ -878,6 +1043,10 @@ impl RunStore {
                 label,
                 commanded_angle_deg: commanded[i],
                 measured_angle_deg: measured[i],
+                angle_start_deg,
+                angle_end_deg,
+                angle_source,
+                angle_sigma_deg,
                 exposure_us: exposure[i],
                 gain: gain[i],
                 host_time_unix_ns: host_time[i],
@@ -941,6 +1110,7 @@ impl RunStore {
         self.write_whole(
             PRODUCT_ANGLES,
             vec![m, k as u64],
+            index_chunk(2),
             &["slot", "channel"],
             data_type::float64(),
             ZARR_NAN_F64,
@@ -949,6 +1119,7 @@ impl RunStore {
         self.write_whole(
             PRODUCT_SET,
             vec![m],
+            index_chunk(1),
             &["slot"],
             data_type::int64(),
             -1i64,
@@ -1122,6 +1293,7 @@ impl RunStore {
         self.check_image(|| "dark mean".into(), mean.len())?;
         self.write_whole(
             DARK_MEAN,
+            vec![u64::from(self.height), u64::from(self.width)],
             vec![u64::from(self.height), u64::from(self.width)],
             &["y", "x"],
             data_type::float32(),

@@ -6,6 +6,7 @@
 //! read as `{"name": "crc32c"}` back as the bare string `"crc32c"`, which zarr-python 3
 //! refuses. Every metadata write goes through [`array`], which builds the metadata afresh.
 
+use crate::AngleSource;
 use serde_json::{json, Map, Value};
 use std::sync::Arc;
 use zarrs::array::builder::ArrayBuilderFillValue;
@@ -32,6 +33,8 @@ pub fn conventions() -> Value {
         "analyzer_zero": "analyzer angle 0 transmits light polarised along the frame's x axis; \
                           angles are the stage's, corrected by the analyzer calibration's \
                           zero offset when the run has one",
+        "angle_source_codes": AngleSource::CODES.iter().map(|(c, n)| (c.to_string(), json!(n)))
+            .collect::<Map<String, Value>>(),
         "frame_kind_codes": KIND_CODES.iter().map(|(c, n)| (c.to_string(), json!(n)))
             .collect::<Map<String, Value>>(),
         "hash_algorithm": HASH_ALGORITHM,
@@ -79,6 +82,35 @@ pub fn attributes(node: &str) -> Map<String, Value> {
         "measured_angle_deg" => a(
             Some("degree"),
             "analyzer angle read back from the stage (NaN: not read back)",
+        ),
+        "angle_start_deg" => a(
+            Some("degree"),
+            "analyzer angle when the exposure started, in [0, 180) (NaN: not known)",
+        ),
+        "angle_end_deg" => a(
+            Some("degree"),
+            "analyzer angle when the exposure ended, unwrapped from angle_start_deg \
+             (end - start is the span swept, in [0, 180))",
+        ),
+        "angle_source" => {
+            let mut m = a(None, "how the analyzer span was measured");
+            m.insert(
+                "flag_values".into(),
+                json!(AngleSource::CODES.iter().map(|k| k.0).collect::<Vec<_>>()),
+            );
+            m.insert(
+                "flag_meanings".into(),
+                json!(AngleSource::CODES
+                    .iter()
+                    .map(|k| k.1)
+                    .collect::<Vec<_>>()
+                    .join(" ")),
+            );
+            m
+        }
+        "angle_sigma_deg" => a(
+            Some("degree"),
+            "standard uncertainty of each end of the analyzer span (NaN: not estimated)",
         ),
         "exposure_us" => a(Some("us"), "exposure time"),
         "gain" => a(

@@ -1,0 +1,433 @@
+//! Continuous-rotation plans (`kind = "continuous"`): the analyzer spins at a constant speed
+//! and the camera exposes `frames_per_half_turn` frames per half turn, each while the analyzer
+//! turns through a span, and the half turn's Stokes estimate uses the span rows.
+//!
+//! ```toml
+//! kind = "continuous"
+//! [continuous]
+//! frames_per_half_turn = 4     # 3..=360, equally spaced: trigger k at k * 180 / N deg
+//! exposure_us = 2000           # the span swept is speed * exposure, less than 180 / N deg
+//! speed_deg_per_s = 360        # (0, 3600]; the stage's own limit is checked when it spins
+//! half_turns = 10              # 1..=100000; one half turn is one Stokes set
+//! trigger = "encoder"          # "encoder" (position-compare pulses) | "timestamps"
+//! timing_sigma_us = 20         # timestamps: the timing uncertainty of a frame, [0, 1e6]
+//! gain_db = 0
+//! ```
+//!
+//! # The frames of a half turn
+//!
+//! Half turn `h` has frames `k = 0..N`. Frame `k` is triggered when the analyzer passes
+//! `psi_k = k * 180 / N` degrees (modulo the half turn: the row's period is 180 degrees) and
+//! exposes for `t`, so it integrates Malus's law over the span `[psi_k, psi_k + D]`,
+//! `D = omega t`. Its row is `polar_model::span::span_row`: the centre's row with the
+//! polarised terms scaled by `sinc D` (Meng (2012), Eq. 2.17 for the point row; the span
+//! average is derived in `polar_model::span`). The plan requires `D < 180 / N`, so that an
+//! exposure ends before the next trigger (a camera that reads one frame while it exposes the
+//! next).
+//!
+//! # The estimate
+//!
+//! [`SpanEstimator`] is the OLS estimate `S = (W^T W)^-1 W^T (y - b)` with the span rows `W`
+//! of `polar_model::span::span_signal` (fore-optics and real analyzer included; polarised terms
+//! also scaled by the jitter's `e^{-2 sigma^2}` for a free-running camera), and its predicted
+//! covariance per pixel is `span_signal`'s at the pixel's radiance. With point rows at the
+//! span centres instead ([`SpanEstimator::point_rows`]) the polarised components come out
+//! scaled by `sinc D`: the bias the span rows remove.
+
+use crate::plan::PlanError;
+use nalgebra::{Matrix3, Vector3};
+use polar_model::sensor::SensorModel;
+use polar_model::span::{span_signal, SpanExposure, SpanSignal};
+use serde::{Deserialize, Serialize};
+
+/// How each frame's analyzer span is measured.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum TriggerSource {
+    /// The stage's position-compare output triggers the camera (GenICam `TriggerSource =
+    /// Line`); each pulse reports its encoder count, the span's start.
+    Encoder,
+    /// The camera runs free; the span comes from the frame's timestamps and the stage's
+    /// position samples, uncertain by `speed * timing_sigma_us`.
+    Timestamps,
+}
+
+fn encoder() -> TriggerSource {
+    TriggerSource::Encoder
+}
+fn one() -> u32 {
+    1
+}
+fn twenty() -> f64 {
+    20.0
+}
+
+/// `[continuous]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Continuous {
+    /// Frames per half turn, 3..=360, equally spaced.
+    pub frames_per_half_turn: u32,
+    /// Exposure of each frame, microseconds, `(0, 1e7]`, and short enough that the span ends
+    /// before the next trigger.
+    pub exposure_us: f64,
+    /// The analyzer's speed, degrees per second, `(0, 3600]`.
+    pub speed_deg_per_s: f64,
+    /// Half turns (Stokes sets), 1..=100000.
+    #[serde(default = "one")]
+    pub half_turns: u32,
+    /// How spans are measured.
+    #[serde(default = "encoder")]
+    pub trigger: TriggerSource,
+    /// Timing uncertainty of a free-running frame (timestamps), microseconds, `[0, 1e6]`.
+    #[serde(default = "twenty")]
+    pub timing_sigma_us: f64,
+    /// Analog gain, dB, `[0, 48]`.
+    #[serde(default)]
+    pub gain_db: f64,
+}
+
+fn invalid(field: &str, value: impl std::fmt::Display, allowed: impl Into<String>) -> PlanError {
+    PlanError::Invalid {
+        field: format!("continuous.{field}"),
+        value: value.to_string(),
+        allowed: allowed.into(),
+    }
+}
+
+impl Continuous {
+    /// Checks every field's range (errors name `continuous.<field>`, the value and the
+    /// allowed range).
+    pub fn validate(&self) -> Result<(), PlanError> {
+        let n = self.frames_per_half_turn;
+        if !(3..=360).contains(&n) {
+            return Err(invalid("frames_per_half_turn", n, "3..=360"));
+        }
+        let in_range = |v: f64, lo: f64, hi: f64, lo_open: bool| {
+            v.is_finite() && v <= hi && if lo_open { v > lo } else { v >= lo }
+        };
+        if !in_range(self.speed_deg_per_s, 0.0, 3600.0, true) {
+            return Err(invalid(
+                "speed_deg_per_s",
+                self.speed_deg_per_s,
+                "(0, 3600]",
+            ));
+        }
+        if !in_range(self.exposure_us, 0.0, 1e7, true) {
+            return Err(invalid("exposure_us", self.exposure_us, "(0, 1e7]"));
+        }
+        let longest_us = self.interval_deg() / self.speed_deg_per_s * 1e6;
+        if self.exposure_us >= longest_us {
+            return Err(invalid(
+                "exposure_us",
+                self.exposure_us,
+                format!(
+                    "below {longest_us:.3} us: the span swept (speed_deg_per_s {} x exposure) \
+                     must end before the next trigger, {:.4} deg later",
+                    self.speed_deg_per_s,
+                    self.interval_deg()
+                ),
+            ));
+        }
+        if !(1..=100_000).contains(&self.half_turns) {
+            return Err(invalid("half_turns", self.half_turns, "1..=100000"));
+        }
+        if !in_range(self.timing_sigma_us, 0.0, 1e6, false) {
+            return Err(invalid("timing_sigma_us", self.timing_sigma_us, "[0, 1e6]"));
+        }
+        if !in_range(self.gain_db, 0.0, 48.0, false) {
+            return Err(invalid("gain_db", self.gain_db, "[0, 48]"));
+        }
+        Ok(())
+    }
+
+    /// Degrees between two triggers, `180 / N`.
+    pub fn interval_deg(&self) -> f64 {
+        180.0 / f64::from(self.frames_per_half_turn.max(1))
+    }
+
+    /// The span each frame sweeps, degrees: speed times exposure.
+    pub fn span_deg(&self) -> f64 {
+        self.speed_deg_per_s * self.exposure_us * 1e-6
+    }
+
+    /// The trigger angles of a half turn, degrees: `k * 180 / N`.
+    pub fn trigger_angles_deg(&self) -> Vec<f64> {
+        (0..self.frames_per_half_turn)
+            .map(|k| f64::from(k) * self.interval_deg())
+            .collect()
+    }
+
+    /// The spans of a half turn, radians: `(psi_k, psi_k + D)`.
+    pub fn spans_rad(&self) -> Vec<(f64, f64)> {
+        let d = self.span_deg();
+        self.trigger_angles_deg()
+            .into_iter()
+            .map(|a| (a.to_radians(), (a + d).to_radians()))
+            .collect()
+    }
+
+    /// The standard uncertainty of each span's angles, radians: 0 for encoder triggers (one
+    /// encoder count is far below any other error), the speed times the timing uncertainty
+    /// for timestamps.
+    pub fn angle_sigma_rad(&self) -> f64 {
+        match self.trigger {
+            TriggerSource::Encoder => 0.0,
+            TriggerSource::Timestamps => {
+                (self.speed_deg_per_s * self.timing_sigma_us * 1e-6).to_radians()
+            }
+        }
+    }
+
+    /// Time at speed, seconds: the half turns at `speed_deg_per_s` (the spin-up before the
+    /// first trigger is the stage's and not included).
+    pub fn duration_at_speed_s(&self) -> f64 {
+        f64::from(self.half_turns) * 180.0 / self.speed_deg_per_s
+    }
+}
+
+/// The OLS Stokes estimate of one half turn's frames with given rows, and its predicted
+/// covariance (module docs).
+#[derive(Debug, Clone)]
+pub struct SpanEstimator {
+    /// The rows the estimate assumes (one per frame).
+    pub rows: Vec<Vector3<f64>>,
+    /// `(W^T W)^-1 W^T`, 3 x frames, row-major per Stokes component.
+    pinv: Vec<[f64; 3]>,
+    /// The dark level of each frame, DN (offset and dark signal).
+    dark_dn: Vec<f64>,
+    sensor: SensorModel,
+    spans_rad: Vec<(f64, f64)>,
+    exposure_s: f64,
+    angle_sigma_rad: f64,
+}
+
+/// Why an estimate could not be made.
+fn model_err(field: &str) -> impl Fn(polar_model::error::ModelError) -> PlanError + '_ {
+    move |e| PlanError::Invalid {
+        field: field.to_string(),
+        value: "(model)".into(),
+        allowed: e.to_string(),
+    }
+}
+
+impl SpanEstimator {
+    fn from_rows(
+        sensor: &SensorModel,
+        spans_rad: &[(f64, f64)],
+        exposure_s: f64,
+        angle_sigma_rad: f64,
+        rows: Vec<Vector3<f64>>,
+    ) -> Result<SpanEstimator, PlanError> {
+        let dark = span_signal(
+            sensor,
+            spans_rad,
+            &SpanExposure {
+                t_int_s: exposure_s,
+                radiance_w_m2_sr: Vector3::zeros(),
+                angle_sigma_rad,
+            },
+        )
+        .map_err(model_err("continuous"))?;
+        let mut wtw = Matrix3::zeros();
+        for r in &rows {
+            wtw += r * r.transpose();
+        }
+        let inv = wtw.try_inverse().ok_or_else(|| PlanError::Invalid {
+            field: "continuous.frames_per_half_turn".into(),
+            value: rows.len().to_string(),
+            allowed: "spans whose rows determine S0, S1 and S2".into(),
+        })?;
+        // `y - b = K G W L`: the estimate of `K G L` (DN) is `(W^T W)^-1 W^T (y - b)`.
+        let pinv = rows
+            .iter()
+            .map(|r| {
+                let c = inv * r;
+                [c[0], c[1], c[2]]
+            })
+            .collect();
+        Ok(SpanEstimator {
+            rows,
+            pinv,
+            dark_dn: dark.mean_dn,
+            sensor: sensor.clone(),
+            spans_rad: spans_rad.to_vec(),
+            exposure_s,
+            angle_sigma_rad,
+        })
+    }
+
+    /// The estimator with the span rows of `spans_rad` through `sensor` (exposure
+    /// `exposure_s`, centre-angle uncertainty `angle_sigma_rad`). Errors name the field.
+    pub fn new(
+        sensor: &SensorModel,
+        spans_rad: &[(f64, f64)],
+        exposure_s: f64,
+        angle_sigma_rad: f64,
+    ) -> Result<SpanEstimator, PlanError> {
+        let s = span_signal(
+            sensor,
+            spans_rad,
+            &SpanExposure {
+                t_int_s: exposure_s,
+                radiance_w_m2_sr: Vector3::new(1.0, 0.0, 0.0),
+                angle_sigma_rad,
+            },
+        )
+        .map_err(model_err("continuous"))?;
+        SpanEstimator::from_rows(sensor, spans_rad, exposure_s, angle_sigma_rad, s.rows)
+    }
+
+    /// The estimator that ignores the smear: point rows at each span's centre (the rows of a
+    /// still analyzer there). Its polarised components are biased by `sinc D`.
+    pub fn point_rows(
+        sensor: &SensorModel,
+        spans_rad: &[(f64, f64)],
+        exposure_s: f64,
+    ) -> Result<SpanEstimator, PlanError> {
+        let centres: Vec<(f64, f64)> = spans_rad
+            .iter()
+            .map(|&(a, b)| (0.5 * (a + b), 0.5 * (a + b)))
+            .collect();
+        let s = span_signal(
+            sensor,
+            &centres,
+            &SpanExposure {
+                t_int_s: exposure_s,
+                radiance_w_m2_sr: Vector3::new(1.0, 0.0, 0.0),
+                angle_sigma_rad: 0.0,
+            },
+        )
+        .map_err(model_err("continuous"))?;
+        SpanEstimator::from_rows(sensor, spans_rad, exposure_s, 0.0, s.rows)
+    }
+
+    /// The Stokes estimate (DN of `K G L`) of one pixel from its value in each frame, DN.
+    pub fn estimate(&self, frames_dn: &[f64]) -> Vector3<f64> {
+        let mut s = Vector3::zeros();
+        for ((y, b), c) in frames_dn.iter().zip(&self.dark_dn).zip(&self.pinv) {
+            let v = y - b;
+            s += Vector3::new(c[0] * v, c[1] * v, c[2] * v);
+        }
+        s
+    }
+
+    /// The predicted frames and Stokes covariance for a pixel of radiance `radiance`
+    /// (W m^-2 sr^-1), from the span rows (`polar_model::span::span_signal`).
+    pub fn predict(&self, radiance: Vector3<f64>) -> Result<SpanSignal, PlanError> {
+        span_signal(
+            &self.sensor,
+            &self.spans_rad,
+            &SpanExposure {
+                t_int_s: self.exposure_s,
+                radiance_w_m2_sr: radiance,
+                angle_sigma_rad: self.angle_sigma_rad,
+            },
+        )
+        .map_err(model_err("continuous"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn section() -> Continuous {
+        Continuous {
+            frames_per_half_turn: 4,
+            exposure_us: 2000.0,
+            speed_deg_per_s: 360.0,
+            half_turns: 3,
+            trigger: TriggerSource::Encoder,
+            timing_sigma_us: 20.0,
+            gain_db: 0.0,
+        }
+    }
+
+    /// Spans: 4 frames per half turn at 360 deg/s and 2 ms sweep 0.72 deg each from 0, 45,
+    /// 90, 135 deg (exact in binary to 1e-12 deg); a timestamps run's angle sigma is speed x
+    /// timing sigma (360 deg/s x 20 us = 0.0072 deg).
+    #[test]
+    fn spans_and_sigma() {
+        let c = section();
+        c.validate().expect("valid");
+        assert_eq!(c.trigger_angles_deg(), vec![0.0, 45.0, 90.0, 135.0]);
+        assert!((c.span_deg() - 0.72).abs() < 1e-12);
+        assert_eq!(c.angle_sigma_rad(), 0.0);
+        let t = Continuous {
+            trigger: TriggerSource::Timestamps,
+            ..section()
+        };
+        assert!((t.angle_sigma_rad().to_degrees() - 0.0072).abs() < 1e-15);
+        assert!((c.duration_at_speed_s() - 1.5).abs() < 1e-12);
+    }
+
+    /// Each bad field is named with its value and the allowed range; an exposure whose span
+    /// reaches the next trigger is refused with the longest allowed exposure.
+    #[test]
+    fn errors_name_the_field() {
+        let cases: Vec<(Continuous, &str)> = vec![
+            (
+                Continuous {
+                    frames_per_half_turn: 2,
+                    ..section()
+                },
+                "continuous.frames_per_half_turn",
+            ),
+            (
+                Continuous {
+                    speed_deg_per_s: 0.0,
+                    ..section()
+                },
+                "continuous.speed_deg_per_s",
+            ),
+            (
+                Continuous {
+                    exposure_us: 125_000.0,
+                    ..section()
+                },
+                "continuous.exposure_us",
+            ),
+            (
+                Continuous {
+                    half_turns: 0,
+                    ..section()
+                },
+                "continuous.half_turns",
+            ),
+            (
+                Continuous {
+                    timing_sigma_us: -1.0,
+                    ..section()
+                },
+                "continuous.timing_sigma_us",
+            ),
+            (
+                Continuous {
+                    gain_db: 50.0,
+                    ..section()
+                },
+                "continuous.gain_db",
+            ),
+        ];
+        for (c, field) in cases {
+            let e = c.validate().expect_err(field).to_string();
+            assert!(e.contains(field), "{e}");
+        }
+        // 45 deg between triggers at 360 deg/s: the exposure must stay below 125 ms.
+        let e = Continuous {
+            exposure_us: 125_000.0,
+            ..section()
+        }
+        .validate()
+        .expect_err("too long")
+        .to_string();
+        assert!(e.contains("below 125000.000 us"), "{e}");
+        Continuous {
+            exposure_us: 124_999.0,
+            ..section()
+        }
+        .validate()
+        .expect("just shorter");
+    }
+}

@@ -1,0 +1,673 @@
+//! The run loop of `kind = "continuous"` with `trigger = "encoder"` ([`run_continuous`]).
+//!
+//! The analyzer spins at `speed_deg_per_s`; the stage's position-compare output fires a pulse
+//! at every `180 / N` degrees of the analyzer (whole multiples of the interval from the
+//! analyzer's zero), and the camera, in hardware-trigger mode on that line, starts an exposure
+//! at each pulse. Frame `k` of a half turn pairs with the pulse at `k * 180 / N`: its span
+//! starts at the encoder angle the pulse latched and ends `speed x exposure` later
+//! (`AngleSource::EncoderTrigger`, `angle_sigma_deg` 0: one encoder count is far below any
+//! other error). A half turn is one set: its frames go through the same storage thread and
+//! journal as step-and-shoot frames, and its products are computed there with the span rows of
+//! [`crate::continuous::SpanEstimator`] (Malus's law averaged over each span) instead of the
+//! still analyzer's rows; the suspender checks it as any set, and `SetDone` is journaled per
+//! half turn.
+//!
+//! **Segments.** Spinning starts a segment: the camera is configured and started in
+//! hardware-trigger mode, the stage spins, its trigger is armed from a whole half turn at
+//! least [`RUN_UP_S`] ahead (one pulse before it, the *go* pulse, starts the camera, so the
+//! camera sees only armed positions), and half turns are taken until the run ends or pauses.
+//! Pausing (at a half-turn boundary: the safe point), a device error and the end stop the
+//! camera and the spin and disarm the trigger; resuming starts a new segment. So a pause, an
+//! abort or a crash redoes at most the half turn in progress: a resumed run replays the
+//! journal and takes every half turn without `SetDone` again (its earlier frames stay stored,
+//! superseded). Each frame's pairing with its pulse is checked: consecutive frames must be as
+//! far apart on the camera's clock as their pulses on the stage's (within half an interval),
+//! and each pulse must be at its frame's angle.
+//!
+//! `trigger = "timestamps"` (a free-running camera) is refused at the start with an error
+//! naming `continuous.trigger`.
+
+use super::*;
+use crate::continuous::{Continuous, SpanEstimator, TriggerSource};
+use crate::plan::PlanError;
+use polar_hal::{OnRotator, Rotator, TriggerPulse};
+use std::f64::consts::PI;
+
+/// How far the stage turns at speed before the first armed position, seconds of its speed
+/// (its ramp to speed is shorter).
+pub const RUN_UP_S: f64 = 0.5;
+
+/// The last frame of a segment and its pulse: the pulse's controller time, us, and the
+/// frame's camera timestamp, ns (the pairing check, module docs).
+#[derive(Clone, Copy)]
+struct Mark {
+    pulse_us: u32,
+    frame_ns: Option<u64>,
+}
+
+struct Cont<'a, R: Rotator, C: Camera> {
+    plan: &'a Plan,
+    c: &'a Continuous,
+    rig: Rig<OnRotator<R>, C>,
+    link: RunLink,
+    to_store: std::sync::mpsc::SyncSender<ToStore>,
+    from_store: mpsc::UnboundedReceiver<FromStore>,
+    steps: Vec<StepSpec>,
+    records: BTreeMap<u64, FrameRecord>,
+    accepted: BTreeMap<u64, u64>,
+    next_index: u64,
+    in_flight: BTreeSet<u64>,
+    done_frames: u64,
+    planned_frames: u64,
+    sets_accepted: u64,
+    sets_rejected: u64,
+    rejections: HashMap<u64, u32>,
+    /// Sets sent for checking, by set: their frames.
+    checking: BTreeMap<u64, Vec<u64>>,
+    /// Sets to take again (rejected by the suspender).
+    retake: VecDeque<u64>,
+    pauses: u64,
+    device_s: f64,
+    spinning: bool,
+    last: Option<Mark>,
+}
+
+fn plan_err(field: &str, value: impl Into<String>, allowed: impl Into<String>) -> RunError {
+    RunError::Plan(PlanError::Invalid {
+        field: field.into(),
+        value: value.into(),
+        allowed: allowed.into(),
+    })
+}
+
+/// Runs (or, with `resume`, continues) a `kind = "continuous"` plan into `run_dir` on `rig`
+/// (a rotator that spins and fires position-compare pulses, a camera whose trigger line is
+/// wired to them), reporting through `link` (module docs). Call it inside a
+/// [`tokio::task::LocalSet`], as [`run`].
+pub async fn run_continuous<R, C>(
+    plan: &Plan,
+    rig: Rig<OnRotator<R>, C>,
+    run_dir: &Path,
+    resume: bool,
+    link: RunLink,
+) -> Result<Outcome, RunError>
+where
+    R: Rotator,
+    C: Camera,
+{
+    let started = Instant::now();
+    let c = match (&plan.kind, &plan.continuous) {
+        (PlanKind::Continuous, Some(c)) => c,
+        _ => {
+            return Err(plan_err(
+                "kind",
+                plan.kind.name(),
+                "continuous (with a [continuous] section) for run_continuous",
+            ))
+        }
+    };
+    c.validate()?;
+    if c.trigger == TriggerSource::Timestamps {
+        return Err(plan_err(
+            "continuous.trigger",
+            "timestamps",
+            "encoder: a run takes its spans from the stage's position-compare pulses (a \
+             free-running camera's spans from timestamps are shown live by the GUI, not run)",
+        ));
+    }
+    let info = rig.camera.info().clone();
+    let (width, height) = (info.sensor_width, info.sensor_height);
+    plan.check_frame(width, height)?;
+    let support = rig.analyzer.rotator.continuous_support();
+    let model = rig.analyzer.rotator.info().model.clone();
+    if !support.can_trigger() {
+        return Err(RunError::Device(DeviceError::new(
+            ErrorKind::OutOfRange,
+            model.clone(),
+            format!(
+                "continuous.trigger = \"encoder\" needs a stage with velocity mode and a \
+                 position-compare trigger output: stage {model} offers \"{support}\""
+            ),
+        )));
+    }
+    if !rig.camera.supports_hardware_trigger() {
+        return Err(RunError::Device(DeviceError::new(
+            ErrorKind::OutOfRange,
+            info.id.clone(),
+            "continuous.trigger = \"encoder\" needs the camera's hardware trigger wired to the \
+             stage's trigger output: this camera has no hardware trigger",
+        )));
+    }
+    let steps = plan.steps()?;
+    let opened = open_run(plan, run_dir, resume, width, height, &rig.devices)?;
+    let mut opened = opened;
+    let entries = std::mem::take(&mut opened.entries);
+    opened.store.set_attribute(
+        "products_camera",
+        json!({
+            "model": rig.camera_model,
+            "source": format!("{} devices", rig.devices["kind"].as_str().unwrap_or("unknown")),
+            "used_for": "the analyzer span rows (transmittance, extinction ratio, angle \
+                         offset), the noise and the scalar dark level of the products",
+        }),
+    )?;
+    // Replay: a half turn counts once its SetDone is journaled.
+    let mut records: BTreeMap<u64, FrameRecord> = BTreeMap::new();
+    let mut sets_done: BTreeMap<u64, Vec<u64>> = BTreeMap::new();
+    let mut rejections: HashMap<u64, u32> = HashMap::new();
+    for e in &entries {
+        match e {
+            Entry::Frame(r) => {
+                records.insert(r.index, r.clone());
+            }
+            Entry::SetDone { set, frames, .. } => {
+                sets_done.insert(*set, frames.clone());
+            }
+            Entry::SetRejected { set, .. } => *rejections.entry(*set).or_default() += 1,
+            _ => {}
+        }
+    }
+    let mut accepted = BTreeMap::new();
+    for frames in sets_done.values() {
+        for i in frames {
+            if let Some(r) = records.get(i) {
+                accepted.insert(r.step, r.index);
+            }
+        }
+    }
+    let next_index = records.keys().next_back().map_or(0, |i| i + 1);
+    let writer = Writer {
+        store: opened.store,
+        journal: opened.journal,
+        sensor: rig.sensor.clone(),
+        camera_model: rig.camera_model.clone(),
+        suspender: plan.suspender.clone(),
+        records: records.clone(),
+        cache: HashMap::new(),
+        products: Products::empty(),
+        last_s0: HashMap::new(),
+        threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+        darks: HashMap::new(),
+    };
+    let (to_store, from_store, writer_thread) = spawn_writer(writer)?;
+    if resume {
+        to_store
+            .send(ToStore::Entry(Entry::Resumed {
+                process_id: std::process::id(),
+                at_unix_ns: now_unix_ns(SystemTime::now()),
+            }))
+            .map_err(|_| RunError::Storage("the storage thread stopped".into()))?;
+    }
+    let mut lp = Cont {
+        plan,
+        c,
+        rig,
+        link,
+        to_store,
+        from_store,
+        planned_frames: steps.len() as u64,
+        steps,
+        done_frames: accepted.len() as u64,
+        records,
+        accepted,
+        next_index,
+        in_flight: BTreeSet::new(),
+        sets_accepted: sets_done.len() as u64,
+        sets_rejected: rejections.values().map(|n| u64::from(*n)).sum(),
+        rejections,
+        checking: BTreeMap::new(),
+        retake: VecDeque::new(),
+        pauses: 0,
+        device_s: 0.0,
+        spinning: false,
+        last: None,
+    };
+    lp.set_state(RunState::Running);
+    let mut todo: VecDeque<u64> = (0..u64::from(c.half_turns))
+        .filter(|h| !sets_done.contains_key(h))
+        .collect();
+    let outcome = lp.main(&mut todo).await;
+    lp.stop_segment().await;
+    let outcome = match outcome {
+        Ok(o) => o,
+        Err(e) => {
+            drop(lp);
+            let _ = tokio::task::spawn_blocking(move || writer_thread.join()).await;
+            return Err(e);
+        }
+    };
+    lp.drain().await.map_err(RunError::Storage)?;
+    let summary = Summary {
+        frames_stored: lp.next_index,
+        frames_accepted: lp.accepted.len() as u64,
+        sets_accepted: lp.sets_accepted,
+        sets_rejected: lp.sets_rejected,
+        retries: 0,
+        pauses: lp.pauses,
+        elapsed_s: started.elapsed().as_secs_f64(),
+        device_s: lp.device_s,
+        final_angles_deg: None,
+    };
+    let result = match outcome {
+        Some(Outcome::Aborted(reason)) => {
+            lp.set_state(RunState::Aborting);
+            lp.send_store(ToStore::Entry(Entry::Aborted {
+                reason: reason.clone(),
+            }))?;
+            lp.set_state(RunState::Aborted(reason.clone()));
+            Ok(Outcome::Aborted(reason))
+        }
+        Some(other) => Ok(other),
+        None => {
+            let (tx, rx) = std::sync::mpsc::channel();
+            lp.send_store(ToStore::Finish {
+                reply: tx,
+                summary: json!({ "run": serde_json::to_value(&summary).unwrap_or(Value::Null) }),
+                checks: FinishChecks {
+                    planned_steps: (0..lp.steps.len() as u64).collect(),
+                    accepted: lp.accepted.clone(),
+                    damaged: BTreeSet::new(),
+                },
+            })?;
+            let r = tokio::task::spawn_blocking(move || rx.recv())
+                .await
+                .map_err(|e| RunError::Storage(e.to_string()))?
+                .map_err(|_| RunError::Storage("the storage thread stopped".into()))?;
+            match r {
+                Ok(_) => {
+                    lp.set_state(RunState::Done);
+                    Ok(Outcome::Done(summary))
+                }
+                Err(e) => Err(RunError::Check(e)),
+            }
+        }
+    };
+    drop(lp);
+    let _ = tokio::task::spawn_blocking(move || writer_thread.join()).await;
+    result
+}
+
+/// What to do after a pause.
+enum After {
+    Resume,
+    End(Outcome),
+}
+
+impl<R: Rotator, C: Camera> Cont<'_, R, C> {
+    fn set_state(&self, s: RunState) {
+        let _ = self.link.state.send(s.clone());
+        let _ = self.link.events.try_send(Event::State(s));
+    }
+
+    fn send_store(&self, msg: ToStore) -> Result<(), RunError> {
+        self.to_store
+            .send(msg)
+            .map_err(|_| RunError::Storage("the storage thread stopped".into()))
+    }
+
+    /// Sends without blocking the loop's thread (the channel holds two messages).
+    async fn send_store_async(&self, msg: ToStore) -> Result<(), RunError> {
+        let tx = self.to_store.clone();
+        let sent = tokio::task::spawn_blocking(move || tx.send(msg).is_ok())
+            .await
+            .unwrap_or(false);
+        if sent {
+            Ok(())
+        } else {
+            Err(RunError::Storage("the storage thread stopped".into()))
+        }
+    }
+
+    fn on_store(&mut self, msg: FromStore) -> Result<(), RunError> {
+        match msg {
+            FromStore::Durable { index, label } => {
+                self.in_flight.remove(&index);
+                self.done_frames += 1;
+                let _ = self.link.events.try_send(Event::Progress {
+                    done: self.done_frames,
+                    planned: self.planned_frames,
+                    label,
+                });
+            }
+            FromStore::SetChecked {
+                set,
+                verdict,
+                mean_dolp,
+            } => {
+                let frames = self.checking.remove(&set).unwrap_or_default();
+                let _ = self.link.events.try_send(Event::Set {
+                    set,
+                    verdict: verdict.clone(),
+                    mean_s0: verdict.mean_s0_dn,
+                    mean_dolp,
+                });
+                if verdict.accepted {
+                    self.sets_accepted += 1;
+                } else {
+                    self.sets_rejected += 1;
+                    warn!(set, reason = %verdict.reason, "half turn rejected");
+                    for i in &frames {
+                        if let Some(r) = self.records.get(i) {
+                            if self.accepted.get(&r.step) == Some(i) {
+                                self.accepted.remove(&r.step);
+                            }
+                        }
+                    }
+                    *self.rejections.entry(set).or_default() += 1;
+                    self.retake.push_back(set);
+                }
+            }
+            FromStore::Failed(e) => return Err(RunError::Storage(e)),
+        }
+        Ok(())
+    }
+
+    async fn drain(&mut self) -> Result<(), String> {
+        while !self.in_flight.is_empty() || !self.checking.is_empty() {
+            match self.from_store.recv().await {
+                Some(msg) => self.on_store(msg).map_err(|e| e.to_string())?,
+                None => return Err("the storage thread stopped".into()),
+            }
+        }
+        Ok(())
+    }
+
+    /// The half turns until the end, a pause that ends the run, or an abort.
+    async fn main(&mut self, todo: &mut VecDeque<u64>) -> Result<Option<Outcome>, RunError> {
+        loop {
+            while let Ok(msg) = self.from_store.try_recv() {
+                self.on_store(msg)?;
+            }
+            while let Some(set) = self.retake.pop_front() {
+                let tries = self.rejections.get(&set).copied().unwrap_or(0);
+                let cfg = &self.plan.suspender;
+                if cfg.action == SuspendAction::Pause || tries > cfg.max_reacquire {
+                    todo.push_front(set);
+                    let reason = format!("half turn {set} rejected {tries} times");
+                    match self.pause(reason, set).await? {
+                        After::Resume => {}
+                        After::End(o) => return Ok(Some(o)),
+                    }
+                } else {
+                    todo.push_back(set);
+                }
+            }
+            let Some(&h) = todo.front() else {
+                // No half turn left to take (unless a check rejects one): stop spinning.
+                self.stop_segment().await;
+                if self.checking.is_empty() && self.in_flight.is_empty() {
+                    return Ok(None);
+                }
+                match self.from_store.recv().await {
+                    Some(msg) => self.on_store(msg)?,
+                    None => return Err(RunError::Storage("the storage thread stopped".into())),
+                }
+                continue;
+            };
+            // The safe point: between half turns.
+            let mut asked = None;
+            while let Ok(c) = self.link.control.try_recv() {
+                asked = Some(c);
+            }
+            match asked {
+                Some(Control::Pause | Control::PauseNow) => {
+                    self.set_state(RunState::Pausing);
+                    match self.pause("paused by the user".into(), h).await? {
+                        After::Resume => continue,
+                        After::End(o) => return Ok(Some(o)),
+                    }
+                }
+                Some(Control::Abort) => {
+                    return Ok(Some(Outcome::Aborted("aborted by the user".into())))
+                }
+                Some(Control::Detach) => {
+                    return Ok(Some(Outcome::Paused("detached by the user".into())))
+                }
+                Some(Control::Resume) | None => {}
+            }
+            let taken = async {
+                if !self.spinning {
+                    let half_turns = todo.len() as u64;
+                    self.start_segment(half_turns).await?;
+                }
+                self.half_turn(h).await
+            }
+            .await;
+            match taken {
+                Ok(()) => {
+                    todo.pop_front();
+                }
+                Err(e) => {
+                    let reason = format!("half turn {h}: {e}");
+                    warn!("{reason}");
+                    match self.pause(reason, h).await? {
+                        After::Resume => {}
+                        After::End(o) => return Ok(Some(o)),
+                    }
+                }
+            }
+        }
+    }
+
+    /// Stops everything and waits for the controller.
+    async fn pause(&mut self, reason: String, half_turn: u64) -> Result<After, RunError> {
+        self.stop_segment().await;
+        if let Err(e) = self.drain().await {
+            warn!("while pausing: {e}");
+        }
+        self.pauses += 1;
+        self.send_store(ToStore::SyncMetadata)?;
+        info!(reason = %reason, "paused");
+        self.send_store(ToStore::Entry(Entry::Paused {
+            reason: reason.clone(),
+            next_step: half_turn * u64::from(self.c.frames_per_half_turn),
+        }))?;
+        self.set_state(RunState::Paused(reason.clone()));
+        loop {
+            match self.link.control.recv().await {
+                Some(Control::Resume) => {
+                    self.send_store(ToStore::Entry(Entry::Resumed {
+                        process_id: std::process::id(),
+                        at_unix_ns: now_unix_ns(SystemTime::now()),
+                    }))?;
+                    self.set_state(RunState::Running);
+                    return Ok(After::Resume);
+                }
+                Some(Control::Abort) => return Ok(After::End(Outcome::Aborted(reason))),
+                Some(Control::Detach) | None => return Ok(After::End(Outcome::Paused(reason))),
+                Some(Control::Pause | Control::PauseNow) => {}
+            }
+        }
+    }
+
+    fn interval_rad(&self) -> f64 {
+        PI / f64::from(self.c.frames_per_half_turn)
+    }
+
+    fn wait(&self) -> Duration {
+        let interval_s = self.c.interval_deg() / self.c.speed_deg_per_s;
+        Duration::from_secs_f64(
+            self.plan.policy.grab_timeout_s + 3.0 * interval_s + self.c.exposure_us * 1e-6,
+        )
+    }
+
+    /// Configures and starts the camera on its line, spins, arms the trigger for
+    /// `half_turns` half turns (and their retakes) and waits for the go pulse (module docs).
+    async fn start_segment(&mut self, half_turns: u64) -> Result<(), DeviceError> {
+        let t0 = Instant::now();
+        let c = self.c;
+        let cam = &mut self.rig.camera;
+        cam.set_exposure_us(c.exposure_us).await?;
+        cam.set_gain(c.gain_db).await?;
+        cam.set_trigger(TriggerMode::Hardware).await?;
+        let omega = c.speed_deg_per_s.to_radians();
+        self.spinning = true;
+        self.last = None;
+        let interval = self.interval_rad();
+        let go_wait = self.wait() + Duration::from_secs_f64(2.0 * RUN_UP_S + 1.0);
+        let rotator = &mut self.rig.analyzer.rotator;
+        rotator.spin(omega).await?;
+        let zero = self.rig.analyzer.zero_offset_rad;
+        let position = rotator.spin_position_rad().await?;
+        // The first frame's position: a whole half turn of the analyzer, RUN_UP_S ahead; the
+        // go pulse one interval before it.
+        let ahead = position - zero + omega * RUN_UP_S + interval;
+        let first = zero + (ahead / PI).ceil() * PI - interval;
+        let n = u64::from(c.frames_per_half_turn);
+        let spare = u64::from(self.plan.suspender.max_reacquire) + 1;
+        let pulses = u32::try_from(1 + n * half_turns * spare.min(4)).unwrap_or(u32::MAX);
+        rotator.arm_trigger(first, interval, pulses).await?;
+        let go = rotator.next_trigger(go_wait).await?;
+        self.rig.camera.start().await?;
+        tracing::debug!(
+            go_deg = go.angle_rad.to_degrees(),
+            ms = t0.elapsed().as_secs_f64() * 1e3,
+            "spinning; camera on the line"
+        );
+        self.device_s += t0.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// Stops the camera and the spin and disarms the trigger (errors are logged: the run is
+    /// ending or pausing anyway).
+    async fn stop_segment(&mut self) {
+        if !self.spinning {
+            return;
+        }
+        self.spinning = false;
+        if let Err(e) = self.rig.camera.stop().await {
+            warn!("stopping the camera: {e}");
+        }
+        let rotator = &mut self.rig.analyzer.rotator;
+        if let Err(e) = rotator.stop_spin().await {
+            warn!("stopping the spin: {e}");
+        }
+        if let Err(e) = rotator.arm_trigger(0.0, 0.0, 0).await {
+            warn!("disarming the trigger: {e}");
+        }
+    }
+
+    /// Takes half turn `h`: `N` pulses, each with its frame, to storage, then the set to be
+    /// checked with its span rows.
+    async fn half_turn(&mut self, h: u64) -> Result<(), DeviceError> {
+        let c = self.c;
+        let n = u64::from(c.frames_per_half_turn);
+        let interval_deg = c.interval_deg();
+        let span_deg = c.span_deg();
+        let zero = self.rig.analyzer.zero_offset_rad;
+        let wait = self.wait();
+        let (w, hgt) = (
+            self.rig.camera.info().sensor_width,
+            self.rig.camera.info().sensor_height,
+        );
+        let mut frames = Vec::with_capacity(n as usize);
+        let mut spans_rad = Vec::with_capacity(n as usize);
+        for k in 0..n {
+            let t0 = Instant::now();
+            let pulse: TriggerPulse = self.rig.analyzer.rotator.next_trigger(wait).await?;
+            let frame = self.rig.camera.grab(wait).await?;
+            self.device_s += t0.elapsed().as_secs_f64();
+            let bad = |m: String| DeviceError::new(ErrorKind::Protocol, "continuous", m);
+            if (frame.width, frame.height) != (w, hgt) || frame.pixels.len() != (w * hgt) as usize {
+                return Err(bad(format!(
+                    "frame {} of {}x{}; the run stores {w}x{hgt}",
+                    frame.frame_id, frame.width, frame.height
+                )));
+            }
+            let start_deg = (pulse.angle_rad - zero).to_degrees().rem_euclid(180.0);
+            let grid = (start_deg / interval_deg).round() as u64 % n;
+            if grid != k {
+                return Err(bad(format!(
+                    "pulse {} at {start_deg:.4} deg is not at frame {k}'s angle {} deg",
+                    pulse.index,
+                    k as f64 * interval_deg
+                )));
+            }
+            let mark = Mark {
+                pulse_us: pulse.device_time_us,
+                frame_ns: frame.device_timestamp_ns,
+            };
+            if let (Some(last), Some(now_ns)) = (self.last, mark.frame_ns) {
+                if let Some(last_ns) = last.frame_ns {
+                    let pulse_s = f64::from(mark.pulse_us.wrapping_sub(last.pulse_us)) * 1e-6;
+                    let frame_s = now_ns.wrapping_sub(last_ns) as f64 * 1e-9;
+                    let half_s = 0.5 * interval_deg / c.speed_deg_per_s;
+                    if (pulse_s - frame_s).abs() > half_s {
+                        return Err(bad(format!(
+                            "frame {} came {frame_s:.4} s after the previous one but its pulse \
+                             {} {pulse_s:.4} s after the previous pulse: the camera missed a \
+                             trigger or took an extra one",
+                            frame.frame_id, pulse.index
+                        )));
+                    }
+                }
+            }
+            self.last = Some(mark);
+            let step = h * n + k;
+            let spec = self.steps[step as usize].clone();
+            let index = self.next_index;
+            self.next_index += 1;
+            let host_ns = now_unix_ns(frame.host_time);
+            let (zen, az) = self
+                .rig
+                .sun_deg
+                .or_else(|| self.plan.site.as_ref().and_then(|s| sun_at(host_ns, s)))
+                .map_or((None, None), |(z, a)| (Some(z), Some(a)));
+            let record = FrameRecord {
+                index,
+                step,
+                kind: spec.kind,
+                set: spec.set,
+                label: spec.label.clone(),
+                commanded_angle_deg: spec.angle_deg.rem_euclid(180.0),
+                measured_angle_deg: start_deg,
+                angle_start_deg: start_deg,
+                angle_end_deg: start_deg + span_deg,
+                angle_source: crate::AngleSource::EncoderTrigger,
+                angle_sigma_deg: c.angle_sigma_rad().to_degrees(),
+                exposure_us: frame.exposure_us,
+                gain: frame.gain,
+                host_time_unix_ns: host_ns,
+                device_timestamp_ns: frame.device_timestamp_ns,
+                frame_id: frame.frame_id,
+                sun_zenith_deg: zen,
+                sun_azimuth_deg: az,
+                width: frame.width,
+                height: frame.height,
+                hash: pixel_hash(&frame.pixels),
+            };
+            spans_rad.push((start_deg.to_radians(), (start_deg + span_deg).to_radians()));
+            self.records.insert(index, record.clone());
+            self.accepted.insert(step, index);
+            self.in_flight.insert(index);
+            frames.push(index);
+            self.send_store_async(ToStore::Frame {
+                record,
+                pixels: frame.pixels,
+            })
+            .await
+            .map_err(|e| DeviceError::new(ErrorKind::Other, "storage", e.to_string()))?;
+        }
+        let estimator = SpanEstimator::new(
+            &self.rig.sensor,
+            &spans_rad,
+            c.exposure_us * 1e-6,
+            c.angle_sigma_rad(),
+        )
+        .map_err(|e| DeviceError::new(ErrorKind::OutOfRange, "continuous", e.to_string()))?;
+        let job = SetJob {
+            set: h,
+            measured_deg: spans_rad.iter().map(|s| s.0.to_degrees()).collect(),
+            commanded_deg: (0..n).map(|k| k as f64 * interval_deg).collect(),
+            exposure_us: c.exposure_us,
+            gain_db: c.gain_db,
+            frames: frames.clone(),
+            rows: Some(estimator.rows.iter().map(|r| [r[0], r[1], r[2]]).collect()),
+        };
+        self.checking.insert(h, frames);
+        self.send_store_async(ToStore::ProcessSet(job))
+            .await
+            .map_err(|e| DeviceError::new(ErrorKind::Other, "storage", e.to_string()))?;
+        Ok(())
+    }
+}
