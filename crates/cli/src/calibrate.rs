@@ -1,5 +1,5 @@
 //! `polarimeter calibrate noise` (EMVA 1288 photon transfer from a directory of frames) and
-//! `polarimeter sim frames` (a photon-transfer series from a camera file with known truth, to
+//! `polarimeter simulate photon-transfer` (a photon-transfer series from a camera file with known truth, to
 //! test it).
 //!
 //! # The frames directory
@@ -1007,7 +1007,7 @@ struct FrameJob {
     seed: u64,
 }
 
-/// `polarimeter sim frames`: a photon-transfer series of `camera` under uniform illumination:
+/// `polarimeter simulate photon-transfer`: a photon-transfer series of `camera` under uniform illumination:
 /// at each exposure time two flats and two darks, 16-bit TIFFs (`flat_NNN_a.tif`, ...), and
 /// frames.csv with the photon counts. The linear series has `exposures` points evenly spaced in
 /// time up to `max_exposure_us`, where the mean photo-electrons reach `max_fill` of the

@@ -1,4 +1,4 @@
-//! `polarimeter study`: Meng (2012)'s Chapter 4 trade studies (Sec. 4.2), each a sweep of one
+//! `polarimeter report study`: Meng (2012)'s Chapter 4 trade studies (Sec. 4.2), each a sweep of one
 //! parameter of the scene or the sensor through the whole analytical chain of MODEL.md:
 //!
 //! scene (Eqs. 3.21-3.31) -> sensor frames (Sec. 3.2, MODEL.md section 6) -> Stokes estimate and
@@ -338,7 +338,7 @@ impl NoiseScaling {
     }
 }
 
-/// `polarimeter study KIND`: Meng (2012)'s Ch. 4 trade studies (see the module docs).
+/// `polarimeter report study KIND`: Meng (2012)'s Ch. 4 trade studies (see the module docs).
 #[derive(Debug, Clone, Args)]
 pub struct StudyArgs {
     /// Which study (or all).

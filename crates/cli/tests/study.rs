@@ -1,4 +1,4 @@
-//! Meng (2012)'s Ch. 4 trade studies (`polarimeter study`) run through the library at coarse
+//! Meng (2012)'s Ch. 4 trade studies (`polarimeter report study`) run through the library at coarse
 //! sweeps on examples/study.toml: each test asserts the physical trend behind one of Meng (2012)'s
 //! findings, with the reason and the tolerance, plus the errors that name a bad input.
 #![allow(clippy::unwrap_used)] // tests panic on failure by design
