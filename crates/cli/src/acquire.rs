@@ -1,5 +1,5 @@
-//! Acquisition commands on the engine: `acquire run`, `acquire resume`, `plan check`, `acquire export tiff`, `demo`,
-//! `bench run` and `bench faults`.
+//! Acquisition commands on the engine: `acquire run`, `acquire resume`, `plan check`, `acquire
+//! export tiff`, `demo`, `bench run` and `bench faults`.
 //!
 //! On the terminal a run shows a progress bar; Ctrl-C once pauses at the next safe point,
 //! twice pauses at once (the device operation in flight is cancelled and taken again), a third
@@ -300,8 +300,8 @@ pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandEr
     Ok(v)
 }
 
-/// `acquire run PLAN [--simulate | hardware] [--rig RIG] [--out DIR]`. With a rig: its site for a plan
-/// without one, and a finished calibrate-analyzer run's result written back to it as a new
+/// `acquire run PLAN [--simulate | hardware] [--rig RIG] [--out DIR]`. With a rig: its site for a
+/// plan without one, and a finished calibrate-analyzer run's result written back to it as a new
 /// revision (`rig_written` in the output).
 pub fn run_cmd(
     plan_path: &Path,

@@ -1,5 +1,5 @@
-//! `devices list`, `devices stage` and `simulate stage`: serial ports, one-shot stage and wheel commands in
-//! every dialect of the registry (`polar_drivers::registry`), and the simulators of the
+//! `devices list`, `devices stage` and `simulate stage`: serial ports, one-shot stage and wheel
+//! commands in every dialect of the registry (`polar_drivers::registry`), and the simulators of the
 //! simulators' registry (`polar_hil_mocks::sim::SIMULATORS`) on pseudo-terminals.
 
 use polar_drivers::registry::{self, DeviceKind, Dialect, Identity, Position, DIALECTS};
@@ -532,8 +532,8 @@ pub fn list_cmd(
     Ok(out)
 }
 
-/// The port, dialect and address of `devices stage`: flags override the rig file's `[stage]`; errors
-/// name the missing flag or key.
+/// The port, dialect and address of `devices stage`: flags override the rig file's `[stage]`;
+/// errors name the missing flag or key.
 pub fn stage_target(
     rig: Option<&Path>,
     port: Option<String>,

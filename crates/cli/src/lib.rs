@@ -18,6 +18,7 @@ pub mod plan;
 pub mod rig;
 pub mod study;
 pub mod study_aptd;
+pub mod study_files;
 pub mod study_fov;
 pub mod study_scr;
 pub mod validation;

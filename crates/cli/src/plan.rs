@@ -279,8 +279,8 @@ pub fn markdown(rows: &[PlannerRow]) -> String {
     out
 }
 
-/// `plan scene --scene FILE --camera FILE --target M --background M`: angles, integration time and a
-/// forecast from the model alone.
+/// `plan scene --scene FILE --camera FILE --target M --background M`: angles, integration time and
+/// a forecast from the model alone.
 #[derive(Debug, Clone, Args)]
 pub struct PlanSceneArgs {
     /// The scene (TOML, examples/*.toml).

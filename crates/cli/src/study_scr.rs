@@ -1,5 +1,5 @@
-//! `polarimeter report study scr-time` and `polarimeter report study scr-sets`: the signal-to-clutter ratio
-//! of analyzer sets, Meng (2012)'s Sec. 5.1-5.3 (Figs. 5.1 and 5.2).
+//! `polarimeter report study scr-time` and `polarimeter report study scr-sets`: the
+//! signal-to-clutter ratio of analyzer sets, Meng (2012)'s Sec. 5.1-5.3 (Figs. 5.1 and 5.2).
 //!
 //! Both use the scene of the Chapter 4 studies (black paint and glass against asphalt,
 //! `crate::study`) and score a set by the forecast's SCR, the matched filter's

@@ -1,6 +1,6 @@
-//! `polarimeter simulate photon-transfer` and `polarimeter calibrate noise` end to end: frames simulated from
-//! the shipped camera files (known truth) are calibrated back by EMVA 1288 photon transfer, and
-//! broken frame directories give errors naming the file.
+//! `polarimeter simulate photon-transfer` and `polarimeter calibrate noise` end to end: frames
+//! simulated from the shipped camera files (known truth) are calibrated back by EMVA 1288 photon
+//! transfer, and broken frame directories give errors naming the file.
 //!
 //! Frame size: 256 x 256 pixels. The relative standard error of one pair's temporal variance is
 //! sqrt(2 / n) = 0.55 % for n = 65536; the photon-transfer fit over the ~14 points of the linear

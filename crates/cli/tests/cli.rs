@@ -699,10 +699,10 @@ fn sky_table_round_trips_through_the_cli() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// `simulate stage` serves a simulated device on a pseudo-terminal and `devices stage` drives it through
-/// the real serial code, in each dialect: a move is read back within the driver's tolerance,
-/// `position` agrees without moving, a wheel lands on its slot, and wrong requests are errors
-/// naming the value and the allowed range (exit status 2).
+/// `simulate stage` serves a simulated device on a pseudo-terminal and `devices stage` drives it
+/// through the real serial code, in each dialect: a move is read back within the driver's
+/// tolerance, `position` agrees without moving, a wheel lands on its slot, and wrong requests are
+/// errors naming the value and the allowed range (exit status 2).
 #[test]
 fn simulated_devices_through_the_cli() {
     use std::io::BufRead;
@@ -1097,10 +1097,10 @@ fn plan_angles_command() {
     );
 }
 
-/// `devices camera --camera sim grab`: every frame is a 16-bit TIFF of the sensor's size with a JSON
-/// sidecar carrying the applied exposure, gain (rounded to the simulated camera's 0.1 dB step)
-/// and increasing frame ids; each mean lies between the black level (16 DN) and the ADC's top
-/// code. A bad camera spec and an exposure below the range are refused with the reason.
+/// `devices camera --camera sim grab`: every frame is a 16-bit TIFF of the sensor's size with a
+/// JSON sidecar carrying the applied exposure, gain (rounded to the simulated camera's 0.1 dB step)
+/// and increasing frame ids; each mean lies between the black level (16 DN) and the ADC's top code.
+/// A bad camera spec and an exposure below the range are refused with the reason.
 #[test]
 fn camera_grab_command() {
     // A path that does not exist: the refusals below must come from the flags.

@@ -106,7 +106,7 @@ impl StudyCmd {
         if self.args.kind == StudySelection::Aptd {
             print_files(polar_cli::study_aptd::execute(&self.args))
         } else {
-            print_files(polar_cli::study::execute(&self.args))
+            print_files(polar_cli::study_files::execute(&self.args))
         }
     }
 }
