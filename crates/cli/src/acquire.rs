@@ -1,11 +1,11 @@
-//! Acquisition commands on the engine: `run`, `resume`, `plan check`, `export tiff`, `demo`,
-//! `bench run` and `bench faults`.
+//! Acquisition commands on the engine: `acquire run`, `acquire resume`, `plan check`, `acquire
+//! export tiff`, `demo`, `bench run` and `bench faults`.
 //!
 //! On the terminal a run shows a progress bar; Ctrl-C once pauses at the next safe point,
 //! twice pauses at once (the device operation in flight is cancelled and taken again), a third
-//! time leaves the paused run for `polarimeter resume`. While paused on a terminal, the run
+//! time leaves the paused run for `polarimeter acquire resume`. While paused on a terminal, the run
 //! asks: `r` resumes, `a` aborts, `q` leaves it. Without a terminal, a pause leaves the run
-//! for `resume` (exit status 3).
+//! for `acquire resume` (exit status 3).
 
 use crate::commands::CommandError;
 use polar_engine::plan::{Plan, SimStage};
@@ -74,7 +74,8 @@ async fn drive<A: Analyzer + 'static, C: Camera + 'static>(
                 "{}",
                 match c {
                     Control::Pause => "pausing at the next safe point (Ctrl-C again: now)",
-                    Control::PauseNow => "pausing now (Ctrl-C again: leave the run for `resume`)",
+                    Control::PauseNow =>
+                        "pausing now (Ctrl-C again: leave the run for `acquire resume`)",
                     _ => "leaving the run",
                 }
             );
@@ -219,7 +220,7 @@ fn outcome_json(o: &Outcome, run_dir: &Path) -> (Value, i32) {
         ),
         Outcome::Paused(r) => (
             json!({"state": "paused", "reason": r, "run_dir": run_dir.display().to_string(),
-                   "resume": format!("polarimeter resume {}", run_dir.display())}),
+                   "resume": format!("polarimeter acquire resume {}", run_dir.display())}),
             3,
         ),
         Outcome::Aborted(r) => (
@@ -280,7 +281,7 @@ pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandEr
     if let Some(r) = rig {
         crate::rig::apply_site(&mut plan, r);
     }
-    // What `run --simulate` would refuse, refused here with the same message.
+    // What `acquire run --simulate` would refuse, refused here with the same message.
     polar_engine::sim::SimRig::validate(&plan, &dir).map_err(err)?;
     plan.check_frame(plan.simulation.width, plan.simulation.height)
         .map_err(err)?;
@@ -299,8 +300,8 @@ pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandEr
     Ok(v)
 }
 
-/// `run PLAN [--simulate | hardware] [--rig RIG] [--out DIR]`. With a rig: its site for a plan
-/// without one, and a finished calibrate-analyzer run's result written back to it as a new
+/// `acquire run PLAN [--simulate | hardware] [--rig RIG] [--out DIR]`. With a rig: its site for a
+/// plan without one, and a finished calibrate-analyzer run's result written back to it as a new
 /// revision (`rig_written` in the output).
 pub fn run_cmd(
     plan_path: &Path,
@@ -337,7 +338,7 @@ pub fn run_cmd(
     Ok((v, code))
 }
 
-/// `resume RUN_DIR`: continues a paused or crashed run with the devices it was started on
+/// `acquire resume RUN_DIR`: continues a paused or crashed run with the devices it was started on
 /// (simulated runs get a new simulated rig; hardware runs need `hardware`).
 pub fn resume_cmd(
     run_dir: &Path,
@@ -385,7 +386,7 @@ pub fn resume_cmd(
     Ok((v, code))
 }
 
-/// `check RUN_DIR`: the run's frames and products against its journal; exit status 1 when
+/// `acquire check RUN_DIR`: the run's frames and products against its journal; exit status 1 when
 /// something is damaged.
 pub fn check_cmd(run_dir: &Path) -> Result<(Value, i32), CommandError> {
     let c = polar_engine::check::check_run(run_dir).map_err(err)?;
@@ -393,7 +394,7 @@ pub fn check_cmd(run_dir: &Path) -> Result<(Value, i32), CommandError> {
     Ok((serde_json::to_value(&c).unwrap_or(Value::Null), code))
 }
 
-/// `export tiff RUN_DIR [--out DIR]`.
+/// `acquire export tiff RUN_DIR [--out DIR]`.
 pub fn export_tiff(run_dir: &Path, out: Option<PathBuf>) -> Result<Value, CommandError> {
     let out = out.unwrap_or_else(|| run_dir.join("tiff"));
     let s = polar_engine::export::export_tiff(run_dir, &out).map_err(err)?;
@@ -542,7 +543,7 @@ pub fn demo_on_stage(out: &Path, stage: &str, ui: Ui) -> Result<String, CommandE
         Outcome::Done(s) => s,
         Outcome::Paused(r) => {
             return Err(CommandError(format!(
-                "the demo paused: {r}; continue with `polarimeter resume {}`",
+                "the demo paused: {r}; continue with `polarimeter acquire resume {}`",
                 out.display()
             )))
         }
@@ -620,7 +621,7 @@ fn demo_report(
     let _ = writeln!(
         s,
         "\nSCR and matched-filter Pd (Pfa 1e-3) of one set under the scene's true statistics \
-         (the camera's real analyzer and noise at {exposure_us:.0} us, as `plan --scene` \
+         (the camera's real analyzer and noise at {exposure_us:.0} us, as `plan scene` \
          forecasts):"
     );
     for row in &table.rows {
@@ -674,7 +675,7 @@ fn demo_report(
         s,
         "\nRun: {} frames stored ({} accepted), {} sets, {} rejected by the suspender, {} retries; \
          acquisition {:.1} s, total {:.1} s.\nWritten to {}/ (run.zarr, journal.jsonl, run.log, \
-         plan.toml). Read it back: `polarimeter export tiff {}`, or in Python \
+         plan.toml). Read it back: `polarimeter acquire export tiff {}`, or in Python \
          `zarr.open_group('{}/run.zarr')`.",
         summary.frames_stored,
         summary.frames_accepted,
@@ -817,7 +818,7 @@ fn demo_detection(
 }
 
 /// Runs a simulated plan to the end in this process, resuming (with a new simulated rig, as
-/// `polarimeter resume` would) whenever it is left paused, at most `max_resumes` times.
+/// `polarimeter acquire resume` would) whenever it is left paused, at most `max_resumes` times.
 /// Returns the summary, the resumes and the pauses' reasons.
 pub async fn run_to_end(
     plan: &Plan,

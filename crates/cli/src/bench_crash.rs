@@ -1,6 +1,6 @@
 //! The crash campaign (`polarimeter bench crash`): runs of every plan kind on the simulated
 //! devices, interrupted at random moments by SIGKILL (during the first run and during the
-//! resumes) and by Ctrl-C (a pause: the process leaves the run for `resume`), then resumed
+//! resumes) and by Ctrl-C (a pause: the process leaves the run for `acquire resume`), then resumed
 //! until they finish. Each finished dataset is then checked by [`polar_engine::check`] and,
 //! given a Python with zarr, xarray and xxhash, from the outside by `scripts/check_run.py`
 //! (every array readable by zarr-python, frames as planned, no duplicate frame or product
@@ -244,9 +244,9 @@ fn one_dataset(
     for attempt in 0..40 {
         let started = replay(dir).is_ok_and(|r| r.run_started().is_some());
         let args: Vec<&str> = if started {
-            vec!["resume", &dir_s]
+            vec!["acquire", "resume", &dir_s]
         } else {
-            vec!["run", &plan_s, "--simulate", "--out", &dir_s]
+            vec!["acquire", "run", &plan_s, "--simulate", "--out", &dir_s]
         };
         let mut child = spawn(&cfg.binary, &args)?;
         // Interrupt most processes while work remains; let the last ones finish.
@@ -283,7 +283,7 @@ fn one_dataset(
     )))
 }
 
-/// The journal's last word is a pause (the process left the run for `resume`).
+/// The journal's last word is a pause (the process left the run for `acquire resume`).
 fn paused(dir: &Path) -> bool {
     replay(dir).is_ok_and(|r| {
         matches!(

@@ -1,6 +1,6 @@
 //! `polarimeter calibrate noise` (EMVA 1288 photon transfer from a directory of frames) and
-//! `polarimeter sim frames` (a photon-transfer series from a camera file with known truth, to
-//! test it).
+//! `polarimeter simulate photon-transfer` (a photon-transfer series from a camera file with known
+//! truth, to test it).
 //!
 //! # The frames directory
 //!
@@ -1007,15 +1007,15 @@ struct FrameJob {
     seed: u64,
 }
 
-/// `polarimeter sim frames`: a photon-transfer series of `camera` under uniform illumination:
-/// at each exposure time two flats and two darks, 16-bit TIFFs (`flat_NNN_a.tif`, ...), and
-/// frames.csv with the photon counts. The linear series has `exposures` points evenly spaced in
-/// time up to `max_exposure_us`, where the mean photo-electrons reach `max_fill` of the
+/// `polarimeter simulate photon-transfer`: a photon-transfer series of `camera` under uniform
+/// illumination: at each exposure time two flats and two darks, 16-bit TIFFs (`flat_NNN_a.tif`,
+/// ...), and frames.csv with the photon counts. The linear series has `exposures` points evenly
+/// spaced in time up to `max_exposure_us`, where the mean photo-electrons reach `max_fill` of the
 /// saturation capacity; [`SATURATION_TAIL`] adds points near and past saturation. Frames are
-/// [`expose_pixels`] draws (Poisson photo- and dark electrons, full well, read noise, gain,
-/// offset, rounding, ADC range) with an optional fixed PRNU pattern (on the photo-electrons) and
-/// DSNU pattern (whole DN, added after rounding), both of exactly zero mean, so the truth is the
-/// camera file's. Deterministic for a seed (frames are drawn in parallel with per-frame seeds).
+/// [`expose_pixels`] draws (Poisson photo- and dark electrons, full well, read noise, gain, offset,
+/// rounding, ADC range) with an optional fixed PRNU pattern (on the photo-electrons) and DSNU
+/// pattern (whole DN, added after rounding), both of exactly zero mean, so the truth is the camera
+/// file's. Deterministic for a seed (frames are drawn in parallel with per-frame seeds).
 pub fn sim_frames(opts: &SimFramesOptions) -> Result<SimSummary, CalibrateError> {
     opts.check()?;
     let cam = load_camera(&opts.camera)?;

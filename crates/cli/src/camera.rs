@@ -1,4 +1,4 @@
-//! `polarimeter camera --camera sim|genicam:ID|v4l:NAME grab ...`: frames from a camera to
+//! `polarimeter devices camera --camera sim|genicam:ID|v4l:NAME grab ...`: frames from a camera to
 //! 16-bit TIFF files, each with a JSON sidecar of its metadata.
 //!
 //! Cameras are opened through the camera backends' registry (`polar_rig::camera`). The
@@ -49,7 +49,7 @@ pub fn open(spec: &str, sim: &SimOptions) -> Result<ThreadedCamera, CameraCmdErr
     Ok(polar_rig::camera::open(spec, sim)?)
 }
 
-/// The camera name and camera file of `camera`: `--camera` and `--camera-file` override the
+/// The camera name and camera file of `devices camera`: `--camera` and `--camera-file` override the
 /// rig file's `[camera]`; the error names the flag or the rig's key that is missing.
 pub fn from_rig(
     rig: Option<&Path>,

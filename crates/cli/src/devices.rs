@@ -1,5 +1,5 @@
-//! `devices list`, `stage` and `sim stage`: serial ports, one-shot stage and wheel commands in
-//! every dialect of the registry (`polar_drivers::registry`), and the simulators of the
+//! `devices list`, `devices stage` and `simulate stage`: serial ports, one-shot stage and wheel
+//! commands in every dialect of the registry (`polar_drivers::registry`), and the simulators of the
 //! simulators' registry (`polar_hil_mocks::sim::SIMULATORS`) on pseudo-terminals.
 
 use polar_drivers::registry::{self, DeviceKind, Dialect, Identity, Position, DIALECTS};
@@ -41,7 +41,7 @@ pub fn dialect(name: &str) -> Result<&'static Dialect, DevicesError> {
     })
 }
 
-/// What `stage` does.
+/// What `devices stage` does.
 #[derive(Debug, Clone, PartialEq)]
 pub enum StageAction {
     /// Identify (without homing).
@@ -101,7 +101,7 @@ pub fn list(simulate: bool) -> Result<Value, DevicesError> {
                 json!({
                     "dialect": sim.dialect,
                     "models": sim.models,
-                    "start": format!("polarimeter sim stage --dialect {}", sim.dialect),
+                    "start": format!("polarimeter simulate stage --dialect {}", sim.dialect),
                 })
             })
             .collect();
@@ -184,7 +184,7 @@ pub fn stage(
     runtime()?.block_on(stage_async(port, dialect, address, action))
 }
 
-/// The angles `stage move` takes, degrees: one turn either way.
+/// The angles `devices stage move` takes, degrees: one turn either way.
 pub const MOVE_RANGE_DEG: f64 = 360.0;
 
 /// Refuses a `--angle-deg` that is not finite or beyond one turn, before anything moves.
@@ -532,8 +532,8 @@ pub fn list_cmd(
     Ok(out)
 }
 
-/// The port, dialect and address of `stage`: flags override the rig file's `[stage]`; errors
-/// name the missing flag or key.
+/// The port, dialect and address of `devices stage`: flags override the rig file's `[stage]`;
+/// errors name the missing flag or key.
 pub fn stage_target(
     rig: Option<&Path>,
     port: Option<String>,
@@ -558,7 +558,7 @@ pub fn stage_target(
     if port == polar_rig::SIM_PORT {
         return Err(DevicesError(
             "stage.port = \"sim\": a one-shot command needs a port; start a simulator with \
-             `polarimeter sim stage --dialect D` and give its port"
+             `polarimeter simulate stage --dialect D` and give its port"
                 .into(),
         ));
     }

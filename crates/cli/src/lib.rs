@@ -19,6 +19,7 @@ pub mod plan_continuous;
 pub mod rig;
 pub mod study;
 pub mod study_aptd;
+pub mod study_files;
 pub mod study_fov;
 pub mod study_scr;
 pub mod validation;

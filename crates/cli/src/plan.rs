@@ -279,8 +279,8 @@ pub fn markdown(rows: &[PlannerRow]) -> String {
     out
 }
 
-/// `plan --scene FILE --camera FILE --target M --background M`: angles, integration time and a
-/// forecast from the model alone.
+/// `plan scene --scene FILE --camera FILE --target M --background M`: angles, integration time and
+/// a forecast from the model alone.
 #[derive(Debug, Clone, Args)]
 pub struct PlanSceneArgs {
     /// The scene (TOML, examples/*.toml).
@@ -465,7 +465,7 @@ fn degrees(angles_rad: &[f64]) -> Vec<f64> {
     d
 }
 
-/// `plan --scene ...`.
+/// `plan scene ...`.
 ///
 /// The angles and the integration time are chosen jointly: the integration time is the
 /// shortest `t` (below the saturation limit and the time budget) at which the best set's SCR
@@ -782,7 +782,7 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
     }))
 }
 
-/// `plan aptd --frames DIR`: APTD offline over an image stack.
+/// `analyze aptd --frames DIR`: APTD offline over an image stack.
 #[derive(Debug, Clone, Args)]
 pub struct PlanAptdArgs {
     /// The stack: `frames.csv` (`file,angle_deg`) and the 16-bit TIFFs it names.
@@ -814,7 +814,7 @@ pub struct PlanAptdArgs {
     pub pfa: f64,
 }
 
-/// `plan aptd`: runs the loop over the stack. The sets are restricted to the stack's angles (the
+/// `analyze aptd`: runs the loop over the stack. The sets are restricted to the stack's angles (the
 /// best subset each round); a frame asked for again is served by the next unused copy at that
 /// angle, or by the first copy again once all are used (then the "re-acquired" frame repeats,
 /// and the JSON counts the reuses).

@@ -1,4 +1,4 @@
-//! `polarimeter study aptd`: adaptive polarimetric target detection against conventional
+//! `polarimeter report study aptd`: adaptive polarimetric target detection against conventional
 //! analyzer sets. It is our analogue of Meng (2012)'s Table 5.2 and Figs. 5.4-5.6, whose numbers
 //! are lost (MODEL.md section 9).
 //!

@@ -1,4 +1,4 @@
-//! `polarimeter study fov`: the scene-geometry variation over the field of view, Meng (2012)
+//! `polarimeter report study fov`: the scene-geometry variation over the field of view, Meng (2012)
 //! Sec. 4.2.3 (Table 4.2, "DoLP variation at different field of view", Figs. 4.5-4.7).
 //!
 //! A camera with a wide field sees each surface under many sun-surface-sensor geometries, so

@@ -1,10 +1,10 @@
-//! `polarimeter study scr-time` and `polarimeter study scr-sets`: the signal-to-clutter ratio
-//! of analyzer sets, Meng (2012)'s Sec. 5.1-5.3 (Figs. 5.1 and 5.2).
+//! `polarimeter report study scr-time` and `polarimeter report study scr-sets`: the
+//! signal-to-clutter ratio of analyzer sets, Meng (2012)'s Sec. 5.1-5.3 (Figs. 5.1 and 5.2).
 //!
 //! Both use the scene of the Chapter 4 studies (black paint and glass against asphalt,
 //! `crate::study`) and score a set by the forecast's SCR, the matched filter's
 //! `(W d)^T (W Sigma_b W^T + D)^-1 (W d)` with the camera's real analyzer rows and its noise at
-//! the background's light ([`Contrast::from_sensor`], the objective `plan --scene` optimises).
+//! the background's light ([`Contrast::from_sensor`], the objective `plan scene` optimises).
 //!
 //! * **`scr-time`** (Fig. 5.1, "SCR values at different sensor integration time"): the SCR of
 //!   0/45/90, 0/60/120, 0/45/90/135 and of the planner's optimal 3-angle sets (a Stokes set, and

@@ -157,7 +157,7 @@ fn batch_with_evaluation_flags_is_refused() {
 fn sim_stage(dialect: &str, model: &str) -> (std::process::Child, String) {
     let mut sim = Command::new(BIN)
         .args([
-            "sim",
+            "simulate",
             "stage",
             "--dialect",
             dialect,
@@ -178,13 +178,21 @@ fn sim_stage(dialect: &str, model: &str) -> (std::process::Child, String) {
     (sim, v["port"].as_str().unwrap().to_string())
 }
 
-/// `stage move --angle-deg 1e300` (or any non-finite or absurd angle) is refused before the
+/// `devices stage move --angle-deg 1e300` (or any non-finite or absurd angle) is refused before the
 /// stage moves, naming the flag, the value compactly and the range; the stage stays put.
 #[test]
 fn stage_move_to_an_absurd_angle_is_refused_before_moving() {
     let (mut sim, port) = sim_stage("elliptec", "ell14");
     let stage = |args: &[&str]| {
-        let mut all = vec!["stage", "--port", &port, "--dialect", "elliptec", "--json"];
+        let mut all = vec![
+            "devices",
+            "stage",
+            "--port",
+            &port,
+            "--dialect",
+            "elliptec",
+            "--json",
+        ];
         all.extend_from_slice(args);
         polarimeter(&all)
     };
@@ -300,6 +308,7 @@ fn zero_offset_nan_is_refused_under_simulate() {
         let out_dir = dir.join(format!("run-{bad}"));
         let out = Command::new(BIN)
             .args([
+                "acquire",
                 "run",
                 plan.to_str().unwrap(),
                 "--simulate",

@@ -1,6 +1,6 @@
-//! `polarimeter sim frames` and `polarimeter calibrate noise` end to end: frames simulated from
-//! the shipped camera files (known truth) are calibrated back by EMVA 1288 photon transfer, and
-//! broken frame directories give errors naming the file.
+//! `polarimeter simulate photon-transfer` and `polarimeter calibrate noise` end to end: frames
+//! simulated from the shipped camera files (known truth) are calibrated back by EMVA 1288 photon
+//! transfer, and broken frame directories give errors naming the file.
 //!
 //! Frame size: 256 x 256 pixels. The relative standard error of one pair's temporal variance is
 //! sqrt(2 / n) = 0.55 % for n = 65536; the photon-transfer fit over the ~14 points of the linear
@@ -215,7 +215,7 @@ fn sim_frames_through_the_binary_is_deterministic() {
     let tmp = TempDir::new("sim");
     let run = |dir: &Path| {
         let out = Command::new(env!("CARGO_BIN_EXE_polarimeter"))
-            .args(["sim", "frames", "--camera"])
+            .args(["simulate", "photon-transfer", "--camera"])
             .arg(camera_path("ccd_seed"))
             .arg("--out")
             .arg(dir)
@@ -245,7 +245,7 @@ fn sim_frames_through_the_binary_is_deterministic() {
         );
     }
     let bad = Command::new(env!("CARGO_BIN_EXE_polarimeter"))
-        .args(["sim", "frames", "--camera"])
+        .args(["simulate", "photon-transfer", "--camera"])
         .arg(camera_path("ccd_seed"))
         .arg("--out")
         .arg(tmp.0.join("c"))

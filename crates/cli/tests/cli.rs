@@ -699,10 +699,10 @@ fn sky_table_round_trips_through_the_cli() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// `sim stage` serves a simulated device on a pseudo-terminal and `stage` drives it through
-/// the real serial code, in each dialect: a move is read back within the driver's tolerance,
-/// `position` agrees without moving, a wheel lands on its slot, and wrong requests are errors
-/// naming the value and the allowed range (exit status 2).
+/// `simulate stage` serves a simulated device on a pseudo-terminal and `devices stage` drives it
+/// through the real serial code, in each dialect: a move is read back within the driver's
+/// tolerance, `position` agrees without moving, a wheel lands on its slot, and wrong requests are
+/// errors naming the value and the allowed range (exit status 2).
 #[test]
 fn simulated_devices_through_the_cli() {
     use std::io::BufRead;
@@ -722,7 +722,7 @@ fn simulated_devices_through_the_cli() {
     ] {
         let mut sim = Command::new(env!("CARGO_BIN_EXE_polarimeter"))
             .args([
-                "sim",
+                "simulate",
                 "stage",
                 "--dialect",
                 dialect,
@@ -742,7 +742,15 @@ fn simulated_devices_through_the_cli() {
         let started: serde_json::Value = serde_json::from_str(&line).expect("json port line");
         let port = started["port"].as_str().expect("port").to_string();
         let stage = |args: &[&str]| {
-            let mut all = vec!["stage", "--port", &port, "--dialect", dialect, "--json"];
+            let mut all = vec![
+                "devices",
+                "stage",
+                "--port",
+                &port,
+                "--dialect",
+                dialect,
+                "--json",
+            ];
             all.extend_from_slice(args);
             polarimeter(&all)
         };
@@ -783,6 +791,7 @@ fn simulated_devices_through_the_cli() {
     }
     // A port that does not exist is Disconnected, named.
     let e = polarimeter(&[
+        "devices",
         "stage",
         "--port",
         "/dev/nonexistent-polarimeter",
@@ -1088,10 +1097,10 @@ fn plan_angles_command() {
     );
 }
 
-/// `camera --camera sim grab`: every frame is a 16-bit TIFF of the sensor's size with a JSON
-/// sidecar carrying the applied exposure, gain (rounded to the simulated camera's 0.1 dB step)
-/// and increasing frame ids; each mean lies between the black level (16 DN) and the ADC's top
-/// code. A bad camera spec and an exposure below the range are refused with the reason.
+/// `devices camera --camera sim grab`: every frame is a 16-bit TIFF of the sensor's size with a
+/// JSON sidecar carrying the applied exposure, gain (rounded to the simulated camera's 0.1 dB step)
+/// and increasing frame ids; each mean lies between the black level (16 DN) and the ADC's top code.
+/// A bad camera spec and an exposure below the range are refused with the reason.
 #[test]
 fn camera_grab_command() {
     // A path that does not exist: the refusals below must come from the flags.
@@ -1099,6 +1108,7 @@ fn camera_grab_command() {
     let nowhere = nowhere.to_str().unwrap();
     let out_dir = std::env::temp_dir().join(format!("polar-cli-grab-{}", std::process::id()));
     let out = polarimeter(&[
+        "devices",
         "camera",
         "--camera",
         "sim",
@@ -1147,6 +1157,7 @@ fn camera_grab_command() {
     let _ = std::fs::remove_dir_all(&out_dir);
 
     let out = polarimeter(&[
+        "devices",
         "camera",
         "--camera",
         "usb:0",
@@ -1160,6 +1171,7 @@ fn camera_grab_command() {
     assert!(String::from_utf8_lossy(&out.stderr)
         .contains("allowed sim, genicam:ID, v4l:NAME or uvc:BUS_OR_NAME"));
     let out = polarimeter(&[
+        "devices",
         "camera",
         "--camera",
         "sim",
@@ -1173,7 +1185,7 @@ fn camera_grab_command() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("exposure_us = 5 is out of range"));
 }
 
-/// `plan --scene`: the rooftop panel against asphalt through the CMOS camera, 3 channels at
+/// `plan scene`: the rooftop panel against asphalt through the CMOS camera, 3 channels at
 /// least 30 deg apart (issue 33's case: the planner chose 67.5/97.5/127.5 with a forecast SCR
 /// of 73.33 while 0/45/90 had 73.45 and 0/60/120 73.55 under the same forecast). The printed
 /// SCR is the forecast's and is at least every conventional set's that the constraints allow,
@@ -1188,6 +1200,7 @@ fn camera_grab_command() {
 fn plan_scene_command() {
     let base = [
         "plan",
+        "scene",
         "--scene",
         "../../examples/rooftop.toml",
         "--camera",
@@ -1280,8 +1293,8 @@ fn plan_scene_command() {
     // allowed; a separation that 6 angles cannot keep in 180 deg is refused naming the flag,
     // its value and the range.
     let mut six = base.to_vec();
-    six[10] = "6";
-    six[12] = "0";
+    six[11] = "6";
+    six[13] = "0";
     let out = polarimeter(&six);
     assert!(
         out.status.success(),
@@ -1294,8 +1307,8 @@ fn plan_scene_command() {
     assert!(k <= 6.21 * (1.0 + 1e-9), "condition {k}");
     assert_eq!(s6["angles_deg"].as_array().map(Vec::len), Some(6));
     let mut close = base.to_vec();
-    close[10] = "6";
-    close[12] = "40";
+    close[11] = "6";
+    close[13] = "40";
     let out = polarimeter(&close);
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
@@ -1304,7 +1317,7 @@ fn plan_scene_command() {
         "{err}"
     );
     let mut close = base.to_vec();
-    close[12] = "10";
+    close[13] = "10";
     // ... and allowed with --detection-only, whose SCR is then at least the Stokes set's.
     close.push("--detection-only");
     let out = polarimeter(&close);
@@ -1321,7 +1334,7 @@ fn plan_scene_command() {
     );
 
     let mut bad = base.to_vec();
-    bad[6] = "nope";
+    bad[7] = "nope";
     let out = polarimeter(&bad);
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);

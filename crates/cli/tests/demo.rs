@@ -86,7 +86,13 @@ fn demo_never_replaces_another_run() {
     let run_dir = base.join("run");
     let bin = env!("CARGO_BIN_EXE_polarimeter");
     let out = Command::new(bin)
-        .args(["run", plan.to_str().unwrap(), "--simulate", "--out"])
+        .args([
+            "acquire",
+            "run",
+            plan.to_str().unwrap(),
+            "--simulate",
+            "--out",
+        ])
         .arg(&run_dir)
         .stdin(std::process::Stdio::null())
         .output()

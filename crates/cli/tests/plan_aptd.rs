@@ -1,4 +1,4 @@
-//! `plan aptd --frames DIR`: APTD offline over a stack of 16-bit TIFFs at 12 analyzer angles.
+//! `analyze aptd --frames DIR`: APTD offline over a stack of 16-bit TIFFs at 12 analyzer angles.
 #![allow(clippy::unwrap_used)] // test helpers outside #[test] functions
 
 use nalgebra::{Matrix3, Vector3};
@@ -65,7 +65,7 @@ fn offline_aptd_over_a_stack() {
     let (truth, angles) = write_stack(&dir);
     let out = Command::new(env!("CARGO_BIN_EXE_polarimeter"))
         .args([
-            "plan",
+            "analyze",
             "aptd",
             "--frames",
             dir.to_str().unwrap(),
@@ -124,7 +124,7 @@ fn offline_aptd_over_a_stack() {
 
     let out = Command::new(env!("CARGO_BIN_EXE_polarimeter"))
         .args([
-            "plan",
+            "analyze",
             "aptd",
             "--frames",
             "/nonexistent-stack",

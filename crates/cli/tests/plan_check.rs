@@ -1,4 +1,4 @@
-//! One validation path: every plan that `run --simulate` refuses before acquiring, `plan
+//! One validation path: every plan that `acquire run --simulate` refuses before acquiring, `plan
 //! check` refuses too, with the same error line, and neither leaves a run behind.
 #![allow(clippy::unwrap_used)]
 
@@ -53,7 +53,13 @@ fn check_parity(dir: &Path, name: &str, text: &str, expect: &str) {
         .unwrap();
     let out_dir = dir.join(format!("{name}-run"));
     let run = Command::new(BIN)
-        .args(["run", plan.to_str().unwrap(), "--simulate", "--out"])
+        .args([
+            "acquire",
+            "run",
+            plan.to_str().unwrap(),
+            "--simulate",
+            "--out",
+        ])
         .arg(&out_dir)
         .stdin(std::process::Stdio::null())
         .output()

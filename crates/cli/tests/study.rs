@@ -1,4 +1,4 @@
-//! Meng (2012)'s Ch. 4 trade studies (`polarimeter study`) run through the library at coarse
+//! Meng (2012)'s Ch. 4 trade studies (`polarimeter report study`) run through the library at coarse
 //! sweeps on examples/study.toml: each test asserts the physical trend behind one of Meng (2012)'s
 //! findings, with the reason and the tolerance, plus the errors that name a bad input.
 #![allow(clippy::unwrap_used)] // tests panic on failure by design
@@ -361,7 +361,7 @@ fn writes_csv_and_png() {
     let out = std::env::temp_dir().join(format!("polarimeter-study-{}", std::process::id()));
     let s = study(&scene());
     let r = run(&s, StudyKind::NoiseFactor, &[1.0, 2.0]);
-    let files = polar_cli::study::write(&r, &out).unwrap();
+    let files = polar_cli::study_files::write(&r, &out).unwrap();
     assert_eq!(files.len(), 3);
     let csv = std::fs::read_to_string(out.join("noise-factor.csv")).unwrap();
     assert_eq!(csv.lines().count(), 1 + 2 * 2);

@@ -1,5 +1,5 @@
-//! `study aptd` (Meng (2012)'s Table 5.2 analogue): the adaptive loop against conventional sets on
-//! the rooftop scene at three sun positions, paint, glass and metal panels.
+//! `report study aptd` (Meng (2012)'s Table 5.2 analogue): the adaptive loop against conventional
+//! sets on the rooftop scene at three sun positions, paint, glass and metal panels.
 
 use polar_cli::study::{StudyArgs, StudySelection};
 use std::path::PathBuf;

@@ -1,4 +1,4 @@
-//! `polarimeter study fov` (Meng (2012) Sec. 4.2.3, Table 4.2) through the library on
+//! `polarimeter report study fov` (Meng (2012) Sec. 4.2.3, Table 4.2) through the library on
 //! examples/study.toml: the geometry variation grows with the field of view.
 #![allow(clippy::unwrap_used)] // tests panic on failure by design
 

@@ -1,6 +1,6 @@
-//! `polarimeter study scr-time` and `study scr-sets` (Meng (2012) Figs. 5.1 and 5.2) through
-//! the library on examples/study.toml: each test asserts a physical or numerical fact of the
-//! output with its tolerance and the reason for it.
+//! `polarimeter report study scr-time` and `report study scr-sets` (Meng (2012) Figs. 5.1 and 5.2)
+//! through the library on examples/study.toml: each test asserts a physical or numerical fact of
+//! the output with its tolerance and the reason for it.
 #![allow(clippy::unwrap_used)] // tests panic on failure by design
 
 use polar_cli::commands::load_scene;

@@ -1,0 +1,142 @@
+//! Errors as the user sees them: clap's parse errors on one line naming the flag, the value and
+//! what is allowed; a command's error naming the flag the user typed; the command line with the
+//! flat tree's `plan --scene ...` spelled as `plan scene --scene ...`.
+
+use clap::error::{ContextKind, ContextValue, ErrorKind};
+use polar_cli::{batch, commands};
+use std::ffi::OsString;
+
+/// The command line to parse: the program's arguments, with `plan` followed by a flag of
+/// `plan scene` (`plan --scene FILE ...`) read as `plan scene ...`.
+pub fn argv() -> Vec<OsString> {
+    let mut args: Vec<OsString> = std::env::args_os().collect();
+    let plan = args.iter().position(|a| a == "plan");
+    let before_plan_are_flags = plan.is_some_and(|p| {
+        args[1..p]
+            .iter()
+            .all(|a| a.to_str().is_some_and(|s| s.starts_with('-')))
+    });
+    if let (Some(p), true) = (plan, before_plan_are_flags) {
+        let next = args.get(p + 1).and_then(|a| a.to_str());
+        if next.is_some_and(|n| n.starts_with("--") && n != "--help" && n != "--version") {
+            args.insert(p + 1, OsString::from("scene"));
+        }
+    }
+    args
+}
+
+/// A clap parse error as one line naming the flag, the value (cut when long) and what is
+/// allowed.
+pub fn one_line_error(e: &clap::Error) -> String {
+    let arg = match e.get(ContextKind::InvalidArg) {
+        Some(ContextValue::String(s)) => s.clone(),
+        _ => String::new(),
+    };
+    let value = match e.get(ContextKind::InvalidValue) {
+        Some(ContextValue::String(s)) => s.clone(),
+        _ => String::new(),
+    };
+    if e.kind() == ErrorKind::ArgumentConflict {
+        let mut flags: Vec<String> = match e.get(ContextKind::PriorArg) {
+            Some(ContextValue::String(s)) => vec![s.clone()],
+            Some(ContextValue::Strings(v)) => v.clone(),
+            _ => Vec::new(),
+        };
+        flags.insert(0, arg.clone());
+        let flags: Vec<String> = flags
+            .iter()
+            .map(|f| f.split([' ', '=']).next().unwrap_or(f).to_string())
+            .collect();
+        if flags.iter().any(|f| f == "--batch") {
+            let others: Vec<&str> = flags
+                .iter()
+                .filter(|f| *f != "--batch")
+                .map(String::as_str)
+                .collect();
+            return format!(
+                "error: --batch cannot be used with {}: each batch line gives its own values \
+                 (allowed: --batch FILE alone, or the flags without --batch)",
+                others.join(", ")
+            );
+        }
+        return format!(
+            "error: {} cannot be used with {} (see --help)",
+            flags[0],
+            flags[1..].join(", ")
+        );
+    }
+    let field = arg
+        .trim_start_matches('-')
+        .split([' ', '<', '='])
+        .next()
+        .unwrap_or("")
+        .replace('-', "_");
+    let mut first = e
+        .to_string()
+        .lines()
+        .next()
+        .unwrap_or("invalid arguments")
+        .to_string();
+    let n = value.chars().count();
+    if n > commands::ECHO_MAX {
+        let head: String = value.chars().take(commands::ECHO_MAX).collect();
+        first = first.replacen(&value, &format!("{head}… ({n} characters)"), 1);
+    }
+    match (batch::allowed(&field), value.is_empty()) {
+        (Some(allowed), false) => format!(
+            "error: {arg} = {} is invalid: allowed {allowed}",
+            commands::echo(&value)
+        ),
+        (Some(allowed), true) => format!("{first}; allowed {allowed}"),
+        (None, _) => format!("{first} (see --help)"),
+    }
+}
+
+/// The long flags of the subcommand the command line names (`model fresnel`: `n`, `k`,
+/// `theta-i-deg`, `batch`).
+fn command_flags() -> Vec<String> {
+    use clap::CommandFactory;
+    let mut cmd = crate::Cli::command();
+    cmd.build();
+    let mut current = &cmd;
+    for arg in argv().into_iter().skip(1) {
+        if let Some(sub) = arg.to_str().and_then(|a| current.find_subcommand(a)) {
+            current = sub;
+        }
+    }
+    current
+        .get_arguments()
+        .filter_map(|a| a.get_long().map(str::to_string))
+        .collect()
+}
+
+/// A command's error as the user sees it: a leading field that is one of the command's flags
+/// spelled as the flag (`theta_i_deg = 95` -> `--theta-i-deg = 95`), long echoed text cut and
+/// long numbers compact.
+pub fn user_error(message: &str) -> String {
+    let message = commands::tidy(message);
+    let end = message
+        .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+        .unwrap_or(message.len());
+    let (token, rest) = message.split_at(end);
+    let named = [" = ", " is ", " has ", " contains ", ": ", "["]
+        .iter()
+        .any(|p| rest.starts_with(p));
+    let flag = token.replace('_', "-");
+    if !token.is_empty() && named && command_flags().contains(&flag) {
+        format!("--{flag}{rest}")
+    } else {
+        message
+    }
+}
+
+/// An error about a plan file's contents (`plan field ...`, `plan PATH: ...`) names the file.
+pub fn in_plan_file(file: &std::path::Path, e: commands::CommandError) -> commands::CommandError {
+    match e.0.strip_prefix("plan ") {
+        Some(rest) if !rest.starts_with("file ") => {
+            let rest = rest.strip_prefix("field ").unwrap_or(rest);
+            commands::CommandError(format!("plan {}: {rest}", file.display()))
+        }
+        _ => e,
+    }
+}

@@ -1,0 +1,96 @@
+//! `plan`: plan from the model: `plan scene` (angles, integration time and a forecast for a
+//! scene and a camera), `plan angles` (optimal angles for given class statistics), `plan check`
+//! (a plan file's forecast without running it).
+
+use super::analyze::AptdArgs;
+use super::errors::in_plan_file;
+use super::output::print_json;
+use clap::{Args, Subcommand};
+use polar_cli::plan::{self, PlanAnglesArgs, PlanSceneArgs};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// `plan`: its subcommands.
+#[derive(Debug, Args)]
+pub struct PlanGroup {
+    #[command(subcommand)]
+    command: PlanCommand,
+}
+
+#[derive(Debug, Subcommand)]
+enum PlanCommand {
+    /// Angles, integration time and a forecast (SCR, Pd, DoLP sigma, saturation margin, frames,
+    /// duration) for a target against a background in a scene, through a camera.
+    Scene(SceneArgs),
+    /// The SCR-optimal analyzer angles for a target against a background, with the SCR and
+    /// matched-filter Pd of the conventional sets beside them.
+    Angles(AnglesArgs),
+    /// Validate a plan file (TOML or YAML) and print its forecast (frames, duration,
+    /// predicted sigma per class) without running it.
+    Check(CheckArgs),
+    /// The same as `analyze aptd`.
+    #[command(hide = true)]
+    Aptd(AptdArgs),
+}
+
+impl PlanGroup {
+    /// Runs the subcommand; its exit status.
+    pub fn run(self) -> ExitCode {
+        match self.command {
+            PlanCommand::Scene(a) => a.run(),
+            PlanCommand::Angles(a) => a.run(),
+            PlanCommand::Check(a) => a.run(),
+            PlanCommand::Aptd(a) => a.run(),
+        }
+    }
+}
+
+/// `plan scene`.
+#[derive(Debug, Args)]
+struct SceneArgs {
+    #[command(flatten)]
+    args: PlanSceneArgs,
+}
+
+impl SceneArgs {
+    fn run(self) -> ExitCode {
+        print_json(plan::scene_plan(&self.args))
+    }
+}
+
+/// `plan angles`.
+#[derive(Debug, Args)]
+struct AnglesArgs {
+    #[command(flatten)]
+    args: PlanAnglesArgs,
+}
+
+impl AnglesArgs {
+    fn run(self) -> ExitCode {
+        print_json(plan::angles(&self.args))
+    }
+}
+
+/// `plan check`.
+#[derive(Debug, Args)]
+struct CheckArgs {
+    /// The plan file.
+    file: PathBuf,
+    /// A rig file: its site (for a plan without one) and its camera file.
+    #[arg(long)]
+    rig: Option<PathBuf>,
+}
+
+impl CheckArgs {
+    fn run(self) -> ExitCode {
+        let file = self.file;
+        print_json(
+            self.rig
+                .as_deref()
+                .map(polar_cli::rig::load)
+                .transpose()
+                .and_then(|rig| polar_cli::acquire::plan_check(&file, rig.as_ref()))
+                .map_err(|e| in_plan_file(&file, e)),
+        )
+    }
+}
