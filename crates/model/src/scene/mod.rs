@@ -77,7 +77,7 @@
 //! # Sky
 //!
 //! [`SkyModel`]: single scattering (above), Berry-Dennis-Lee polarisation on single-scattering
-//! radiance, or a table from a radiative-transfer code ([`crate::sky_table`]). The sun beam's
+//! radiance, or a table from a radiative-transfer code ([`crate::sky::table`]). The sun beam's
 //! attenuation uses the pseudo-spherical cosine ([`crate::air_mass::slant_mu0`]), so a sun at
 //! the horizon still lights the sky.
 //!

@@ -16,10 +16,11 @@ use crate::quadrature::{
     gauss_legendre_table, integrate_2d_split_n, integrate_periodic_split_n, Tolerance,
 };
 use crate::sky::RayleighSky;
+use crate::slope::batch::{exp_nonpositive, slope_weight};
+use crate::slope::integrand::{SharedWeights, SLOPE_T};
 use crate::slope::{
     add_scaled, specular_skylight_from, FacetBatch, LevelPair, SlopeIntegrand, Start, GAUSS_LEVELS,
 };
-use crate::slope::{exp_nonpositive, slope_weight, SharedWeights, SLOPE_T};
 use nalgebra::Vector3;
 use std::f64::consts::PI;
 
