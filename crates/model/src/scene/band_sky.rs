@@ -16,7 +16,7 @@ use nalgebra::Vector3;
 use std::f64::consts::PI;
 use std::sync::{Arc, OnceLock};
 
-/// The band-integrated single-scattering sky of one field point (module docs).
+/// The band-integrated single-scattering sky of one field point ([`crate::scene`] docs).
 pub(super) struct BandSky<'a> {
     pub(super) prepared: &'a Prepared,
     /// The `A` and `B` tables, shared by every material's view of the same ray.
@@ -29,7 +29,8 @@ pub(super) struct BandSky<'a> {
 
 impl BandSky<'_> {
     /// The band-integrated single-scattering radiance arriving from `towards` and its
-    /// polarised part `P12 A(mu)` (module docs); `None` where the radiance is not positive.
+    /// polarised part `P12 A(mu)` ([`crate::scene`] docs); `None` where the radiance is not
+    /// positive.
     #[inline]
     pub(super) fn single_scattering(&self, towards: &Vector3<f64>) -> Option<(f64, f64)> {
         let (intensity, pol) = self
@@ -52,8 +53,8 @@ pub(super) struct Scattering {
 
 impl Scattering {
     /// The radiance `P11 A(mu) + P_HG B(mu)` arriving from `towards` and its polarised part
-    /// `P12 A(mu)` (module docs), from the tables' `(A, B)` at the ray's `mu`; the radiance
-    /// may be `<= 0` (the callers take that as no light).
+    /// `P12 A(mu)` ([`crate::scene`] docs), from the tables' `(A, B)` at the ray's `mu`; the
+    /// radiance may be `<= 0` (the callers take that as no light).
     #[inline(always)]
     pub(super) fn radiance(&self, (a, b): (f64, f64), towards: &Vector3<f64>) -> (f64, f64) {
         let c = self.sun.dot(towards).clamp(-1.0, 1.0);

@@ -96,7 +96,7 @@ pub struct Prepared {
     pub(super) sun: Vector3<f64>,
     pub(super) field: Field,
     pub(super) nodes: Vec<Node>,
-    /// Per node: `A_k(mu_j)`, `B_k(mu_j)` (module docs), per unit node weight.
+    /// Per node: `A_k(mu_j)`, `B_k(mu_j)` ([`crate::scene`] docs), per unit node weight.
     pub(super) table_a: Vec<Vec<f64>>,
     pub(super) table_b: Vec<Vec<f64>>,
     pub(super) spectral_change: f64,

@@ -102,13 +102,13 @@ pub(crate) fn lagrange4_stencil(len: usize, x: f64) -> (usize, [f64; 4]) {
     )
 }
 
-/// The band sky's `A(mu)` and `B(mu)` (module docs) for one set of per-node coefficients, as
-/// [`lagrange4`] interpolates them on the `mu` table, one cubic per interval: the interval's
+/// The band sky's `A(mu)` and `B(mu)` ([`crate::scene`] docs) for one set of per-node coefficients,
+/// as [`lagrange4`] interpolates them on the `mu` table, one cubic per interval: the interval's
 /// 4-point Lagrange cubic in the monomial basis of its own coordinate `s` in `[0, 1]`, `A`'s
-/// coefficients (`s^0` to `s^3`) then `B`'s. The same polynomials to rounding (tested), at
-/// two Horner evaluations per sky direction instead of the stencil's weights and two dot
-/// products (a scene's most frequent call: the sky is asked once per integrand point). Empty
-/// for a tabulated sky.
+/// coefficients (`s^0` to `s^3`) then `B`'s. The same polynomials to rounding (tested), at two
+/// Horner evaluations per sky direction instead of the stencil's weights and two dot products (a
+/// scene's most frequent call: the sky is asked once per integrand point). Empty for a tabulated
+/// sky.
 pub(crate) struct BandTables {
     pub(crate) cubics: Vec<[f64; 8]>,
 }

@@ -594,7 +594,7 @@ impl SharedWeights {
 }
 
 /// The specular part of Eq. 3.22 for a microfacet surface of permittivity `eps` and roughness
-/// `sigma`, integrated in facet-slope space (module docs). The result is in the reflected
+/// `sigma`, integrated in facet-slope space ([`crate::slope`] docs). The result is in the reflected
 /// surface frame of `omega_view`.
 ///
 /// The rule is a product Gauss-Legendre rule on the integrand's smooth pieces
