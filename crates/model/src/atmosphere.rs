@@ -10,10 +10,9 @@
 use crate::air_mass::{air_mass, slant_mu0};
 use crate::error::ModelError;
 use crate::polarization::Stokes;
-use crate::sky::{
-    downward_path, e_vector_in_frame, rayleigh_optical_depth, single_scattered, RayleighSky,
-    AIR_DEPOLARIZATION,
-};
+use crate::sky::clear::ClearSky;
+use crate::sky::radiance::e_vector_in_frame;
+use crate::sky::rayleigh::{rayleigh_optical_depth, AIR_DEPOLARIZATION};
 use nalgebra::Vector3;
 use std::f64::consts::PI;
 
@@ -430,71 +429,11 @@ pub struct Path {
     pub layer_optical_depth: f64,
 }
 
-/// A clear sky of Rayleigh plus aerosol single scattering in a plane-parallel layer: molecules
-/// scatter with the depolarised Rayleigh phase matrix, aerosol unpolarised with a
-/// Henyey-Greenstein phase function (its polarisation, small in the visible, is neglected).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ClearSky {
-    /// Rayleigh optical depth.
-    pub rayleigh: f64,
-    /// Aerosol optical depth.
-    pub aerosol: f64,
-    /// Aerosol single-scattering albedo.
-    pub ssa: f64,
-    /// Aerosol asymmetry parameter.
-    pub g: f64,
-    /// Molecular depolarisation factor.
-    pub depolarization: f64,
-    /// Unit vector towards the sun.
-    pub sun: Vector3<f64>,
-}
-
-impl ClearSky {
-    /// Henyey-Greenstein phase function normalised to average 1 over the sphere.
-    #[inline]
-    pub fn henyey_greenstein(g: f64, cos_gamma: f64) -> f64 {
-        let d = 1.0 + g * g - 2.0 * g * cos_gamma;
-        (1.0 - g * g) / (d * d.sqrt())
-    }
-
-    /// Optical-depth-weighted source `(omega P11, -omega P12)` of the mixture, phase functions
-    /// averaging 1 (so a conservative Rayleigh layer has `omega P11` averaging 1).
-    pub fn source(&self, cos_gamma: f64) -> (f64, f64) {
-        let tau = self.rayleigh + self.aerosol;
-        if tau == 0.0 {
-            return (0.0, 0.0);
-        }
-        let r = RayleighSky {
-            optical_depth: self.rayleigh,
-            depolarization: self.depolarization,
-        };
-        let (p11, p12) = r.phase(cos_gamma);
-        let hg = ClearSky::henyey_greenstein(self.g, cos_gamma);
-        (
-            (self.rayleigh * p11 + self.ssa * self.aerosol * hg) / tau,
-            self.rayleigh * p12 / tau,
-        )
-    }
-}
-
-impl crate::sky::SkyRadiance for ClearSky {
-    /// Downwelling single-scattering radiance per unit TOA irradiance (the formula of
-    /// [`RayleighSky::stokes`] with the mixture's source).
-    fn stokes_from(&self, towards: &Vector3<f64>) -> Stokes {
-        let path = downward_path(
-            self.rayleigh + self.aerosol,
-            slant_mu0(self.sun.z),
-            towards.z.max(0.0),
-        );
-        let (p11, p12) = self.source(self.sun.dot(towards).clamp(-1.0, 1.0));
-        single_scattered(p11, p12, path, &self.sun, towards)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::angles::direction_from_deg;
+    use crate::sky::rayleigh::RayleighSky;
     use crate::sky::SkyRadiance;
 
     #[test]

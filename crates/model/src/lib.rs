@@ -19,9 +19,9 @@
 //! * [`material`]: a small library of materials at 550 nm, TOML in and out.
 //! * [`analyzer`]: measurement matrices of analyzer sets, reconstruction, conditioning and noise gains.
 //! * [`air_mass`]: the relative air mass of the sun's slant path; the pseudo-spherical cosine.
-//! * [`atmosphere`]: TOA spectrum, band, Beer-Lambert transmittance, clear sky with aerosol, path radiance.
-//! * [`sky`]: Rayleigh single-scattering sky radiance and polarisation.
-//! * [`sky_table`]: a tabulated sky from a radiative-transfer code (CSV), interpolated with its error.
+//! * [`atmosphere`]: TOA spectrum, band, Beer-Lambert transmittance, the clear sky's optical depths, path radiance.
+//! * [`sky`]: the skies: the trait, uniform, Rayleigh, Berry, the clear sky with aerosol, and a
+//!   tabulated sky from a radiative-transfer code (CSV), interpolated with its error.
 //! * [`slope`]: a microfacet's specular lobe against a sky, integrated in facet-slope space.
 //! * [`skylight`]: skylight reflected by a surface (Eq. 3.22), with its error.
 //! * [`span`]: the measurement row of an exposure while the analyzer turns, and angle jitter.
@@ -50,7 +50,6 @@ pub mod scene;
 pub mod scene_file;
 pub mod sensor;
 pub mod sky;
-pub mod sky_table;
 pub mod skylight;
 pub mod slope;
 pub mod span;

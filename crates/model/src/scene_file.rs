@@ -34,7 +34,7 @@ use crate::atmosphere::{Atmosphere, Band};
 use crate::error::ModelError;
 use crate::material::{Material, MaterialLibrary, MaterialModel};
 use crate::scene::{SceneMaterial, SceneSpec, SkyModel, Texture};
-use crate::sky_table::{SkyTable, StokesReference};
+use crate::sky::table::{SkyTable, StokesReference};
 use crate::sun::{sun_position, Site, UtcTime};
 use crate::tiles::Pointing;
 use serde::Deserialize;

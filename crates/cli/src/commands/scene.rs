@@ -209,8 +209,8 @@ pub fn sky(a: &SkyArgs) -> Result<Value, CommandError> {
                 .as_ref()
                 .ok_or_else(|| CommandError("model = \"table\" needs --table FILE.csv".into()))?;
             let reference = match a.reference.as_str() {
-                "horizontal" => polar_model::sky_table::StokesReference::Horizontal,
-                "vertical" => polar_model::sky_table::StokesReference::Vertical,
+                "horizontal" => polar_model::sky::table::StokesReference::Horizontal,
+                "vertical" => polar_model::sky::table::StokesReference::Vertical,
                 other => {
                     return Err(CommandError(format!(
                         "reference = {} is invalid: allowed horizontal or vertical",
@@ -224,7 +224,7 @@ pub fn sky(a: &SkyArgs) -> Result<Value, CommandError> {
                     path.display().to_string()
                 ))
             })?;
-            let t = polar_model::sky_table::SkyTable::from_csv_str(&text, reference)
+            let t = polar_model::sky::table::SkyTable::from_csv_str(&text, reference)
                 .map_err(|e| CommandError(format!("{}: {e}", path.display())))?;
             let s = t.stokes_at_deg(z, az);
             return Ok(json!({

@@ -40,7 +40,7 @@
 //! its error ([`crate::scene::ErrorFloor`]).
 
 use crate::polarization::Stokes;
-use crate::sky::SkyRadiance;
+use crate::sky::radiance::SkyRadiance;
 use nalgebra::Vector3;
 
 /// Which axis the table's `S1 > 0` refers to.
