@@ -8,7 +8,7 @@
 //! for `acquire resume` (exit status 3).
 
 use crate::commands::CommandError;
-use polar_engine::plan::{Plan, SimStage};
+use polar_engine::plan::{Plan, PlanKind, SimStage};
 use polar_engine::run::{self, Control, Controller, Event, Outcome, Rig, RunState};
 use polar_engine::sim::SimRig;
 use polar_hal::{Analyzer, Camera};
@@ -53,6 +53,15 @@ async fn drive<A: Analyzer + 'static, C: Camera + 'static>(
     resume: bool,
     ui: Ui,
 ) -> Result<Outcome, CommandError> {
+    drive_with(plan, ui, |link| run::run(plan, rig, run_dir, resume, link)).await
+}
+
+/// [`drive`] for any run loop: `start` runs the plan with the link it is given.
+async fn drive_with<F, Fut>(plan: &Plan, ui: Ui, start: F) -> Result<Outcome, CommandError>
+where
+    F: FnOnce(run::RunLink) -> Fut,
+    Fut: std::future::Future<Output = Result<Outcome, run::RunError>>,
+{
     let (ctl, link) = run::link();
     let Controller {
         control,
@@ -160,7 +169,7 @@ async fn drive<A: Analyzer + 'static, C: Camera + 'static>(
             }
         }
     });
-    let outcome = run::run(plan, rig, run_dir, resume, link).await;
+    let outcome = start(link).await;
     drop(control);
     ctrl_c.abort();
     let _ = state.changed().await;
@@ -184,7 +193,14 @@ async fn run_simulated(
         SimRig::start_rig(plan, plan_dir, &link_dir, run::noise_stream(run_dir))
             .await
             .map_err(err)?;
-    let outcome = drive(plan, engine_rig, run_dir, resume, ui).await?;
+    let outcome = if plan.kind == PlanKind::Continuous {
+        drive_with(plan, ui, |link| {
+            run::run_continuous(plan, engine_rig, run_dir, resume, link)
+        })
+        .await?
+    } else {
+        drive(plan, engine_rig, run_dir, resume, ui).await?
+    };
     Ok((outcome, rig))
 }
 

@@ -5,6 +5,7 @@
 pub mod acquire;
 pub mod batch;
 pub mod bench;
+pub mod bench_continuous;
 pub mod bench_crash;
 pub mod bench_serial;
 pub mod bench_stats;

@@ -211,8 +211,10 @@ pub fn compare_line(truth: polar_hil_mocks::serve::TruthHandle, interval_rad: f6
 }
 
 /// The longest time between two reads of [`compare_line`] that still counts the crossings
-/// between them (the camera polls every 50 us while it waits for an edge).
-pub const LINE_GAP: std::time::Duration = std::time::Duration::from_millis(2);
+/// between them. The camera polls every 50 us while it waits for an edge; the gap allows for
+/// a loaded host that runs the polling thread late, and is far shorter than the pause between
+/// two segments of a run (a stopped camera), whose crossings must not count.
+pub const LINE_GAP: std::time::Duration = std::time::Duration::from_millis(20);
 
 /// The adaptive target's material as a mask of the simulated scene (row-major), if the plan
 /// names one; an error naming `adaptive.target.material` if the scene has no such material.

@@ -128,12 +128,16 @@ pub struct DemoArgs {
     /// The run directory (replaced if it holds an earlier demo).
     #[arg(long, default_value = "demo-run")]
     out: PathBuf,
+    /// The simulated rotation stage: native (our firmware) or a simulated Thorlabs mount.
+    #[arg(long, default_value = "native",
+          value_parser = clap::builder::PossibleValuesParser::new(acquire::demo_stages()))]
+    stage: String,
 }
 
 impl DemoArgs {
     /// Runs the demo; prints what happened.
     pub fn run(self) -> ExitCode {
-        match acquire::demo(&self.out, Ui::terminal()) {
+        match acquire::demo_on_stage(&self.out, &self.stage, Ui::terminal()) {
             Ok(text) => {
                 print!("{text}");
                 ExitCode::SUCCESS

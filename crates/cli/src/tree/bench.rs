@@ -17,7 +17,9 @@ pub struct BenchGroup {
 #[derive(Debug, Subcommand)]
 enum BenchCommand {
     /// A simulated capture's wall time against the device-bound ideal (the simulated moves
-    /// and exposures alone). Prints Markdown.
+    /// and exposures alone), Markdown; with --continuous, step-and-shoot against continuous
+    /// rotation on the same simulated rig (sets per second, predicted sigma, products against
+    /// the truth, the dim case's time to a DoLP sigma).
     Run(RunArgs),
     /// Time per scene evaluation and actual error against a reference computed in the same run,
     /// for the example scenes (bench, rooftop, airborne) at tolerances 1e-2 .. 1e-8. Prints a
@@ -61,17 +63,16 @@ impl BenchGroup {
 /// `bench run`.
 #[derive(Debug, Args)]
 struct RunArgs {
-    /// Angle sets, 1..=1000.
-    #[arg(long, default_value_t = 10)]
-    sets: u32,
-    /// Exposure, microseconds, [10, 1000000] (the rooftop scene saturates above ~600 us).
-    #[arg(long, default_value_t = 250.0)]
-    exposure_us: f64,
+    #[command(flatten)]
+    args: polar_cli::bench_continuous::BenchRunArgs,
 }
 
 impl RunArgs {
     fn run(self) -> ExitCode {
-        print_text(polar_cli::acquire::bench_run(self.sets, self.exposure_us))
+        print_text(
+            polar_cli::bench_continuous::run(&self.args)
+                .map_err(|e| polar_cli::commands::CommandError(format!("{e:#}"))),
+        )
     }
 }
 

@@ -1,6 +1,7 @@
 //! `plan`: plan from the model: `plan scene` (angles, integration time and a forecast for a
 //! scene and a camera), `plan angles` (optimal angles for given class statistics), `plan check`
-//! (a plan file's forecast without running it).
+//! (a plan file's forecast without running it), `plan continuous` (frames per half turn,
+//! exposure and speed for a spinning analyzer).
 
 use super::analyze::AptdArgs;
 use super::errors::in_plan_file;
@@ -28,6 +29,9 @@ enum PlanCommand {
     /// Validate a plan file (TOML or YAML) and print its forecast (frames, duration,
     /// predicted sigma per class) without running it.
     Check(CheckArgs),
+    /// Continuous rotation: frames per half turn, exposure and speed within the camera's and
+    /// the stage's limits, which limit binds, and a step-and-shoot set beside it.
+    Continuous(ContinuousArgs),
     /// The same as `analyze aptd`.
     #[command(hide = true)]
     Aptd(AptdArgs),
@@ -40,6 +44,7 @@ impl PlanGroup {
             PlanCommand::Scene(a) => a.run(),
             PlanCommand::Angles(a) => a.run(),
             PlanCommand::Check(a) => a.run(),
+            PlanCommand::Continuous(a) => a.run(),
             PlanCommand::Aptd(a) => a.run(),
         }
     }
@@ -92,5 +97,27 @@ impl CheckArgs {
                 .and_then(|rig| polar_cli::acquire::plan_check(&file, rig.as_ref()))
                 .map_err(|e| in_plan_file(&file, e)),
         )
+    }
+}
+
+/// `plan continuous`.
+#[derive(Debug, Args)]
+struct ContinuousArgs {
+    #[command(flatten)]
+    args: polar_cli::plan_continuous::PlanContinuousArgs,
+}
+
+impl ContinuousArgs {
+    fn run(self) -> ExitCode {
+        match polar_cli::plan_continuous::run(&self.args) {
+            Ok(out) => {
+                print!("{out}");
+                ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("error: {e:#}");
+                ExitCode::from(2)
+            }
+        }
     }
 }

@@ -70,6 +70,10 @@ struct Cont<'a, R: Rotator, C: Camera> {
     device_s: f64,
     spinning: bool,
     last: Option<Mark>,
+    /// Half turns taken again after a device error (a missed trigger, a late frame), by half
+    /// turn: at most `policy.attempts` tries each before the run pauses.
+    attempts: HashMap<u64, u32>,
+    retries: u64,
 }
 
 fn plan_err(field: &str, value: impl Into<String>, allowed: impl Into<String>) -> RunError {
@@ -221,6 +225,8 @@ where
         device_s: 0.0,
         spinning: false,
         last: None,
+        attempts: HashMap::new(),
+        retries: 0,
     };
     lp.set_state(RunState::Running);
     let mut todo: VecDeque<u64> = (0..u64::from(c.half_turns))
@@ -242,7 +248,7 @@ where
         frames_accepted: lp.accepted.len() as u64,
         sets_accepted: lp.sets_accepted,
         sets_rejected: lp.sets_rejected,
-        retries: 0,
+        retries: lp.retries,
         pauses: lp.pauses,
         elapsed_s: started.elapsed().as_secs_f64(),
         device_s: lp.device_s,
@@ -439,6 +445,22 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
                 }
                 Err(e) => {
                     let reason = format!("half turn {h}: {e}");
+                    let tries = self.attempts.entry(h).or_insert(0);
+                    *tries += 1;
+                    let retry = matches!(e.kind(), ErrorKind::Protocol | ErrorKind::Timeout)
+                        && *tries < self.plan.policy.attempts;
+                    if retry {
+                        // A trigger the camera missed (or a frame it took late) spoils only
+                        // this half turn: stop, spin up again and take it again.
+                        warn!("{reason}; taking the half turn again (try {})", *tries + 1);
+                        self.retries += 1;
+                        let _ = self.link.events.try_send(Event::Retry(reason.clone()));
+                        self.stop_segment().await;
+                        if let Err(e) = self.drain().await {
+                            warn!("while stopping: {e}");
+                        }
+                        continue;
+                    }
                     warn!("{reason}");
                     match self.pause(reason, h).await? {
                         After::Resume => {}
