@@ -42,8 +42,9 @@ enum Command {
     /// Evaluate the analytical model; JSON on stdout.
     Model(model::ModelGroup),
     /// Plan from the model: angles, integration time and a forecast for a scene and a camera
-    /// (`plan scene`), optimal angles for given class statistics (`plan angles`), a plan file's
-    /// forecast (`plan check`). JSON on stdout.
+    /// (`plan scene`), optimal angles for given class statistics (`plan angles`), frames,
+    /// exposure and speed for a spinning analyzer (`plan continuous`), a plan file's forecast
+    /// (`plan check`).
     Plan(plan::PlanGroup),
     /// Acquisition runs on simulated or real devices: run a plan, resume it, check a run
     /// directory, the demo, export a run.

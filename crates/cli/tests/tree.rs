@@ -72,7 +72,7 @@ fn root_help_lists_only_the_groups() {
 #[test]
 fn every_group_lists_its_subcommands() {
     let groups: [(&[&str], &[&str]); 10] = [
-        (&["plan"], &["scene", "angles", "check"]),
+        (&["plan"], &["scene", "angles", "check", "continuous"]),
         (&["acquire"], &["run", "resume", "check", "demo", "export"]),
         (&["acquire", "export"], &["tiff"]),
         (&["devices"], &["list", "stage", "camera"]),

@@ -100,7 +100,7 @@ fn capture_share(model: AptModel) -> f64 {
             camera,
             camera_model: world.camera_model.clone(),
             sensor,
-            illumination: Some(illumination),
+            illumination: Some(polar_engine::sim::scene_light(&illumination)),
             target_mask: None,
             sun_deg: Some((
                 world.scene_file.spec.sun_zenith_deg,

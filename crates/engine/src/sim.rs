@@ -216,6 +216,12 @@ pub fn compare_line(truth: polar_hil_mocks::serve::TruthHandle, interval_rad: f6
 /// two segments of a run (a stopped camera), whose crossings must not count.
 pub const LINE_GAP: std::time::Duration = std::time::Duration::from_millis(20);
 
+/// The run's handle on the simulated scene's light (lens cap and clouds).
+pub fn scene_light(illumination: &polar_hil_mocks::camera::Illumination) -> crate::run::SceneLight {
+    let light = illumination.clone();
+    Arc::new(move |factor| light.set(factor))
+}
+
 /// The adaptive target's material as a mask of the simulated scene (row-major), if the plan
 /// names one; an error naming `adaptive.target.material` if the scene has no such material.
 pub fn target_mask(plan: &Plan, scene: &SimScene) -> Result<Option<Vec<bool>>, SimError> {
@@ -499,7 +505,7 @@ impl SimRig {
             camera,
             camera_model: rig.camera_model.clone(),
             sensor: rig.sensor.clone(),
-            illumination: Some(rig.illumination.clone()),
+            illumination: Some(scene_light(&rig.illumination)),
             target_mask,
             sun_deg: rig.sun_deg(plan),
             devices,

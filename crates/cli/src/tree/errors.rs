@@ -88,7 +88,13 @@ pub fn one_line_error(e: &clap::Error) -> String {
             commands::echo(&value)
         ),
         (Some(allowed), true) => format!("{first}; allowed {allowed}"),
-        (None, _) => format!("{first} (see --help)"),
+        (None, _) => match e.get(ContextKind::ValidValue) {
+            // A flag with a fixed list of values (`demo --stage`): name them.
+            Some(ContextValue::Strings(valid)) if !valid.is_empty() => {
+                format!("{first}: allowed one of {}", valid.join(", "))
+            }
+            _ => format!("{first} (see --help)"),
+        },
     }
 }
 

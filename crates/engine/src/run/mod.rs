@@ -34,7 +34,6 @@ use crate::products::{self, Dark, NoiseModel, Products, SetGeometry};
 use crate::store::{RunStore, STORE_DIR};
 use crate::{pixel_hash, FrameKind, FrameRecord};
 use polar_hal::{Analyzer, Camera, DeviceError, ErrorKind, Frame, TriggerMode};
-use polar_hil_mocks::camera::Illumination;
 use polar_model::sensor::{Camera as CameraModel, SensorModel};
 use polar_planner::aptd::{Aptd, AptdConfig, AptdFrame, Step as AptdStep, TargetSpec};
 use polar_planner::Constraints;
@@ -195,6 +194,10 @@ pub enum RunError {
     Storage(String),
 }
 
+/// The light of a simulated scene, as the run sets it: the fraction of the scene's light that
+/// reaches the sensor, 0 (the lens capped, for darks) to 1 (a passing cloud in between).
+pub type SceneLight = std::sync::Arc<dyn Fn(f64) + Send + Sync>;
+
 /// What a run drives and knows about its devices.
 pub struct Rig<A, C> {
     /// The analyzer (a rotator or a wheel of polarizers).
@@ -207,7 +210,7 @@ pub struct Rig<A, C> {
     pub sensor: SensorModel,
     /// The simulated scene's lens cap and clouds; `None` on real hardware (dark series then
     /// pause for the operator to cap the lens).
-    pub illumination: Option<Illumination>,
+    pub illumination: Option<SceneLight>,
     /// The adaptive loop's target pixels, when known as a mask.
     pub target_mask: Option<Vec<bool>>,
     /// The sun every frame records, zenith and azimuth in degrees: a simulated scene's own
@@ -787,7 +790,7 @@ where
                 }
                 lp.light_level = 1.0;
                 if let Some(light) = &lp.illumination {
-                    light.set(1.0);
+                    light(1.0);
                 }
                 if let Some((step, e)) = failed {
                     let reason = match e {

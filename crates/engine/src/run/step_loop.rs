@@ -30,7 +30,7 @@ pub(super) struct Loop<'a> {
     pub(super) camera: mpsc::Sender<CamCmd>,
     pub(super) to_store: std::sync::mpsc::SyncSender<ToStore>,
     pub(super) from_store: mpsc::UnboundedReceiver<FromStore>,
-    pub(super) illumination: Option<Illumination>,
+    pub(super) illumination: Option<super::SceneLight>,
     pub(super) sun_deg: Option<(f64, f64)>,
     pub(super) width: u32,
     pub(super) height: u32,
@@ -245,7 +245,7 @@ impl Loop<'_> {
             Duration::from_secs_f64(policy.grab_timeout_s + spec.exposure_us * 1e-6);
         // The lens cap (simulated) for darks; on hardware the operator caps it at a pause.
         if let Some(light) = &self.illumination {
-            light.set(if spec.kind == FrameKind::Dark {
+            light(if spec.kind == FrameKind::Dark {
                 0.0
             } else {
                 self.light_level
