@@ -52,8 +52,8 @@ cargo build -p polar-firmware-protocol --target thumbv7em-none-eabihf --locked
 cargo test --workspace --release --locked
 
 # The GUI end to end under Xvfb: run the default plan on the simulated devices, then save a
-# PNG of each tab (live view, devices, planner, rooftop). It fails if the run fails, a tab
-# cannot be drawn or a PNG cannot be written. docs/gui/ holds the committed shots.
+# PNG of each tab (live view, devices, planner, rooftop) and of the live camera and live
+# polarimetry. It fails if the run fails, a tab cannot be drawn or a PNG cannot be written. docs/gui/ holds the committed shots.
 rm -rf target/gui-screenshots target/gui-runs && mkdir -p target/gui-runs
 xvfb-run -a -s "-screen 0 1400x900x24" \
   cargo run --release --locked -q -p polar-gui -- --simulate --out target/gui-runs \

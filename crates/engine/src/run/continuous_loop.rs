@@ -180,19 +180,15 @@ where
         }
     }
     let next_index = records.keys().next_back().map_or(0, |i| i + 1);
-    let writer = Writer {
-        store: opened.store,
-        journal: opened.journal,
-        sensor: rig.sensor.clone(),
-        camera_model: rig.camera_model.clone(),
-        suspender: plan.suspender.clone(),
-        records: records.clone(),
-        cache: HashMap::new(),
-        products: Products::empty(),
-        last_s0: HashMap::new(),
-        threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
-        darks: HashMap::new(),
-    };
+    let writer = Writer::new(
+        opened.store,
+        opened.journal,
+        plan,
+        &rig.sensor,
+        &rig.camera_model,
+        records.clone(),
+        HashMap::new(),
+    );
     let (to_store, from_store, writer_thread) = spawn_writer(writer)?;
     if resume {
         to_store

@@ -438,19 +438,15 @@ where
             *n += 1;
         }
     }
-    let writer = Writer {
-        store: opened.store,
-        journal: opened.journal,
-        sensor: rig.sensor.clone(),
-        camera_model: rig.camera_model.clone(),
-        suspender: plan.suspender.clone(),
-        records: records.clone(),
-        cache: HashMap::new(),
-        products: Products::empty(),
-        last_s0: HashMap::new(),
-        threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+    let writer = Writer::new(
+        opened.store,
+        opened.journal,
+        plan,
+        &rig.sensor,
+        &rig.camera_model,
+        records.clone(),
         darks,
-    };
+    );
     let reader = RunStore::open(run_dir)?;
     let (to_store, from_store, writer_thread) = spawn_writer(writer)?;
     if resume {

@@ -81,6 +81,32 @@ pub(super) struct Writer {
 }
 
 impl Writer {
+    /// The storage thread's state for a run opened in `store` and `journal`: the frames the
+    /// journal records and the darks earlier processes took; no products yet.
+    pub(super) fn new(
+        store: RunStore,
+        journal: Journal,
+        plan: &crate::plan::Plan,
+        sensor: &SensorModel,
+        camera_model: &CameraModel,
+        records: BTreeMap<u64, FrameRecord>,
+        darks: HashMap<u64, (Vec<f64>, u32)>,
+    ) -> Writer {
+        Writer {
+            store,
+            journal,
+            sensor: sensor.clone(),
+            camera_model: camera_model.clone(),
+            suspender: plan.suspender.clone(),
+            records,
+            cache: HashMap::new(),
+            products: Products::empty(),
+            last_s0: HashMap::new(),
+            threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            darks,
+        }
+    }
+
     pub(super) fn pixels(&mut self, index: u64) -> Result<Vec<u16>, String> {
         if let Some(p) = self.cache.get(&index) {
             return Ok(p.clone());
