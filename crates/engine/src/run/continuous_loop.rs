@@ -271,17 +271,9 @@ where
                     damaged: BTreeSet::new(),
                 },
             })?;
-            let r = tokio::task::spawn_blocking(move || rx.recv())
-                .await
-                .map_err(|e| RunError::Storage(e.to_string()))?
-                .map_err(|_| RunError::Storage("the storage thread stopped".into()))?;
-            match r {
-                Ok(_) => {
-                    lp.set_state(RunState::Done);
-                    Ok(Outcome::Done(summary))
-                }
-                Err(e) => Err(RunError::Check(e)),
-            }
+            finish_verdict(rx).await?;
+            lp.set_state(RunState::Done);
+            Ok(Outcome::Done(summary))
         }
     };
     drop(lp);

@@ -194,6 +194,19 @@ pub enum RunError {
     Storage(String),
 }
 
+/// Waits for the storage thread's answer to `ToStore::Finish`: the run's final checks passed,
+/// or the check that failed.
+async fn finish_verdict(
+    rx: std::sync::mpsc::Receiver<Result<Value, String>>,
+) -> Result<(), RunError> {
+    tokio::task::spawn_blocking(move || rx.recv())
+        .await
+        .map_err(|e| RunError::Storage(e.to_string()))?
+        .map_err(|_| RunError::Storage("the storage thread stopped".into()))?
+        .map(|_| ())
+        .map_err(RunError::Check)
+}
+
 /// The light of a simulated scene, as the run sets it: the fraction of the scene's light that
 /// reaches the sensor, 0 (the lens capped, for darks) to 1 (a passing cloud in between).
 pub type SceneLight = std::sync::Arc<dyn Fn(f64) + Send + Sync>;
@@ -895,17 +908,9 @@ where
                     damaged: damaged.clone(),
                 },
             })?;
-            let r = tokio::task::spawn_blocking(move || rx.recv())
-                .await
-                .map_err(|e| RunError::Storage(e.to_string()))?
-                .map_err(|_| RunError::Storage("the storage thread stopped".into()))?;
-            match r {
-                Ok(_) => {
-                    lp.set_state(RunState::Done);
-                    Ok(Outcome::Done(summary))
-                }
-                Err(e) => Err(RunError::Check(e)),
-            }
+            finish_verdict(rx).await?;
+            lp.set_state(RunState::Done);
+            Ok(Outcome::Done(summary))
         }
     };
     if !decisions.is_empty() {
