@@ -72,7 +72,8 @@ def main(argv):
     done_sets = set()
     skipped_sets = set()  # late time-lapse sets the plan's policy skipped: not planned
     for e in journal:
-        if e.get("event") == "set-rejected":
+        if e.get("event") in ("set-rejected", "frames-superseded"):
+            # A rejected set, or an unfinished one taken again whole: stored, superseded.
             rejected.update(e["frames"])
         if e.get("event") == "frame-damaged":
             # Kept aside on a resume and taken again: recorded, not stored.

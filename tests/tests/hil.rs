@@ -7,9 +7,10 @@
 //!   through it (skipped, with the reason printed, where `arv-fake-gv-camera-0.8` is absent).
 //! * [`hil::plans`]: a capture plan end to end on `examples/rigs/sim.toml` (the simulated stage on
 //!   a pseudo-terminal, the camera rendering through the stage's true angle).
-//! * [`hil::plan_kinds`]: time-lapse and adaptive on the devices of `examples/rigs/sim.toml`, and
-//!   calibrate-analyzer (written back to a copy of the rig file) and calibrate-noise with it on
-//!   the simulated rig, through the `run` command's entry point (small plans, `tests/fixtures/`).
+//! * [`hil::plan_kinds`]: time-lapse, adaptive and continuous on the devices of
+//!   `examples/rigs/sim.toml`, and calibrate-analyzer (written back to a copy of the rig file)
+//!   and calibrate-noise with it on the simulated rig, through the `run` command's entry point
+//!   (small plans, `tests/fixtures/`).
 //! * [`hil::k10cr1`]: a capture on `examples/rigs/sim_k10cr1.toml` (the simulated K10CR1 through
 //!   the APT driver) through the `run` command's entry point; its Stokes products against the
 //!   rendered truth.

@@ -8,6 +8,7 @@
 //! for `acquire resume` (exit status 3).
 
 use crate::commands::CommandError;
+use crate::plan_load::{forecast_models, load_plan, load_plan_resolved};
 use polar_engine::plan::{Plan, PlanKind, SimStage};
 use polar_engine::run::{self, Control, Controller, Event, Outcome, Rig, RunState};
 use polar_engine::sim::SimRig;
@@ -212,9 +213,18 @@ async fn run_hardware(
     resume: bool,
     ui: Ui,
 ) -> Result<Outcome, CommandError> {
-    let connected = polar_rig::connect_hardware(hw).await.map_err(err)?;
+    let connected = polar_rig::connect_hardware_for(hw, plan)
+        .await
+        .map_err(err)?;
     let polar_rig::Connected { rig, simulator } = connected;
-    let outcome = drive(plan, rig, run_dir, resume, ui).await;
+    let outcome = if plan.kind == PlanKind::Continuous {
+        drive_with(plan, ui, |link| {
+            run::run_continuous(plan, rig, run_dir, resume, link)
+        })
+        .await
+    } else {
+        drive(plan, rig, run_dir, resume, ui).await
+    };
     if let Some(s) = simulator {
         s.shutdown().await;
     }
@@ -246,54 +256,10 @@ fn outcome_json(o: &Outcome, run_dir: &Path) -> (Value, i32) {
     }
 }
 
-/// Reads a plan and resolves a capture's `from_planner` angles with the model.
-pub fn load_plan(path: &Path) -> Result<(Plan, PathBuf), CommandError> {
-    let mut plan = Plan::from_path(path).map_err(err)?;
-    let dir = path
-        .parent()
-        .map(Path::to_path_buf)
-        .unwrap_or_else(|| PathBuf::from("."));
-    if let Some(c) = plan.capture.clone() {
-        if let Some(fp) = &c.from_planner {
-            let (scene, camera) = forecast_models(&plan, &dir)?;
-            let (angles, _why) =
-                polar_engine::forecast::planner_angles(&scene, &camera, fp, c.exposure_us[0])
-                    .map_err(err)?;
-            plan.resolve_angles(angles).map_err(err)?;
-        }
-    }
-    Ok((plan, dir))
-}
-
-/// The scene and camera a plan's forecast uses (its simulation section's, or the defaults).
-fn forecast_models(
-    plan: &Plan,
-    dir: &Path,
-) -> Result<(polar_model::scene_file::Scene, polar_model::sensor::Camera), CommandError> {
-    let sim = &plan.simulation;
-    let scene_text = match &sim.scene {
-        Some(s) => std::fs::read_to_string(dir.join(s))
-            .map_err(|e| CommandError(format!("simulation.scene = {s}: {e}")))?,
-        None => polar_engine::sim::DEFAULT_SCENE.to_string(),
-    };
-    let scene = polar_model::scene_file::Scene::from_toml_str_with_files(&scene_text, &|name| {
-        std::fs::read_to_string(dir.join(name)).map_err(|e| e.to_string())
-    })
-    .map_err(|e| CommandError(format!("simulation.scene: {e}")))?;
-    let camera_text = match &sim.camera {
-        Some(c) => std::fs::read_to_string(dir.join(c))
-            .map_err(|e| CommandError(format!("simulation.camera = {c}: {e}")))?,
-        None => polar_engine::sim::DEFAULT_CAMERA.to_string(),
-    };
-    let camera = polar_model::sensor::Camera::from_toml_str(&camera_text)
-        .map_err(|e| CommandError(format!("simulation.camera: {e}")))?;
-    Ok((scene, camera))
-}
-
 /// `plan check FILE [--rig RIG]`: the forecast, without running; with a rig, its site (for a
 /// plan without one) and its camera file.
 pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandError> {
-    let (mut plan, dir) = load_plan(path)?;
+    let (mut plan, dir, chosen) = load_plan_resolved(path)?;
     if let Some(r) = rig {
         crate::rig::apply_site(&mut plan, r);
     }
@@ -310,6 +276,9 @@ pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandEr
     let timing = polar_engine::forecast::Timing::simulated(&plan);
     let f = polar_engine::forecast::forecast(&plan, &scene, &camera, &timing).map_err(err)?;
     let mut v = json!({ "plan": plan.name, "kind": plan.kind.name(), "forecast": f });
+    if let Some(c) = chosen {
+        v["continuous_from_planner"] = c;
+    }
     if let Some(r) = rig {
         v["rig"] = json!(r.path.display().to_string());
     }
@@ -1055,12 +1024,7 @@ pub fn check_frames_against_truth(run_dir: &Path, plan: &Plan) -> Result<(u64, u
     let store = polar_engine::store::RunStore::open(run_dir).map_err(err)?;
     let records = store.read_frame_metadata().map_err(err)?;
     let replay = polar_engine::journal::replay(run_dir).map_err(err)?;
-    let mut rejected = std::collections::BTreeSet::new();
-    for e in &replay.entries {
-        if let polar_engine::journal::Entry::SetRejected { frames, .. } = e {
-            rejected.extend(frames.iter().copied());
-        }
-    }
+    let rejected = replay.rejected_frames();
     let rig = SimRig::world(plan, Path::new(".")).map_err(err)?;
     let camera = &rig.camera_model;
     let (mut bad, mut checked) = (0u64, 0u64);

@@ -11,11 +11,18 @@
 //!   turn) within 2 predicted sigma of the truth (95.4 % for Gaussian errors).
 //! * Dim case (the same scene through a camera stopped down to f/32, so no exposure the
 //!   frame timing allows comes near saturation): the continuous plan exposes each frame for
-//!   its frame interval less the camera's readout; step-and-shoot at the same exposure.
-//!   `time_to_sigma_ratio` is the time step-and-shoot needs to reach the DoLP sigma the
-//!   continuous plan reaches, over the continuous plan's time: per mode `(sigma_set /
-//!   sigma*)^2 / sets_per_s`, the sigmas predicted (delta method on the set's covariance), the
-//!   rates measured.
+//!   its frame interval less the camera's readout; step-and-shoot at the same exposure. The
+//!   target is the DoLP sigma of the panel that step-and-shoot reaches in its `--dim-sets`
+//!   sets, `sigma* = sigma_step / sqrt(dim_sets)` (each set's sigma predicted by the delta
+//!   method on the set's covariance; averaging `m` independent sets divides the variance by
+//!   `m`). Continuous rotation reaches it in `k = ceil(dim_sets (sigma_cont / sigma_step)^2)`
+//!   half turns. Each mode runs exactly the sets it needs, so both have reached `sigma*` when
+//!   their runs end, and `time_to_sigma_ratio` is the step-and-shoot run's wall time over the
+//!   continuous run's, which includes the spin-up once. `spin_up_s` is that spin-up, measured:
+//!   from the run's start (the journal's `started_unix_ns`) to the start of the first half
+//!   turn, extrapolated back from the end of the first half turn by the measured half-turn
+//!   time (`dim_half_turn_s`, from the end of the first half turn to the end of the last over
+//!   `k - 1`, the frames' host times).
 
 use anyhow::{anyhow, bail, Context};
 use clap::Args;
@@ -41,8 +48,9 @@ pub struct BenchRunArgs {
     /// Run step-and-shoot and continuous rotation on the same simulated rig (module docs).
     #[arg(long)]
     pub continuous: bool,
-    /// With --continuous: the sets of the dim case, 2..=50.
-    #[arg(long, default_value_t = 3)]
+    /// With --continuous: the step-and-shoot sets of the dim case, 2..=100; their DoLP sigma
+    /// is the target both modes reach (module docs).
+    #[arg(long, default_value_t = 40)]
     pub dim_sets: u32,
     /// Print one JSON line instead of text.
     #[arg(long)]
@@ -66,11 +74,21 @@ pub struct ContinuousBench {
     pub within_2_sigma: f64,
     /// Product values compared.
     pub values: usize,
-    /// Dim case: step-and-shoot and continuous sets per second.
+    /// Dim case: step-and-shoot and continuous sets per second (over each run's time).
     pub dim_sets_per_s: [f64; 2],
     /// Dim case: the panel's predicted DoLP sigma per set, step-and-shoot and continuous.
     pub dim_sigma_dolp: [f64; 2],
-    /// Dim case: step-and-shoot's time to a DoLP sigma over the continuous plan's.
+    /// Dim case: the target DoLP sigma, step-and-shoot's after its sets.
+    pub dim_target_sigma_dolp: f64,
+    /// Dim case: the sets each mode runs to reach the target, step-and-shoot and continuous.
+    pub dim_sets_run: [u64; 2],
+    /// Dim case: each mode's time to the target (its run's wall time), s.
+    pub dim_time_to_target_s: [f64; 2],
+    /// Dim case: the continuous run's time per half turn at speed, measured, s.
+    pub dim_half_turn_s: f64,
+    /// Dim case: the continuous run's spin-up, measured, s (module docs).
+    pub spin_up_s: f64,
+    /// Dim case: step-and-shoot's time to the target over the continuous run's.
     pub time_to_sigma_ratio: f64,
     /// Exposures, us: bright (both modes), dim step-and-shoot, dim continuous.
     pub exposures_us: [f64; 3],
@@ -145,6 +163,44 @@ fn run_plan(plan: &Plan, dir: &Path) -> anyhow::Result<(u64, f64)> {
         bail!("{}: no set was accepted", plan.name);
     }
     Ok((summary.sets_accepted, summary.elapsed_s))
+}
+
+/// A continuous run's measured timing from its journal: the time per half turn at speed (from
+/// the end of the first half turn to the end of the last, over the half turns between) and
+/// the spin-up (from the run's start to the start of the first half turn, that is the end of
+/// the first less one half-turn time). A half turn ends with the host time of its last frame.
+fn half_turn_timing(dir: &Path) -> anyhow::Result<(f64, f64)> {
+    use polar_engine::journal::{replay, Entry};
+    let entries = replay(dir).map_err(|e| anyhow!("{e}"))?.entries;
+    let mut started_ns = None;
+    let mut host_ns = std::collections::BTreeMap::new();
+    let mut ends_ns = Vec::new();
+    for e in &entries {
+        match e {
+            Entry::RunStarted {
+                started_unix_ns, ..
+            } => started_ns = started_ns.or(Some(*started_unix_ns)),
+            Entry::Frame(f) => {
+                host_ns.insert(f.index, f.host_time_unix_ns);
+            }
+            Entry::SetDone { frames, .. } => {
+                let end = frames.iter().filter_map(|i| host_ns.get(i)).max().copied();
+                ends_ns.push(end.ok_or_else(|| anyhow!("a half turn without frames"))?);
+            }
+            _ => {}
+        }
+    }
+    let started_ns = started_ns.ok_or_else(|| anyhow!("the journal has no run-started entry"))?;
+    ends_ns.sort_unstable();
+    let (Some(first), Some(last)) = (ends_ns.first(), ends_ns.last()) else {
+        bail!("the continuous run finished no half turn");
+    };
+    if ends_ns.len() < 2 {
+        bail!("the continuous run needs 2 half turns to measure their time");
+    }
+    let half_turn_s = (last - first) as f64 * 1e-9 / (ends_ns.len() - 1) as f64;
+    let spin_up_s = (first - started_ns) as f64 * 1e-9 - half_turn_s;
+    Ok((half_turn_s, spin_up_s))
 }
 
 /// Standard deviation of the DoLP of `s` with covariance `cov` (delta method).
@@ -256,9 +312,9 @@ pub fn bench(args: &BenchRunArgs) -> anyhow::Result<ContinuousBench> {
     if !(2..=200).contains(&args.sets) {
         bail!("--sets {} is out of range: allowed 2..=200", args.sets);
     }
-    if !(2..=50).contains(&args.dim_sets) {
+    if !(2..=100).contains(&args.dim_sets) {
         bail!(
-            "--dim-sets {} is out of range: allowed 2..=50",
+            "--dim-sets {} is out of range: allowed 2..=100",
             args.dim_sets
         );
     }
@@ -299,18 +355,25 @@ fn bench_in(args: &BenchRunArgs, base: &Path) -> anyhow::Result<ContinuousBench>
     let camera = dim_camera(base)?;
     let interval_us = 180.0 / f64::from(FRAMES) / SPEED_DEG_PER_S * 1e6;
     let dim_e = interval_us - DIM_READOUT_US;
-    let dim_step = step_plan(args.dim_sets, dim_e, Some(&camera))?;
-    let dim_cont = continuous_plan(args.dim_sets, dim_e, Some(&camera))?;
-    let dim_world = SimRig::world(&dim_cont, Path::new(".")).map_err(|e| anyhow!("{e}"))?;
-    let (ds, ds_s) = run_plan(&dim_step, &base.join("dim-step"))?;
-    let (dc, dc_s) = run_plan(&dim_cont, &base.join("dim-continuous"))?;
+    let n_step = args.dim_sets;
+    let dim_step = step_plan(n_step, dim_e, Some(&camera))?;
+    let spans_plan = continuous_plan(1, dim_e, Some(&camera))?;
+    let dim_world = SimRig::world(&spans_plan, Path::new(".")).map_err(|e| anyhow!("{e}"))?;
     let dps = panel_prediction(&dim_world, &step_spans(), dim_e)?;
-    let dpc = panel_prediction(&dim_world, &continuous_spans(&dim_cont)?, dim_e)?;
+    let dpc = panel_prediction(&dim_world, &continuous_spans(&spans_plan)?, dim_e)?;
     let sig_step = dolp_sigma(&dps.stokes_dn, &dps.stokes_cov_dn2);
     let sig_cont = dolp_sigma(&dpc.stokes_dn, &dpc.stokes_cov_dn2);
-    let rate = [ds as f64 / ds_s, dc as f64 / dc_s];
-    // Time to a DoLP sigma s*: (sigma_set / s*)^2 sets at the measured rate; s* cancels.
-    let time_to_sigma_ratio = (sig_step * sig_step / rate[0]) / (sig_cont * sig_cont / rate[1]);
+    // The target: step-and-shoot's sigma after its sets; the half turns that reach it (at
+    // least 2, to measure the half-turn time).
+    let target = sig_step / f64::from(n_step).sqrt();
+    let k = (f64::from(n_step) * (sig_cont / sig_step).powi(2))
+        .ceil()
+        .max(2.0) as u32;
+    let dim_cont = continuous_plan(k, dim_e, Some(&camera))?;
+    let (ds, ds_s) = run_plan(&dim_step, &base.join("dim-step"))?;
+    let cont_dir = base.join("dim-continuous");
+    let (dc, dc_s) = run_plan(&dim_cont, &cont_dir)?;
+    let (half_turn_s, spin_up_s) = half_turn_timing(&cont_dir)?;
     Ok(ContinuousBench {
         step_sets_per_s,
         continuous_sets_per_s,
@@ -319,9 +382,14 @@ fn bench_in(args: &BenchRunArgs, base: &Path) -> anyhow::Result<ContinuousBench>
         continuous_sigma_s12_dn: [sd(&pc, 1), sd(&pc, 2)],
         within_2_sigma: within,
         values,
-        dim_sets_per_s: rate,
+        dim_sets_per_s: [ds as f64 / ds_s, dc as f64 / dc_s],
         dim_sigma_dolp: [sig_step, sig_cont],
-        time_to_sigma_ratio,
+        dim_target_sigma_dolp: target,
+        dim_sets_run: [ds, dc],
+        dim_time_to_target_s: [ds_s, dc_s],
+        dim_half_turn_s: half_turn_s,
+        spin_up_s,
+        time_to_sigma_ratio: ds_s / dc_s,
         exposures_us: [e, dim_e, dim_e],
     })
 }
@@ -345,6 +413,13 @@ pub fn to_json(b: &ContinuousBench) -> Value {
         "dim_continuous_sets_per_s": b.dim_sets_per_s[1],
         "dim_step_sigma_dolp": b.dim_sigma_dolp[0],
         "dim_continuous_sigma_dolp": b.dim_sigma_dolp[1],
+        "dim_target_sigma_dolp": b.dim_target_sigma_dolp,
+        "dim_step_sets": b.dim_sets_run[0],
+        "dim_continuous_half_turns": b.dim_sets_run[1],
+        "dim_step_time_s": b.dim_time_to_target_s[0],
+        "dim_continuous_time_s": b.dim_time_to_target_s[1],
+        "dim_half_turn_s": b.dim_half_turn_s,
+        "spin_up_s": b.spin_up_s,
         "time_to_sigma_ratio": b.time_to_sigma_ratio,
     })
 }
@@ -357,9 +432,10 @@ pub fn text(b: &ContinuousBench) -> String {
          ratio {:.3}\n  predicted sigma per set (panel): step S1 {:.3} DN, S2 {:.3} DN; \
          continuous S1 {:.3} DN, S2 {:.3} DN\n  continuous products within 2 predicted sigma of \
          the truth: {:.2} % of {} values (95.4 % expected)\ndim case (f/{DIM_F_NUMBER}, {:.0} us \
-         in both modes):\n  step-and-shoot {:.4} sets/s, DoLP sigma per set {:.5}; continuous \
-         {:.4} sets/s, {:.5}\n  time to the same DoLP sigma, step-and-shoot over continuous: \
-         {:.2}\n",
+         in both modes):\n  DoLP sigma per set: step-and-shoot {:.5}, continuous {:.5}; target \
+         {:.5} (step-and-shoot's after {} sets)\n  step-and-shoot reaches it in {:.3} s ({:.4} \
+         sets/s), continuous in {:.3} s ({} half turns of {:.4} s after a spin-up of {:.3} s)\n  \
+         time to the same DoLP sigma, step-and-shoot over continuous: {:.2}\n",
         b.exposures_us[0],
         b.step_sets_per_s,
         b.continuous_sets_per_s,
@@ -371,10 +447,16 @@ pub fn text(b: &ContinuousBench) -> String {
         100.0 * b.within_2_sigma,
         b.values,
         b.exposures_us[1],
-        b.dim_sets_per_s[0],
         b.dim_sigma_dolp[0],
-        b.dim_sets_per_s[1],
         b.dim_sigma_dolp[1],
+        b.dim_target_sigma_dolp,
+        b.dim_sets_run[0],
+        b.dim_time_to_target_s[0],
+        b.dim_sets_per_s[0],
+        b.dim_time_to_target_s[1],
+        b.dim_sets_run[1],
+        b.dim_half_turn_s,
+        b.spin_up_s,
         b.time_to_sigma_ratio,
     )
 }
@@ -430,7 +512,12 @@ mod tests {
     /// allows the model's approximations, e.g. quantisation as uniform noise); the continuous
     /// set's predicted S1, S2 sigma is no worse than step-and-shoot's (8 frames per half turn
     /// against 4, spans of 0.09 deg: sinc = 1 - 1e-6); in the dim case its DoLP sigma per set
-    /// is smaller too; the JSON line has every field the issue names.
+    /// is smaller too, the target is step-and-shoot's sigma over the square root of its sets
+    /// (1e-12 relative: one division), and the half turns the continuous run took reach it
+    /// (the average of `k` independent half turns has sigma `sigma / sqrt k`; 1e-12 relative
+    /// for rounding) while one fewer would not, unless the 2 half turns the timing needs are
+    /// more than the target needs; the JSON line has every field the issue names and the
+    /// spin-up.
     #[test]
     fn continuous_products_are_within_predicted_sigma() {
         let b = bench(&args()).unwrap();
@@ -448,6 +535,17 @@ mod tests {
             );
         }
         assert!(b.dim_sigma_dolp[1] < b.dim_sigma_dolp[0], "{b:?}");
+        let n = args().dim_sets;
+        assert_eq!(b.dim_sets_run[0], u64::from(n), "{b:?}");
+        let target = b.dim_sigma_dolp[0] / f64::from(n).sqrt();
+        assert!(
+            (b.dim_target_sigma_dolp - target).abs() <= 1e-12 * target,
+            "{b:?}"
+        );
+        let after = |k: u64| b.dim_sigma_dolp[1] / (k as f64).sqrt();
+        let k = b.dim_sets_run[1];
+        assert!(after(k) <= target * (1.0 + 1e-12), "{b:?}");
+        assert!(k == 2 || after(k - 1) > target, "{b:?}");
         let v = to_json(&b);
         for key in [
             "step_sets_per_s",
@@ -459,6 +557,9 @@ mod tests {
             "continuous_sigma_s2_dn",
             "within_2_sigma",
             "time_to_sigma_ratio",
+            "spin_up_s",
+            "dim_half_turn_s",
+            "dim_target_sigma_dolp",
         ] {
             assert!(v[key].as_f64().is_some_and(f64::is_finite), "{key}: {v}");
         }

@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 
 /// The plan kinds of the campaign: (name, plan text). Small frames, so a run takes about a
 /// second and a kill can land anywhere in it.
-pub const PLANS: [(&str, &str); 6] = [
+pub const PLANS: [(&str, &str); 7] = [
     (
         "capture",
         r#"name = "crash capture"
@@ -107,6 +107,21 @@ darks = 1
 width = 48
 height = 36
 seed = 14
+"#,
+    ),
+    (
+        "continuous",
+        r#"name = "crash continuous"
+kind = "continuous"
+[continuous]
+frames_per_half_turn = 4
+exposure_us = 300
+speed_deg_per_s = 360
+half_turns = 8
+[simulation]
+width = 48
+height = 36
+seed = 15
 "#,
     ),
 ];

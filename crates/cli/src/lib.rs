@@ -17,6 +17,7 @@ pub mod figures;
 pub mod logging;
 pub mod plan;
 pub mod plan_continuous;
+pub mod plan_load;
 pub mod rig;
 pub mod study;
 pub mod study_aptd;

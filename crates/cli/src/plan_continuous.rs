@@ -5,10 +5,12 @@
 
 use anyhow::{anyhow, bail, Context};
 use clap::Args;
-use polar_model::sensor::{Camera, SensorModel};
+use polar_engine::continuous::planner_defaults;
+use polar_engine::continuous_planner::{ProblemError, Role, Settings};
+use polar_model::sensor::Camera;
 use polar_planner::continuous::{
-    plan_continuous, step_and_shoot, CameraLimits, ClassRadiance, ContinuousChoice,
-    ContinuousProblem, Objective, StageLimits, StepPrediction, MAX_FRAMES_PER_HALF_TURN,
+    plan_continuous, step_and_shoot, CameraLimits, ContinuousChoice, ContinuousProblem, Objective,
+    StageLimits, StepPrediction, MAX_FRAMES_PER_HALF_TURN,
 };
 use serde_json::{json, Value};
 use std::path::PathBuf;
@@ -37,7 +39,7 @@ pub struct PlanContinuousArgs {
     #[arg(long, default_value = "time-to-dolp-sigma")]
     pub objective: String,
     /// The target's DoLP standard deviation to reach, (0, 1).
-    #[arg(long, default_value_t = 0.001)]
+    #[arg(long, default_value_t = planner_defaults::DOLP_SIGMA)]
     pub dolp_sigma: f64,
     /// The stage's top speed, degrees per second, (0, 100000].
     #[arg(long, default_value_t = 360.0)]
@@ -46,28 +48,28 @@ pub struct PlanContinuousArgs {
     #[arg(long, default_value_t = 2880.0)]
     pub acceleration_deg_per_s2: f64,
     /// The camera's highest frame rate, Hz, (0, 100000].
-    #[arg(long, default_value_t = 200.0)]
+    #[arg(long, default_value_t = planner_defaults::MAX_FRAME_RATE_HZ)]
     pub max_frame_rate_hz: f64,
     /// Dead time after each exposure before the next, microseconds, [0, 1e7] (0 for a camera
     /// that reads out while it exposes).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = planner_defaults::READOUT_US)]
     pub readout_us: f64,
     /// Shortest exposure, microseconds, (0, 1e11].
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, default_value_t = planner_defaults::MIN_EXPOSURE_US)]
     pub min_exposure_us: f64,
     /// Longest exposure, microseconds, [--min-exposure-us, 1e11].
-    #[arg(long, default_value_t = 1e6)]
+    #[arg(long, default_value_t = planner_defaults::MAX_EXPOSURE_US)]
     pub max_exposure_us: f64,
     /// Saturation margin: the brightest frame's mean plus this many standard deviations stays
     /// below saturation, [0, 10].
-    #[arg(long, default_value_t = 3.0)]
+    #[arg(long, default_value_t = planner_defaults::SATURATION_SIGMA)]
     pub saturation_sigma: f64,
     /// Timing uncertainty of each frame, microseconds, [0, 1e6] (0: frames triggered at
     /// encoder positions; a free-running camera's timestamp uncertainty otherwise).
     #[arg(long, default_value_t = 0.0)]
     pub timing_sigma_us: f64,
     /// The most frames per half turn, 3..=360.
-    #[arg(long, default_value_t = 60)]
+    #[arg(long, default_value_t = planner_defaults::MAX_FRAMES_PER_HALF_TURN as usize)]
     pub max_frames_per_half_turn: usize,
     /// Settling after each move of the step-and-shoot set it is compared with, seconds,
     /// [0, 60].
@@ -122,8 +124,9 @@ fn camera_path(args: &PlanContinuousArgs) -> anyhow::Result<PathBuf> {
     })
 }
 
-/// The planner's problem from the arguments: flags checked (errors name the flag), the scene's
-/// two materials evaluated, the camera through the scene's band.
+/// The planner's problem from the arguments: flags checked (errors name the flag), then
+/// [`polar_engine::continuous_planner::problem`] (the scene's two materials evaluated, the
+/// camera through the scene's band), which a continuous plan's `from_planner` uses too.
 pub fn problem(args: &PlanContinuousArgs) -> anyhow::Result<ContinuousProblem> {
     let objective = objective(args)?;
     let max_speed = flag(
@@ -162,37 +165,7 @@ pub fn problem(args: &PlanContinuousArgs) -> anyhow::Result<ContinuousProblem> {
             .with_context(|| format!("--camera {}: cannot read", camera_path.display()))?,
     )
     .map_err(|e| anyhow!("--camera {}: {e}", camera_path.display()))?;
-    let names: Vec<&str> = scene.materials.iter().map(|m| m.name.as_str()).collect();
-    let pick = |flag: &str, name: &str| {
-        scene
-            .materials
-            .iter()
-            .find(|m| m.name == name)
-            .cloned()
-            .ok_or_else(|| {
-                anyhow!(
-                    "--{flag} {name:?} is not a material of the scene: allowed {}",
-                    names.join(", ")
-                )
-            })
-    };
-    let materials = [
-        pick("target", &args.target)?,
-        pick("background", &args.background)?,
-    ];
-    let results = polar_model::scene::evaluate(&scene.spec, &materials, args.tolerance)
-        .map_err(|e| anyhow!("--scene {}: {e}", args.scene.display()))?;
-    let sensor = SensorModel::new(&camera, &scene.spec.band)
-        .map_err(|e| anyhow!("--camera {}: {e}", camera_path.display()))?;
-    let class = |r: &polar_model::scene::MaterialResult| ClassRadiance {
-        name: r.name.clone(),
-        mean_w_m2_sr: r.mean.0,
-        cov_w2_m4_sr2: 0.5 * (r.cov + r.cov.transpose()),
-    };
-    Ok(ContinuousProblem {
-        sensor,
-        target: class(&results[0]),
-        background: class(&results[1]),
+    let settings = Settings {
         camera: CameraLimits {
             min_exposure_s: min_us * 1e-6,
             max_exposure_s: (max_us * 1e-6).min(1e5),
@@ -207,6 +180,25 @@ pub fn problem(args: &PlanContinuousArgs) -> anyhow::Result<ContinuousProblem> {
         timing_sigma_s: timing_us * 1e-6,
         max_frames_per_half_turn: args.max_frames_per_half_turn,
         objective,
+    };
+    polar_engine::continuous_planner::problem(
+        &scene,
+        &camera,
+        &args.target,
+        &args.background,
+        args.tolerance,
+        &settings,
+    )
+    .map_err(|e| match e {
+        ProblemError::UnknownMaterial { role, .. } => {
+            let flag = match role {
+                Role::Target => "target",
+                Role::Background => "background",
+            };
+            anyhow!("--{flag} {e}")
+        }
+        ProblemError::Scene(m) => anyhow!("--scene {}: {m}", args.scene.display()),
+        ProblemError::Camera(m) => anyhow!("--camera {}: {m}", camera_path.display()),
     })
 }
 

@@ -187,7 +187,7 @@ fn model_err(field: impl Into<String>) -> impl FnOnce(polar_model::ModelError) -
 }
 
 /// The camera at an analog gain: `K` scaled by `10^(gain_db / 20)` (as the cameras apply it).
-fn camera_at_gain(camera: &Camera, gain_db: f64) -> Camera {
+pub(crate) fn camera_at_gain(camera: &Camera, gain_db: f64) -> Camera {
     let mut c = camera.clone();
     c.gain_dn_per_e *= 10f64.powf(gain_db / 20.0);
     c
@@ -545,7 +545,8 @@ fn saturation_margin(s: &polar_model::sensor::SensorSignal) -> f64 {
 
 /// The forecast of `plan` (module docs) with the model of `scene` and `camera` and the rig's
 /// `timing`. A capture whose angles come `from_planner` is resolved here with
-/// [`planner_angles`] at its first exposure (and says so in `notes`).
+/// [`planner_angles`] at its first exposure, a continuous plan's `from_planner` with
+/// [`crate::continuous_planner::resolve`] (each says so in `notes`).
 ///
 /// Errors: the plan's (a missing section); `timing` values not finite or negative (the speed
 /// must be `> 0`); a planner target or background not in the scene (the message lists the
@@ -610,7 +611,12 @@ pub fn forecast(
             .as_ref()
             .map(|a| (a.initial_angles_deg.clone(), vec![a.exposure_us], a.gain_db)),
         // Span rows, not point rows: classes below from `continuous_classes`.
-        PlanKind::Continuous => None,
+        PlanKind::Continuous => {
+            if let Some(choice) = crate::continuous_planner::resolve(&mut plan, scene, camera)? {
+                notes.push(crate::continuous_planner::describe(&choice));
+            }
+            None
+        }
         PlanKind::CalibrateNoise => {
             notes.push(
                 "calibrate-noise: a uniform unpolarised source (an integrating sphere) fills \
@@ -976,6 +982,35 @@ exposure_us = [2000]
             .expect_err("timing")
             .to_string();
         assert!(e.contains("timing.stage_deg_per_s"), "{e}");
+    }
+
+    /// A continuous plan from the planner is resolved in the forecast: its frames are the
+    /// chosen frames per half turn times the half turns, its duration the half turns at the
+    /// chosen speed (1e-12 relative: one product and one quotient), and a note names the
+    /// choice and the limits that bind.
+    #[test]
+    fn continuous_from_planner_is_resolved() {
+        let (scene, camera) = models();
+        let plan = Plan::from_toml_str(
+            "kind = \"continuous\"\n[continuous]\nhalf_turns = 3\nfrom_planner = { target = \
+             \"panel\", background = \"asphalt\", max_frames_per_half_turn = 12 }\n\
+             [simulation]\nstage_deg_per_s = 360\n",
+        )
+        .expect("plan");
+        let f = forecast(&plan, &scene, &camera, &Timing::simulated(&plan)).expect("forecast");
+        let mut resolved = plan.clone();
+        crate::continuous_planner::resolve(&mut resolved, &scene, &camera).expect("resolve");
+        let c = resolved.continuous.expect("section");
+        assert_eq!(f.frames, 3 * u64::from(c.frames_per_half_turn));
+        let at_speed = 3.0 * 180.0 / c.speed_deg_per_s;
+        assert!((f.duration_s - at_speed).abs() <= 1e-12 * at_speed);
+        assert!(
+            f.notes
+                .iter()
+                .any(|n| n.starts_with("continuous.from_planner") && n.contains("binding")),
+            "{:?}",
+            f.notes
+        );
     }
 
     /// Time-lapse: the last set starts at (count - 1) x interval, then takes its own frames;

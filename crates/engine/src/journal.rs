@@ -68,6 +68,17 @@ pub enum Entry {
         /// Why it was refused.
         reason: String,
     },
+    /// The frames of a set that did not finish and is taken again whole (a continuous run's
+    /// half turn cut by a missed trigger, a pause or a crash): they stay stored but are
+    /// superseded, as a rejected set's are; the set keeps its number.
+    FramesSuperseded {
+        /// The set number.
+        set: u64,
+        /// Its frames taken so far (indices).
+        frames: Vec<u64>,
+        /// Why the set is taken again.
+        reason: String,
+    },
     /// A recorded frame found damaged (its chunk missing, unreadable or hashing to another
     /// value) when a run was resumed: the chunk is kept aside under `kept_as`, the frame no
     /// longer counts and its step is taken again (its set too, if it was done).
@@ -151,6 +162,7 @@ impl Entry {
             Entry::Frame(_) => "frame",
             Entry::SetDone { .. } => "set-done",
             Entry::SetRejected { .. } => "set-rejected",
+            Entry::FramesSuperseded { .. } => "frames-superseded",
             Entry::FrameDamaged { .. } => "frame-damaged",
             Entry::SetLate { .. } => "set-late",
             Entry::Decision { .. } => "decision",
@@ -611,12 +623,20 @@ impl Replay {
             .collect()
     }
 
-    /// Frames of rejected sets (stored, but superseded).
+    /// Frames that no longer count though stored: those of rejected sets and of unfinished
+    /// sets taken again ([`Entry::FramesSuperseded`]).
     pub fn rejected_frames(&self) -> BTreeSet<u64> {
-        self.sets_rejected()
+        let mut frames: BTreeSet<u64> = self
+            .sets_rejected()
             .iter()
             .flat_map(|s| s.frames.iter().copied())
-            .collect()
+            .collect();
+        for e in &self.entries {
+            if let Entry::FramesSuperseded { frames: f, .. } = e {
+                frames.extend(f.iter().copied());
+            }
+        }
+        frames
     }
 
     /// The planner's decisions, in order, with their round.

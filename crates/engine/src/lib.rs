@@ -10,6 +10,8 @@
 //! - [`products`]: live Stokes, DoLP, AoP and their predicted per-pixel sigma.
 //! - [`export`]: TIFF export for viewers.
 //! - [`continuous`]: continuous-rotation plans, their spans and the span-row Stokes estimate.
+//! - [`continuous_planner`]: the continuous planner's problem for a scene and a camera, and a
+//!   continuous plan's `from_planner` resolved with it.
 //! - [`analyzer_cal`]: the analyzer's zero offset and extinction ratio from Malus's law.
 //! - [`sim`]: the simulated devices a run uses with `--simulate` (and `demo`).
 
@@ -18,6 +20,7 @@
 pub mod analyzer_cal;
 pub mod check;
 pub mod continuous;
+pub mod continuous_planner;
 pub mod export;
 pub mod flags;
 pub mod forecast;

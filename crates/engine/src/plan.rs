@@ -20,7 +20,8 @@
 //! `--simulate` and `demo` use) are optional and shared by every kind. A capture's
 //! `from_planner = { target = "panel", background = "asphalt", channels = 3 }` instead of
 //! `angles_deg` asks the planner for the angles (resolved before the run by the caller, see
-//! [`Plan::resolve_angles`]).
+//! [`Plan::resolve_angles`]); a continuous plan's `from_planner` asks the continuous planner
+//! for its frames, exposure and speed ([`crate::continuous_planner::resolve`]).
 
 use crate::FrameKind;
 use serde::{Deserialize, Serialize};
@@ -743,7 +744,8 @@ impl Plan {
         }
         let gain = |field: &str, g: f64| check(field, g, 0.0, 48.0, false);
         if let Some(c) = &self.continuous {
-            c.validate()?;
+            // An unresolved `from_planner` is checked as written here; the run refuses it.
+            c.validate_as_written()?;
         }
         if let Some(c) = &self.capture {
             match (&c.angles_deg, &c.from_planner) {
@@ -1253,6 +1255,7 @@ target = { material = "panel" }
             include_str!("../../../examples/plans/timelapse.toml"),
             include_str!("../../../examples/plans/adaptive.toml"),
             include_str!("../../../examples/plans/continuous.toml"),
+            include_str!("../../../examples/plans/continuous_from_planner.toml"),
         ];
         for text in examples {
             Plan::from_toml_str(text).expect("example plan");

@@ -389,11 +389,12 @@ impl SimRig {
         )
         .map_err(|e| SimError::Camera(e.to_string()))?;
         let mut cam = cam;
-        if let Some(c) = plan
-            .continuous
-            .as_ref()
-            .filter(|_| plan.kind == PlanKind::Continuous)
-        {
+        // Only an encoder-triggered plan has the stage's compare output wired to the camera:
+        // a timestamps plan simulates a camera the stage does not trigger.
+        if let Some(c) = plan.continuous.as_ref().filter(|c| {
+            plan.kind == PlanKind::Continuous
+                && c.trigger == crate::continuous::TriggerSource::Encoder
+        }) {
             cam.wire_line(compare_line(
                 server.truth_handle(),
                 c.interval_deg().to_radians(),

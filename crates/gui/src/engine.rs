@@ -13,7 +13,7 @@ use polar_engine::store::RunStore;
 use polar_hal::camera::{Camera, TriggerMode};
 use polar_hal::{Analyzer, OnRotator};
 use polar_hal::{DeviceError, Rotator};
-use polar_rig::{connect_hardware, Hardware, HardwareRig};
+use polar_rig::{connect_hardware_for, Hardware, HardwareRig};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -426,7 +426,9 @@ async fn connect(
 ) -> Result<Connected, String> {
     match devices {
         Devices::Hardware(hw) => {
-            let c = connect_hardware(hw).await.map_err(|e| e.to_string())?;
+            let c = connect_hardware_for(hw, plan)
+                .await
+                .map_err(|e| e.to_string())?;
             Ok(Connected {
                 sim: None,
                 stage_sim: c.simulator,
@@ -780,8 +782,45 @@ struct Places<'a> {
     plan_dir: &'a Path,
 }
 
+/// Resolves `plan`'s `from_planner` tables as `acquire run` does, with the models its
+/// forecast uses (the plan's simulated scene and camera): a capture's angles, a continuous
+/// plan's frames per half turn, exposure and speed. Returns what the planners chose.
+fn resolve_planners(plan: &mut Plan, plan_dir: &Path) -> Result<Vec<String>, String> {
+    let wants_angles = plan
+        .capture
+        .as_ref()
+        .is_some_and(|c| c.angles_deg.is_none() && c.from_planner.is_some());
+    let wants_spin = plan
+        .continuous
+        .as_ref()
+        .is_some_and(|c| c.from_planner.is_some());
+    if !wants_angles && !wants_spin {
+        return Ok(Vec::new());
+    }
+    let world = SimRig::world(plan, plan_dir).map_err(|e| e.to_string())?;
+    let mut chosen = Vec::new();
+    if let Some(c) = plan.capture.clone().filter(|_| wants_angles) {
+        if let (Some(fp), Some(&first)) = (&c.from_planner, c.exposure_us.first()) {
+            let (angles, _why) =
+                forecast::planner_angles(&world.scene_file, &world.camera_model, fp, first)
+                    .map_err(|e| e.to_string())?;
+            chosen.push(format!("angles from the planner: {angles:.2?} deg"));
+            plan.resolve_angles(angles).map_err(|e| e.to_string())?;
+        }
+    }
+    if wants_spin {
+        if let Some(choice) =
+            polar_engine::continuous_planner::resolve(plan, &world.scene_file, &world.camera_model)
+                .map_err(|e| e.to_string())?
+        {
+            chosen.push(polar_engine::continuous_planner::describe(&choice));
+        }
+    }
+    Ok(chosen)
+}
+
 async fn run_one(
-    plan: Plan,
+    mut plan: Plan,
     held: Option<Connected>,
     devices: &Devices,
     commands: &mut mpsc::Receiver<Command>,
@@ -789,6 +828,20 @@ async fn run_one(
     places: Places<'_>,
 ) {
     let Places { base_dir, plan_dir } = places;
+    match resolve_planners(&mut plan, plan_dir) {
+        Ok(chosen) => {
+            for line in chosen {
+                out.send(Reply::Log(line)).await;
+            }
+        }
+        Err(e) => {
+            out.send(Reply::Error(format!("from_planner: {e}"))).await;
+            if let Some(c) = held {
+                c.release().await;
+            }
+            return;
+        }
+    }
     let planned = plan.max_frames().unwrap_or(0);
     let run_dir = new_run_dir(base_dir, &plan);
     let Connected {
@@ -871,8 +924,15 @@ async fn run_one(
         }
     });
 
-    let fut = run::run(&plan, engine_rig, &run_dir, false, link);
-    tokio::pin!(fut);
+    // A spinning plan runs through the continuous loop (the step loop refuses it).
+    let mut fut: std::pin::Pin<Box<dyn std::future::Future<Output = _>>> =
+        if plan.kind == polar_engine::plan::PlanKind::Continuous {
+            Box::pin(run::run_continuous(
+                &plan, engine_rig, &run_dir, false, link,
+            ))
+        } else {
+            Box::pin(run::run(&plan, engine_rig, &run_dir, false, link))
+        };
     let mut control = Some(control);
     let result = loop {
         tokio::select! {

@@ -465,3 +465,68 @@ fn closing_during_a_run_pauses_and_detaches_first() {
     assert!(done >= 2 && done < planned, "{done} of {planned}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A continuous plan (4 frames per half turn at 360 deg/s, 3 half turns) started from the
+/// run panel on the simulated devices: it runs through the continuous loop (the stage spins,
+/// its compare output triggers the camera), takes every planned frame (counts, so exact) and
+/// sends the products of its half turns to the live view.
+#[test]
+fn continuous_plan_runs_from_the_run_panel() {
+    let (dir, mut h) = start("continuous");
+    h.state_mut().plan_text = "name = \"gui continuous\"\nkind = \"continuous\"\n\
+        [continuous]\nframes_per_half_turn = 4\nexposure_us = 1000\nspeed_deg_per_s = 360\n\
+        half_turns = 3\n[simulation]\nwidth = 48\nheight = 36\n"
+        .into();
+    h.get_by_label("Start").click();
+    step_until(&mut h, Duration::from_secs(60), "Done", |h| {
+        label_shows(h, "State: Done") || label_shows(h, "State: Failed")
+    });
+    h.run_steps(3);
+    let app = h.state();
+    assert_eq!(app.status(), &Status::Run(RunState::Done));
+    assert_eq!(app.progress(), (12, 12), "3 half turns x 4 frames");
+    assert!(app.products_received() >= 1);
+    let live = app.live().unwrap();
+    assert_eq!(live.products.s0.len(), 48 * 36);
+    assert!(label_shows(&h, "12/12 frames"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A continuous plan whose spin comes `from_planner`, started from the run panel: the GUI
+/// resolves it as `acquire run` does (the same planner on the plan's simulated scene and
+/// camera), so the run takes exactly 2 half turns of the planner's frames per half turn
+/// (counts, so exact), and the log names the choice.
+#[test]
+fn continuous_from_planner_resolves_in_the_gui() {
+    let text = "name = \"gui continuous planner\"\nkind = \"continuous\"\n[continuous]\n\
+        half_turns = 2\nfrom_planner = { target = \"panel\", background = \"asphalt\", \
+        max_frames_per_half_turn = 8 }\n[simulation]\nwidth = 48\nheight = 36\n";
+    let mut plan = polar_engine::plan::Plan::from_toml_str(text).unwrap();
+    let here = std::path::Path::new(".");
+    let world = polar_engine::sim::SimRig::world(&plan, here).unwrap();
+    let choice = polar_engine::continuous_planner::resolve(
+        &mut plan,
+        &world.scene_file,
+        &world.camera_model,
+    )
+    .unwrap()
+    .unwrap();
+    let n = u64::from(plan.continuous.as_ref().unwrap().frames_per_half_turn);
+    assert!((3..=8).contains(&n), "{n} frames per half turn");
+    let (dir, mut h) = start("continuous-planner");
+    h.state_mut().plan_text = text.into();
+    h.get_by_label("Start").click();
+    step_until(&mut h, Duration::from_secs(60), "Done", |h| {
+        label_shows(h, "State: Done") || label_shows(h, "State: Failed")
+    });
+    h.run_steps(3);
+    let app = h.state();
+    assert_eq!(app.status(), &Status::Run(RunState::Done));
+    assert_eq!(app.progress(), (2 * n, 2 * n), "2 half turns of {n} frames");
+    let said = polar_engine::continuous_planner::describe(&choice);
+    assert!(
+        app.log_lines().any(|l| l.contains(&said)),
+        "the log names the choice {said:?}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

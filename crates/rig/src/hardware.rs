@@ -126,6 +126,29 @@ impl Connected {
 /// open, a stage that does not answer, or a dialect without rotators (a wheel of fixed
 /// polarizers cannot turn an analyzer freely).
 pub async fn connect_hardware(hw: &Hardware) -> Result<Connected, RigError> {
+    connect(hw, None).await
+}
+
+/// [`connect_hardware`] for a run of `plan`. On the simulated stage with the simulated camera,
+/// a continuous plan with `trigger = "encoder"` also gets the camera's trigger line wired to
+/// the stage's position-compare output (`polar_engine::sim::compare_line`), as the cable
+/// from a real stage's trigger output to a real camera's line input would be.
+pub async fn connect_hardware_for(
+    hw: &Hardware,
+    plan: &polar_engine::plan::Plan,
+) -> Result<Connected, RigError> {
+    let line_interval_rad = plan
+        .continuous
+        .as_ref()
+        .filter(|c| {
+            plan.kind == polar_engine::plan::PlanKind::Continuous
+                && c.trigger == polar_engine::continuous::TriggerSource::Encoder
+        })
+        .map(|c| c.interval_deg().to_radians());
+    connect(hw, line_interval_rad).await
+}
+
+async fn connect(hw: &Hardware, line_interval_rad: Option<f64>) -> Result<Connected, RigError> {
     let d = hw.dialect;
     let Some(connect_rotator) = d.rotator else {
         return Err(RigError(format!(
@@ -167,7 +190,13 @@ pub async fn connect_hardware(hw: &Hardware) -> Result<Connected, RigError> {
                 camera_file: Some(hw.camera_file.clone()),
                 ..SimOptions::default()
             };
-            let cam = camera::sim_camera_following(&opts, angle).map_err(RigError::of)?;
+            let mut cam = camera::sim_camera_following(&opts, angle).map_err(RigError::of)?;
+            if let Some(interval_rad) = line_interval_rad {
+                cam.wire_line(polar_engine::sim::compare_line(
+                    server.truth_handle(),
+                    interval_rad,
+                ));
+            }
             ThreadedCamera::spawn(cam, ThreadPolicy::default()).map_err(RigError::of)?
         }
         _ => camera::open(&hw.camera, &SimOptions::default())

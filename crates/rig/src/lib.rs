@@ -16,7 +16,9 @@ pub mod file;
 pub mod hardware;
 
 pub use file::{Overrides, Rig};
-pub use hardware::{connect_hardware, Connected, Hardware, HardwareRig, SIM_PORT};
+pub use hardware::{
+    connect_hardware, connect_hardware_for, Connected, Hardware, HardwareRig, SIM_PORT,
+};
 
 /// An error of the rig, already worded for the user (it names the file, key or flag, the
 /// value and what is allowed).

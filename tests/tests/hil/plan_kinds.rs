@@ -1,6 +1,6 @@
 //! The plan kinds besides capture end to end through the `run` command's entry point
 //! (`polarimeter run --rig RIG PLAN --out DIR`, `polar_cli::acquire::run_cmd`), each a small
-//! plan from `tests/fixtures/`. Time-lapse and adaptive run on the devices of
+//! plan from `tests/fixtures/`. Time-lapse, adaptive and continuous run on the devices of
 //! `examples/rigs/sim.toml` (the native stage's simulator on a pseudo-terminal, the camera
 //! rendering through its true angle). The two calibrations run as `run --simulate --rig`: they
 //! need the simulated rig's reference polarizer, lens cap and integrating sphere, which the
@@ -199,5 +199,46 @@ fn calibrate_noise_on_the_simulated_rig_file() {
         (value - truth).abs() <= 0.03 * truth,
         "K {value} against {truth}"
     );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `tests/fixtures/continuous.toml` (4 frames per half turn at 360 deg/s, 5 half turns) on the
+/// devices of `examples/rigs/sim.toml`, through the hardware path: the native stage's
+/// simulator on a pseudo-terminal spins through the real serial driver and its position-compare
+/// output is wired to the rendering camera's trigger line, as a cable would wire a real pair.
+/// Every half turn is accepted with its four frames (counts, so exact); every frame's span is
+/// an encoder-triggered one that starts at its trigger angle within 2 encoder counts (0.005
+/// deg: the pulse latches the count at the armed position) and sweeps speed x exposure
+/// (0.36 deg) within one count; the store holds one product set per half turn.
+#[test]
+fn continuous_on_the_simulated_rig_file() {
+    let dir = scratch("continuous");
+    let (out, _attrs) = run_fixture("continuous.toml", &sim_rig(), &dir, false);
+    let s = &out["summary"];
+    assert_eq!(s["sets_accepted"], 5, "the plan's half turns: {out}");
+    assert_eq!(s["frames_accepted"], 20, "5 half turns x 4 frames: {out}");
+    let store = polar_engine::store::RunStore::open(&dir.join("run")).expect("store");
+    let records = store.read_frame_metadata().expect("frame metadata");
+    assert_eq!(records.len(), 20, "no frame taken twice: {out}");
+    let count_deg = 360.0 / 144_000.0;
+    let span_deg = 360.0 * 1000e-6;
+    for r in &records {
+        assert_eq!(r.angle_source, polar_engine::AngleSource::EncoderTrigger);
+        let d = (r.angle_start_deg - r.commanded_angle_deg).rem_euclid(180.0);
+        assert!(
+            d.min(180.0 - d) <= 2.0 * count_deg,
+            "frame {}: span starts at {} deg, its trigger angle is {}",
+            r.index,
+            r.angle_start_deg,
+            r.commanded_angle_deg
+        );
+        let swept = r.angle_end_deg - r.angle_start_deg;
+        assert!(
+            (swept - span_deg).abs() <= count_deg,
+            "frame {}: swept {swept} deg",
+            r.index
+        );
+    }
+    assert_eq!(store.product_slots().expect("slots").len(), 5);
     let _ = std::fs::remove_dir_all(&dir);
 }

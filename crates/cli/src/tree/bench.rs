@@ -110,7 +110,7 @@ struct CrashArgs {
     #[arg(long)]
     python: Option<String>,
     /// Plan kinds (capture, exposures, time-lapse, adaptive, calibrate-noise,
-    /// calibrate-analyzer); default all.
+    /// calibrate-analyzer, continuous); default all.
     #[arg(long, value_delimiter = ',')]
     kinds: Vec<String>,
     /// Print the report as JSON.

@@ -1,37 +1,63 @@
-//! The run loop of `kind = "continuous"` with `trigger = "encoder"` ([`run_continuous`]).
+//! The run loop of `kind = "continuous"` ([`run_continuous`]): the analyzer spins at
+//! `speed_deg_per_s` and the camera takes `frames_per_half_turn` frames per half turn, frame
+//! `k` from the analyzer's grid angle `k * 180 / N`; a half turn is one set.
 //!
-//! The analyzer spins at `speed_deg_per_s`; the stage's position-compare output fires a pulse
-//! at every `180 / N` degrees of the analyzer (whole multiples of the interval from the
-//! analyzer's zero), and the camera, in hardware-trigger mode on that line, starts an exposure
-//! at each pulse. Frame `k` of a half turn pairs with the pulse at `k * 180 / N`: its span
-//! starts at the encoder angle the pulse latched and ends `speed x exposure` later
+//! **`trigger = "encoder"`.** The stage's position-compare output fires a pulse at every
+//! `180 / N` degrees of the analyzer (whole multiples of the interval from the analyzer's
+//! zero), and the camera, in hardware-trigger mode on that line, starts an exposure at each
+//! pulse. Frame `k` of a half turn pairs with the pulse at `k * 180 / N`: its span starts at
+//! the encoder angle the pulse latched and ends `speed x exposure` later
 //! (`AngleSource::EncoderTrigger`, `angle_sigma_deg` 0: one encoder count is far below any
-//! other error). A half turn is one set: its frames go through the same storage thread and
-//! journal as step-and-shoot frames, and its products are computed there with the span rows of
+//! other error). Each frame's pairing with its pulse is checked: consecutive frames must be as
+//! far apart on the camera's clock as their pulses on the stage's (within half an interval),
+//! and each pulse must be at its frame's angle.
+//!
+//! **`trigger = "timestamps"`** (a stage without a trigger output, or one not wired to the
+//! camera). The camera is in software-trigger mode and the analyzer's angle comes from the
+//! stage's position samples against the host's clock ([`super::timestamps`]: a least-squares
+//! line through reads of the spinning stage, read at least every 0.1 s while the loop waits
+//! for a frame and once after each frame). Frame `k` is
+//! triggered when the line puts the analyzer at its grid angle; its exposure's end is the
+//! camera's exposure-end event on the host clock, taken through the frame's device timestamp
+//! where the camera stamps its frames (the camera's clock mapped onto the host's past the
+//! events' latency: [`super::timestamps::ClockMap`]), or, for a camera without that event, the
+//! middle of the interval from trigger plus exposure to the frame's arrival, with that
+//! interval's spread added to the timing uncertainty; its span ends at the line's angle then
+//! and starts `speed x exposure` earlier (`AngleSource::Timestamps`, `angle_sigma_deg` the
+//! span's standard uncertainty from the plan's `timing_sigma_us`, the line's standard error
+//! and the reads' round trip). A frame whose span starts more than half an interval from its
+//! grid angle is a protocol error (the half turn is taken again). The products of a half turn
+//! use the span rows with the largest angle uncertainty of its frames as the jitter.
+//!
+//! A half turn's frames go through the same storage thread and journal as step-and-shoot
+//! frames, and its products are computed there with the span rows of
 //! [`crate::continuous::SpanEstimator`] (Malus's law averaged over each span) instead of the
 //! still analyzer's rows; the suspender checks it as any set, and `SetDone` is journaled per
 //! half turn.
 //!
-//! **Segments.** Spinning starts a segment: the camera is configured and started in
-//! hardware-trigger mode, the stage spins, its trigger is armed from a whole half turn at
-//! least [`RUN_UP_S`] ahead (one pulse before it, the *go* pulse, starts the camera, so the
-//! camera sees only armed positions), and half turns are taken until the run ends or pauses.
+//! **Segments.** Spinning starts a segment: the camera is configured and started, the stage
+//! spins, and half turns are taken until the run ends or pauses. With encoder triggers the
+//! trigger is armed from a whole half turn at least [`RUN_UP_S`] ahead (one pulse before it,
+//! the *go* pulse, starts the camera, so the camera sees only armed positions); with
+//! timestamps the loop waits [`RUN_UP_S`] and reads the position until the line's speed is
+//! the commanded one, and the first half turn is the next whole half turn of the analyzer.
 //! Pausing (at a half-turn boundary: the safe point), a device error and the end stop the
-//! camera and the spin and disarm the trigger; resuming starts a new segment. So a pause, an
+//! camera and the spin (and disarm the trigger); resuming starts a new segment. So a pause, an
 //! abort or a crash redoes at most the half turn in progress: a resumed run replays the
 //! journal and takes every half turn without `SetDone` again (its earlier frames stay stored,
-//! superseded). Each frame's pairing with its pulse is checked: consecutive frames must be as
-//! far apart on the camera's clock as their pulses on the stage's (within half an interval),
-//! and each pulse must be at its frame's angle.
+//! superseded).
 //!
-//! `trigger = "timestamps"` (a free-running camera) is refused at the start with an error
-//! naming `continuous.trigger`.
+//! Refused at the start, naming `continuous.trigger`: either trigger on a stage that cannot
+//! spin (Elliptec, filter wheels), `encoder` on a stage without a position-compare output or a
+//! camera without a hardware trigger, `timestamps` with a camera without a software trigger.
 
 use super::*;
 use crate::continuous::{Continuous, SpanEstimator, TriggerSource};
 use crate::plan::PlanError;
 use polar_hal::{OnRotator, Rotator, TriggerPulse};
 use std::f64::consts::PI;
+
+mod timestamped;
 
 /// How far the stage turns at speed before the first armed position, seconds of its speed
 /// (its ramp to speed is shorter).
@@ -70,10 +96,17 @@ struct Cont<'a, R: Rotator, C: Camera> {
     device_s: f64,
     spinning: bool,
     last: Option<Mark>,
+    /// The line of a `trigger = "timestamps"` segment (module docs).
+    free: Option<timestamped::Free>,
     /// Half turns taken again after a device error (a missed trigger, a late frame), by half
     /// turn: at most `policy.attempts` tries each before the run pauses.
     attempts: HashMap<u64, u32>,
     retries: u64,
+    /// Frames found damaged and kept aside (recorded, neither counted nor verified).
+    damaged: BTreeSet<u64>,
+    /// Frames whose half turn is settled: done, rejected, superseded, or damaged. A recorded
+    /// frame outside it belongs to a half turn that did not finish.
+    settled: BTreeSet<u64>,
 }
 
 fn plan_err(field: &str, value: impl Into<String>, allowed: impl Into<String>) -> RunError {
@@ -111,36 +144,60 @@ where
         }
     };
     c.validate()?;
-    if c.trigger == TriggerSource::Timestamps {
-        return Err(plan_err(
-            "continuous.trigger",
-            "timestamps",
-            "encoder: a run takes its spans from the stage's position-compare pulses (a \
-             free-running camera's spans from timestamps are shown live by the GUI, not run)",
-        ));
-    }
     let info = rig.camera.info().clone();
     let (width, height) = (info.sensor_width, info.sensor_height);
     plan.check_frame(width, height)?;
     let support = rig.analyzer.rotator.continuous_support();
     let model = rig.analyzer.rotator.info().model.clone();
-    if !support.can_trigger() {
-        return Err(RunError::Device(DeviceError::new(
-            ErrorKind::OutOfRange,
-            model.clone(),
+    let trigger = match c.trigger {
+        TriggerSource::Encoder => "encoder",
+        TriggerSource::Timestamps => "timestamps",
+    };
+    if !support.can_spin() {
+        return Err(plan_err(
+            "continuous.trigger",
+            trigger,
             format!(
-                "continuous.trigger = \"encoder\" needs a stage with velocity mode and a \
-                 position-compare trigger output: stage {model} offers \"{support}\""
+                "a continuous plan needs a stage that spins (velocity mode), and stage \
+                 {model} cannot spin (continuous-rotation support \"{support}\"); dialect \
+                 native spins with \"encoder\" or \"timestamps\", apt with \"timestamps\" \
+                 (docs/DEVICES.md)"
             ),
-        )));
+        ));
     }
-    if !rig.camera.supports_hardware_trigger() {
-        return Err(RunError::Device(DeviceError::new(
-            ErrorKind::OutOfRange,
-            info.id.clone(),
-            "continuous.trigger = \"encoder\" needs the camera's hardware trigger wired to the \
-             stage's trigger output: this camera has no hardware trigger",
-        )));
+    match c.trigger {
+        TriggerSource::Encoder => {
+            if !support.can_trigger() {
+                return Err(RunError::Device(DeviceError::new(
+                    ErrorKind::OutOfRange,
+                    model.clone(),
+                    format!(
+                        "continuous.trigger = \"encoder\" needs a stage with velocity mode and \
+                         a position-compare trigger output: stage {model} offers \"{support}\"; \
+                         allowed on this stage: \"timestamps\""
+                    ),
+                )));
+            }
+            if !rig.camera.supports_hardware_trigger() {
+                return Err(RunError::Device(DeviceError::new(
+                    ErrorKind::OutOfRange,
+                    info.id.clone(),
+                    "continuous.trigger = \"encoder\" needs the camera's hardware trigger wired \
+                     to the stage's trigger output: this camera has no hardware trigger; \
+                     allowed with it: \"timestamps\"",
+                )));
+            }
+        }
+        TriggerSource::Timestamps => {
+            if !rig.camera.supports_software_trigger() {
+                return Err(RunError::Device(DeviceError::new(
+                    ErrorKind::OutOfRange,
+                    info.id.clone(),
+                    "continuous.trigger = \"timestamps\" needs a camera with a software \
+                     trigger: this camera has none",
+                )));
+            }
+        }
     }
     let steps = plan.steps()?;
     let opened = open_run(plan, run_dir, resume, width, height, &rig.devices)?;
@@ -155,10 +212,13 @@ where
                          offset), the noise and the scalar dark level of the products",
         }),
     )?;
-    // Replay: a half turn counts once its SetDone is journaled.
+    // Replay: a half turn counts once its SetDone is journaled, and stops counting when one
+    // of its frames is found damaged (then it is taken again).
     let mut records: BTreeMap<u64, FrameRecord> = BTreeMap::new();
     let mut sets_done: BTreeMap<u64, Vec<u64>> = BTreeMap::new();
     let mut rejections: HashMap<u64, u32> = HashMap::new();
+    let mut rejected: BTreeSet<u64> = BTreeSet::new();
+    let mut damaged: BTreeSet<u64> = BTreeSet::new();
     for e in &entries {
         match e {
             Entry::Frame(r) => {
@@ -167,8 +227,26 @@ where
             Entry::SetDone { set, frames, .. } => {
                 sets_done.insert(*set, frames.clone());
             }
-            Entry::SetRejected { set, .. } => *rejections.entry(*set).or_default() += 1,
+            Entry::SetRejected { set, frames, .. } => {
+                rejected.extend(frames.iter().copied());
+                *rejections.entry(*set).or_default() += 1;
+            }
+            Entry::FramesSuperseded { frames, .. } => rejected.extend(frames.iter().copied()),
+            Entry::FrameDamaged { index, .. } => {
+                damaged.insert(*index);
+                sets_done.retain(|_, frames| !frames.contains(index));
+            }
             _ => {}
+        }
+    }
+    if resume {
+        // Every frame still on record is checked against its hash before the run goes on
+        // (as step-and-shoot's resume does): a damaged chunk is kept aside and its half turn
+        // taken again.
+        rejected.extend(damaged.iter().copied());
+        for index in set_aside_damaged(&mut opened, run_dir, &records, &rejected)? {
+            damaged.insert(index);
+            sets_done.retain(|_, frames| !frames.contains(&index));
         }
     }
     let mut accepted = BTreeMap::new();
@@ -221,8 +299,16 @@ where
         device_s: 0.0,
         spinning: false,
         last: None,
+        free: None,
         attempts: HashMap::new(),
         retries: 0,
+        settled: rejected
+            .iter()
+            .chain(&damaged)
+            .chain(sets_done.values().flatten())
+            .copied()
+            .collect(),
+        damaged,
     };
     lp.set_state(RunState::Running);
     let mut todo: VecDeque<u64> = (0..u64::from(c.half_turns))
@@ -268,7 +354,7 @@ where
                 checks: FinishChecks {
                     planned_steps: (0..lp.steps.len() as u64).collect(),
                     accepted: lp.accepted.clone(),
-                    damaged: BTreeSet::new(),
+                    damaged: lp.damaged.clone(),
                 },
             })?;
             finish_verdict(rx).await?;
@@ -289,14 +375,11 @@ enum After {
 
 impl<R: Rotator, C: Camera> Cont<'_, R, C> {
     fn set_state(&self, s: RunState) {
-        let _ = self.link.state.send(s.clone());
-        let _ = self.link.events.try_send(Event::State(s));
+        self.link.set_state(s);
     }
 
     fn send_store(&self, msg: ToStore) -> Result<(), RunError> {
-        self.to_store
-            .send(msg)
-            .map_err(|_| RunError::Storage("the storage thread stopped".into()))
+        send_store(&self.to_store, msg)
     }
 
     /// Sends without blocking the loop's thread (the channel holds two messages).
@@ -329,6 +412,7 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
                 mean_dolp,
             } => {
                 let frames = self.checking.remove(&set).unwrap_or_default();
+                self.settled.extend(frames.iter().copied());
                 let _ = self.link.events.try_send(Event::Set {
                     set,
                     verdict: verdict.clone(),
@@ -419,6 +503,7 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
                 }
                 Some(Control::Resume) | None => {}
             }
+            self.supersede_unfinished(h).await?;
             let taken = async {
                 if !self.spinning {
                     let half_turns = todo.len() as u64;
@@ -459,6 +544,36 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
         }
     }
 
+    /// Names the frames half turn `h` already has outside a settled set (an earlier try cut
+    /// off by a missed trigger, a pause or a crash) as superseded in the journal, before the
+    /// half turn is taken again whole.
+    async fn supersede_unfinished(&mut self, h: u64) -> Result<(), RunError> {
+        let stale: Vec<u64> = self
+            .records
+            .values()
+            .filter(|r| r.set == Some(h) && !self.settled.contains(&r.index))
+            .map(|r| r.index)
+            .collect();
+        if stale.is_empty() {
+            return Ok(());
+        }
+        for i in &stale {
+            if let Some(r) = self.records.get(i) {
+                if self.accepted.get(&r.step) == Some(i) {
+                    self.accepted.remove(&r.step);
+                }
+            }
+        }
+        self.settled.extend(stale.iter().copied());
+        info!(half_turn = h, frames = ?stale, "an unfinished half turn is taken again whole");
+        self.send_store_async(ToStore::Entry(Entry::FramesSuperseded {
+            set: h,
+            frames: stale,
+            reason: format!("half turn {h} did not finish; it is taken again whole"),
+        }))
+        .await
+    }
+
     /// Stops everything and waits for the controller.
     async fn pause(&mut self, reason: String, half_turn: u64) -> Result<After, RunError> {
         self.stop_segment().await;
@@ -466,28 +581,14 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             warn!("while pausing: {e}");
         }
         self.pauses += 1;
-        self.send_store(ToStore::SyncMetadata)?;
-        info!(reason = %reason, "paused");
-        self.send_store(ToStore::Entry(Entry::Paused {
-            reason: reason.clone(),
-            next_step: half_turn * u64::from(self.c.frames_per_half_turn),
-        }))?;
-        self.set_state(RunState::Paused(reason.clone()));
-        loop {
-            match self.link.control.recv().await {
-                Some(Control::Resume) => {
-                    self.send_store(ToStore::Entry(Entry::Resumed {
-                        process_id: std::process::id(),
-                        at_unix_ns: now_unix_ns(SystemTime::now()),
-                    }))?;
-                    self.set_state(RunState::Running);
-                    return Ok(After::Resume);
-                }
-                Some(Control::Abort) => return Ok(After::End(Outcome::Aborted(reason))),
-                Some(Control::Detach) | None => return Ok(After::End(Outcome::Paused(reason))),
-                Some(Control::Pause | Control::PauseNow) => {}
-            }
-        }
+        let next_step = half_turn * u64::from(self.c.frames_per_half_turn);
+        Ok(
+            match hold_paused(&mut self.link, &self.to_store, &reason, next_step).await? {
+                AfterPause::Resume => After::Resume,
+                AfterPause::Abort(r) => After::End(Outcome::Aborted(r)),
+                AfterPause::Detach(r) => After::End(Outcome::Paused(r)),
+            },
+        )
     }
 
     fn interval_rad(&self) -> f64 {
@@ -501,9 +602,14 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
         )
     }
 
-    /// Configures and starts the camera on its line, spins, arms the trigger for
-    /// `half_turns` half turns (and their retakes) and waits for the go pulse (module docs).
+    /// Starts a segment (module docs): with timestamps, see
+    /// [`timestamped`]; with encoder triggers, configures and starts the camera on its line,
+    /// spins, arms the trigger for `half_turns` half turns (and their retakes) and waits for
+    /// the go pulse.
     async fn start_segment(&mut self, half_turns: u64) -> Result<(), DeviceError> {
+        if self.c.trigger == TriggerSource::Timestamps {
+            return self.start_timestamps().await;
+        }
         let t0 = Instant::now();
         let c = self.c;
         let cam = &mut self.rig.camera;
@@ -545,6 +651,7 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             return;
         }
         self.spinning = false;
+        self.free = None;
         if let Err(e) = self.rig.camera.stop().await {
             warn!("stopping the camera: {e}");
         }
@@ -552,24 +659,25 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
         if let Err(e) = rotator.stop_spin().await {
             warn!("stopping the spin: {e}");
         }
-        if let Err(e) = rotator.arm_trigger(0.0, 0.0, 0).await {
-            warn!("disarming the trigger: {e}");
+        if self.c.trigger == TriggerSource::Encoder {
+            if let Err(e) = rotator.arm_trigger(0.0, 0.0, 0).await {
+                warn!("disarming the trigger: {e}");
+            }
         }
     }
 
-    /// Takes half turn `h`: `N` pulses, each with its frame, to storage, then the set to be
-    /// checked with its span rows.
+    /// Takes half turn `h` (with timestamps, see [`timestamped`]): `N` pulses, each with its
+    /// frame, to storage, then the set to be checked with its span rows.
     async fn half_turn(&mut self, h: u64) -> Result<(), DeviceError> {
+        if self.c.trigger == TriggerSource::Timestamps {
+            return self.half_turn_timestamps(h).await;
+        }
         let c = self.c;
         let n = u64::from(c.frames_per_half_turn);
         let interval_deg = c.interval_deg();
         let span_deg = c.span_deg();
         let zero = self.rig.analyzer.zero_offset_rad;
         let wait = self.wait();
-        let (w, hgt) = (
-            self.rig.camera.info().sensor_width,
-            self.rig.camera.info().sensor_height,
-        );
         let mut frames = Vec::with_capacity(n as usize);
         let mut spans_rad = Vec::with_capacity(n as usize);
         for k in 0..n {
@@ -578,12 +686,6 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             let frame = self.rig.camera.grab(wait).await?;
             self.device_s += t0.elapsed().as_secs_f64();
             let bad = |m: String| DeviceError::new(ErrorKind::Protocol, "continuous", m);
-            if (frame.width, frame.height) != (w, hgt) || frame.pixels.len() != (w * hgt) as usize {
-                return Err(bad(format!(
-                    "frame {} of {}x{}; the run stores {w}x{hgt}",
-                    frame.frame_id, frame.width, frame.height
-                )));
-            }
             let start_deg = (pulse.angle_rad - zero).to_degrees().rem_euclid(180.0);
             let grid = (start_deg / interval_deg).round() as u64 % n;
             if grid != k {
@@ -613,62 +715,114 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
                 }
             }
             self.last = Some(mark);
-            let step = h * n + k;
-            let spec = self.steps[step as usize].clone();
-            let index = self.next_index;
-            self.next_index += 1;
-            let host_ns = now_unix_ns(frame.host_time);
-            let (zen, az) = self
-                .rig
-                .sun_deg
-                .or_else(|| self.plan.site.as_ref().and_then(|s| sun_at(host_ns, s)))
-                .map_or((None, None), |(z, a)| (Some(z), Some(a)));
-            let record = FrameRecord {
-                index,
-                step,
-                kind: spec.kind,
-                set: spec.set,
-                label: spec.label.clone(),
-                commanded_angle_deg: spec.angle_deg.rem_euclid(180.0),
-                measured_angle_deg: start_deg,
-                angle_start_deg: start_deg,
-                angle_end_deg: start_deg + span_deg,
-                angle_source: crate::AngleSource::EncoderTrigger,
-                angle_sigma_deg: c.angle_sigma_rad().to_degrees(),
-                exposure_us: frame.exposure_us,
-                gain: frame.gain,
-                host_time_unix_ns: host_ns,
-                device_timestamp_ns: frame.device_timestamp_ns,
-                frame_id: frame.frame_id,
-                sun_zenith_deg: zen,
-                sun_azimuth_deg: az,
-                width: frame.width,
-                height: frame.height,
-                hash: pixel_hash(&frame.pixels),
-            };
-            spans_rad.push((start_deg.to_radians(), (start_deg + span_deg).to_radians()));
-            self.records.insert(index, record.clone());
-            self.accepted.insert(step, index);
-            self.in_flight.insert(index);
+            let span = (start_deg, start_deg + span_deg);
+            let index = self
+                .store_frame(
+                    h * n + k,
+                    frame,
+                    span,
+                    crate::AngleSource::EncoderTrigger,
+                    0.0,
+                )
+                .await?;
             frames.push(index);
-            self.send_store_async(ToStore::Frame {
-                record,
-                pixels: frame.pixels,
-            })
-            .await
-            .map_err(|e| DeviceError::new(ErrorKind::Other, "storage", e.to_string()))?;
+            spans_rad.push((span.0.to_radians(), span.1.to_radians()));
         }
+        self.send_set(h, frames, &spans_rad, c.angle_sigma_rad())
+            .await
+    }
+
+    /// Records frame `step` (its analyzer span `span_deg`, start and end from the analyzer's
+    /// zero, measured by `source` to `sigma_deg`) and sends it to storage; returns its index.
+    /// A frame of another size than the sensor's is a protocol error.
+    async fn store_frame(
+        &mut self,
+        step: u64,
+        frame: Frame,
+        span_deg: (f64, f64),
+        source: crate::AngleSource,
+        sigma_deg: f64,
+    ) -> Result<u64, DeviceError> {
+        let (w, hgt) = (
+            self.rig.camera.info().sensor_width,
+            self.rig.camera.info().sensor_height,
+        );
+        if (frame.width, frame.height) != (w, hgt) || frame.pixels.len() != (w * hgt) as usize {
+            return Err(DeviceError::new(
+                ErrorKind::Protocol,
+                "continuous",
+                format!(
+                    "frame {} of {}x{}; the run stores {w}x{hgt}",
+                    frame.frame_id, frame.width, frame.height
+                ),
+            ));
+        }
+        let spec = self.steps[step as usize].clone();
+        let index = self.next_index;
+        self.next_index += 1;
+        let host_ns = now_unix_ns(frame.host_time);
+        let (zen, az) = self
+            .rig
+            .sun_deg
+            .or_else(|| self.plan.site.as_ref().and_then(|s| sun_at(host_ns, s)))
+            .map_or((None, None), |(z, a)| (Some(z), Some(a)));
+        let record = FrameRecord {
+            index,
+            step,
+            kind: spec.kind,
+            set: spec.set,
+            label: spec.label.clone(),
+            commanded_angle_deg: spec.angle_deg.rem_euclid(180.0),
+            measured_angle_deg: span_deg.0,
+            angle_start_deg: span_deg.0,
+            angle_end_deg: span_deg.1,
+            angle_source: source,
+            angle_sigma_deg: sigma_deg,
+            exposure_us: frame.exposure_us,
+            gain: frame.gain,
+            host_time_unix_ns: host_ns,
+            device_timestamp_ns: frame.device_timestamp_ns,
+            frame_id: frame.frame_id,
+            sun_zenith_deg: zen,
+            sun_azimuth_deg: az,
+            width: frame.width,
+            height: frame.height,
+            hash: pixel_hash(&frame.pixels),
+        };
+        self.records.insert(index, record.clone());
+        self.accepted.insert(step, index);
+        self.in_flight.insert(index);
+        self.send_store_async(ToStore::Frame {
+            record,
+            pixels: frame.pixels,
+        })
+        .await
+        .map_err(|e| DeviceError::new(ErrorKind::Other, "storage", e.to_string()))?;
+        Ok(index)
+    }
+
+    /// Sends half turn `h` (its stored `frames` and their spans, radians from the analyzer's
+    /// zero) to be checked, its products computed with the span rows at the centre-angle
+    /// uncertainty `angle_sigma_rad`.
+    async fn send_set(
+        &mut self,
+        h: u64,
+        frames: Vec<u64>,
+        spans_rad: &[(f64, f64)],
+        angle_sigma_rad: f64,
+    ) -> Result<(), DeviceError> {
+        let c = self.c;
         let estimator = SpanEstimator::new(
             &self.rig.sensor,
-            &spans_rad,
+            spans_rad,
             c.exposure_us * 1e-6,
-            c.angle_sigma_rad(),
+            angle_sigma_rad,
         )
         .map_err(|e| DeviceError::new(ErrorKind::OutOfRange, "continuous", e.to_string()))?;
         let job = SetJob {
             set: h,
             measured_deg: spans_rad.iter().map(|s| s.0.to_degrees()).collect(),
-            commanded_deg: (0..n).map(|k| k as f64 * interval_deg).collect(),
+            commanded_deg: c.trigger_angles_deg(),
             exposure_us: c.exposure_us,
             gain_db: c.gain_db,
             frames: frames.clone(),
@@ -677,7 +831,6 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
         self.checking.insert(h, frames);
         self.send_store_async(ToStore::ProcessSet(job))
             .await
-            .map_err(|e| DeviceError::new(ErrorKind::Other, "storage", e.to_string()))?;
-        Ok(())
+            .map_err(|e| DeviceError::new(ErrorKind::Other, "storage", e.to_string()))
     }
 }

@@ -71,17 +71,9 @@ pub(super) struct PendingMove {
     pub(super) reply: oneshot::Receiver<Result<f64, DeviceError>>,
 }
 
-/// Outcome of waiting at a pause.
-pub(super) enum AfterPause {
-    Resume,
-    Abort(String),
-    Detach(String),
-}
-
 impl Loop<'_> {
     pub(super) fn set_state(&self, s: RunState) {
-        let _ = self.link.state.send(s.clone());
-        let _ = self.link.events.try_send(Event::State(s));
+        self.link.set_state(s);
     }
 
     pub(super) fn event(&self, e: Event) {
@@ -89,9 +81,7 @@ impl Loop<'_> {
     }
 
     pub(super) fn send_store(&self, msg: ToStore) -> Result<(), RunError> {
-        self.to_store
-            .send(msg)
-            .map_err(|_| RunError::Storage("the storage thread stopped".into()))
+        send_store(&self.to_store, msg)
     }
 
     pub(super) fn handle_control(&mut self, c: Control) -> Option<OpError> {
@@ -204,28 +194,7 @@ impl Loop<'_> {
         }
         self.pauses += 1;
         self.pausing = false;
-        self.send_store(ToStore::SyncMetadata)?;
-        info!(reason = %reason, "paused");
-        self.send_store(ToStore::Entry(Entry::Paused {
-            reason: reason.clone(),
-            next_step,
-        }))?;
-        self.set_state(RunState::Paused(reason.clone()));
-        loop {
-            match self.link.control.recv().await {
-                Some(Control::Resume) => {
-                    self.send_store(ToStore::Entry(Entry::Resumed {
-                        process_id: std::process::id(),
-                        at_unix_ns: now_unix_ns(SystemTime::now()),
-                    }))?;
-                    self.set_state(RunState::Running);
-                    return Ok(AfterPause::Resume);
-                }
-                Some(Control::Abort) => return Ok(AfterPause::Abort(reason)),
-                Some(Control::Detach) | None => return Ok(AfterPause::Detach(reason)),
-                Some(Control::Pause | Control::PauseNow) => {}
-            }
-        }
+        hold_paused(&mut self.link, &self.to_store, &reason, next_step).await
     }
 
     /// Takes one step's frame (with the plan's retries); the frame goes to storage. `next_deg`

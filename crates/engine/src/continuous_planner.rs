@@ -1,0 +1,456 @@
+//! The continuous planner (`polar_planner::continuous`) for plans: its problem built from a
+//! scene, a camera, a target and a background and the limits ([`problem`], shared by
+//! `polarimeter plan continuous` and a plan's `from_planner`), the simulated rig's stage limits
+//! ([`simulated_stage_limits`]), and the resolution of a continuous plan's `from_planner` into
+//! frames per half turn, exposure and speed ([`resolve`]).
+//!
+//! # The problem of a plan
+//!
+//! A `[continuous] from_planner` table names the target and background materials of the
+//! plan's scene (its `[simulation]` scene and camera, as a capture's `from_planner`); the
+//! camera is taken at the section's `gain_db`; the scene is evaluated at
+//! [`crate::forecast::SCENE_TOL`] (the default of `plan continuous --tolerance`). The camera's
+//! limits and the objective are the table's (defaults: `plan continuous`'s flags, from
+//! [`crate::continuous::planner_defaults`]); the timing uncertainty is the section's
+//! `timing_sigma_us` for `trigger = "timestamps"` and 0 for encoder triggers. The stage's limits
+//! are the table's `max_speed_deg_per_s` and `acceleration_deg_per_s2` where given, else the
+//! simulated stage's.
+//!
+//! # The simulated stage's limits
+//!
+//! The simulated rig's rotator is our firmware's (`[simulation] stage` absent or `dialect =
+//! "native"`), built at the plan's `simulation.stage_deg_per_s`: it cruises at that speed and
+//! reaches it in 1/8 s (`polar_hil_mocks::sim::SIMULATORS`, the native dialect's `at_speed`),
+//! so its acceleration is 8 times the speed per second; its velocity mode spins at most
+//! `polar_hil_mocks::native::MAX_SPIN_TURNS_PER_S` turns per second. The top speed is the
+//! cruise speed capped there. At the 360 deg/s of the bench rig these are `plan continuous`'s
+//! defaults, 360 deg/s and 2880 deg/s^2. The other simulated dialects' rotators have no
+//! position-compare trigger (a continuous run refuses them), so their limits must be given.
+
+use crate::continuous::{Continuous, ContinuousFromPlanner, FromPlannerObjective, TriggerSource};
+use crate::forecast::{camera_at_gain, ForecastError, SCENE_TOL};
+use crate::plan::{Plan, PlanError, PlanKind, Simulation};
+use polar_model::scene_file::Scene;
+use polar_model::sensor::{Camera, SensorModel};
+use polar_planner::continuous::{
+    plan_continuous, CameraLimits, ClassRadiance, ContinuousChoice, ContinuousProblem, Objective,
+    StageLimits,
+};
+use serde_json::{json, Value};
+
+/// The simulated native rotator's acceleration per unit of its cruise speed, 1/s: it reaches
+/// its speed in 1/8 s (module docs).
+pub const SIM_ACCELERATION_PER_S: f64 = 8.0;
+
+/// Everything of the planner's problem besides the scene and the camera.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Settings {
+    /// The camera's limits.
+    pub camera: CameraLimits,
+    /// The stage's limits.
+    pub stage: StageLimits,
+    /// Timing uncertainty of each frame, s.
+    pub timing_sigma_s: f64,
+    /// The most frames per half turn.
+    pub max_frames_per_half_turn: usize,
+    /// What to optimise.
+    pub objective: Objective,
+}
+
+/// Which material of the problem.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Role {
+    /// The target.
+    Target,
+    /// The background.
+    Background,
+}
+
+/// Why the problem could not be built; each caller names its own field or flag.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ProblemError {
+    /// A material name not in the scene.
+    #[error("{name:?} is not a material of the scene: allowed {allowed}")]
+    UnknownMaterial {
+        /// Target or background.
+        role: Role,
+        /// The name given.
+        name: String,
+        /// The scene's materials, comma-separated.
+        allowed: String,
+    },
+    /// The scene's evaluation failed.
+    #[error("{0}")]
+    Scene(String),
+    /// The camera's model through the scene's band failed.
+    #[error("{0}")]
+    Camera(String),
+}
+
+/// The planner's problem: the scene's `target` and `background` evaluated at `tolerance`
+/// (relative), the camera through the scene's band, and `settings`. Errors: a material not in
+/// the scene (checked target first), the scene's evaluation, the camera's model.
+pub fn problem(
+    scene: &Scene,
+    camera: &Camera,
+    target: &str,
+    background: &str,
+    tolerance: f64,
+    settings: &Settings,
+) -> Result<ContinuousProblem, ProblemError> {
+    let pick = |role: Role, name: &str| {
+        scene
+            .materials
+            .iter()
+            .find(|m| m.name == name)
+            .cloned()
+            .ok_or_else(|| ProblemError::UnknownMaterial {
+                role,
+                name: name.to_string(),
+                allowed: scene
+                    .materials
+                    .iter()
+                    .map(|m| m.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            })
+    };
+    let materials = [
+        pick(Role::Target, target)?,
+        pick(Role::Background, background)?,
+    ];
+    let results = polar_model::scene::evaluate(&scene.spec, &materials, tolerance)
+        .map_err(|e| ProblemError::Scene(e.to_string()))?;
+    let sensor = SensorModel::new(camera, &scene.spec.band)
+        .map_err(|e| ProblemError::Camera(e.to_string()))?;
+    let class = |r: &polar_model::scene::MaterialResult| ClassRadiance {
+        name: r.name.clone(),
+        mean_w_m2_sr: r.mean.0,
+        cov_w2_m4_sr2: 0.5 * (r.cov + r.cov.transpose()),
+    };
+    Ok(ContinuousProblem {
+        sensor,
+        target: class(&results[0]),
+        background: class(&results[1]),
+        camera: settings.camera,
+        stage: settings.stage,
+        timing_sigma_s: settings.timing_sigma_s,
+        max_frames_per_half_turn: settings.max_frames_per_half_turn,
+        objective: settings.objective,
+    })
+}
+
+/// The simulated rig's stage limits (module docs): `Some` for our firmware's rotator, `None`
+/// for a dialect whose limits are not known here.
+pub fn simulated_stage_limits(sim: &Simulation) -> Option<StageLimits> {
+    let native = sim.stage.as_ref().is_none_or(|s| s.dialect == "native");
+    if !native {
+        return None;
+    }
+    let cruise_deg_per_s = sim.stage_deg_per_s;
+    let spin_max_deg_per_s = polar_hil_mocks::native::MAX_SPIN_TURNS_PER_S * 360.0;
+    Some(StageLimits {
+        max_speed_rad_per_s: cruise_deg_per_s.min(spin_max_deg_per_s).to_radians(),
+        acceleration_rad_per_s2: (SIM_ACCELERATION_PER_S * cruise_deg_per_s).to_radians(),
+    })
+}
+
+/// The settings of a `from_planner` table in `plan` (module docs); an error names the field
+/// that must be given (the stage's limits of a simulated stage other than ours).
+pub fn settings(
+    plan: &Plan,
+    c: &Continuous,
+    fp: &ContinuousFromPlanner,
+) -> Result<Settings, PlanError> {
+    let sim = simulated_stage_limits(&plan.simulation);
+    let stage_field = |field: &str| PlanError::Invalid {
+        field: format!("continuous.from_planner.{field}"),
+        value: "(none)".into(),
+        allowed: format!(
+            "a value: the limits of the simulated stage {:?} are not known (only the native \
+             rotator's are)",
+            plan.simulation
+                .stage
+                .as_ref()
+                .map_or("native", |s| s.dialect.as_str())
+        ),
+    };
+    let max_speed_rad_per_s = match (fp.max_speed_deg_per_s, sim) {
+        (Some(v), _) => v.to_radians(),
+        (None, Some(s)) => s.max_speed_rad_per_s,
+        (None, None) => return Err(stage_field("max_speed_deg_per_s")),
+    };
+    let acceleration_rad_per_s2 = match (fp.acceleration_deg_per_s2, sim) {
+        (Some(a), _) => a.to_radians(),
+        (None, Some(s)) => s.acceleration_rad_per_s2,
+        (None, None) => return Err(stage_field("acceleration_deg_per_s2")),
+    };
+    Ok(Settings {
+        camera: CameraLimits {
+            min_exposure_s: fp.min_exposure_us * 1e-6,
+            max_exposure_s: fp.max_exposure_us * 1e-6,
+            max_frame_rate_hz: fp.max_frame_rate_hz,
+            readout_s: fp.readout_us * 1e-6,
+            saturation_sigma: fp.saturation_sigma,
+        },
+        stage: StageLimits {
+            max_speed_rad_per_s,
+            acceleration_rad_per_s2,
+        },
+        timing_sigma_s: match c.trigger {
+            TriggerSource::Encoder => 0.0,
+            TriggerSource::Timestamps => c.timing_sigma_us * 1e-6,
+        },
+        max_frames_per_half_turn: fp.max_frames_per_half_turn as usize,
+        objective: match fp.objective {
+            FromPlannerObjective::TimeToDolpSigma => Objective::TimeToDolpSigma {
+                dolp_sigma: fp.dolp_sigma,
+            },
+            FromPlannerObjective::ScrPerSecond => Objective::ScrPerSecond,
+        },
+    })
+}
+
+/// Resolves a continuous plan's `from_planner` with the model of `scene` and `camera` (module
+/// docs): the planner's frames per half turn, exposure (us) and speed (deg/s) replace the
+/// table, exactly as the planner chose them, and the section is checked. Returns the choice
+/// (with the limits that bind), or `None` for a plan without a table to resolve. The choice
+/// and its binding limits are logged.
+///
+/// Errors name the field: the table's, a material not in the scene (listing the scene's), the
+/// model's, the planner's (no setting within the limits), and a choice the section refuses.
+pub fn resolve(
+    plan: &mut Plan,
+    scene: &Scene,
+    camera: &Camera,
+) -> Result<Option<ContinuousChoice>, ForecastError> {
+    if plan.kind != PlanKind::Continuous {
+        return Ok(None);
+    }
+    let Some(c) = plan.continuous.clone() else {
+        return Ok(None);
+    };
+    let Some(fp) = c.from_planner.clone() else {
+        return Ok(None);
+    };
+    fp.validate()?;
+    let settings = settings(plan, &c, &fp)?;
+    let field = |f: &str| format!("continuous.from_planner.{f}");
+    let p = problem(
+        scene,
+        &camera_at_gain(camera, c.gain_db),
+        &fp.target,
+        &fp.background,
+        SCENE_TOL,
+        &settings,
+    )
+    .map_err(|e| match e {
+        ProblemError::UnknownMaterial {
+            role,
+            name,
+            allowed,
+        } => ForecastError::UnknownMaterial {
+            field: field(match role {
+                Role::Target => "target",
+                Role::Background => "background",
+            }),
+            name,
+            allowed,
+        },
+        other => ForecastError::Model {
+            field: "continuous.from_planner".into(),
+            message: other.to_string(),
+        },
+    })?;
+    let choice = plan_continuous(&p).map_err(|e| ForecastError::Model {
+        field: "continuous.from_planner".into(),
+        message: e.to_string(),
+    })?;
+    let section = plan.continuous.as_mut().ok_or_else(|| PlanError::Invalid {
+        field: "continuous".into(),
+        value: "(missing)".into(),
+        allowed: "a [continuous] section".into(),
+    })?;
+    section.resolve(
+        u32::try_from(choice.frames_per_half_turn).unwrap_or(u32::MAX),
+        choice.exposure_s * 1e6,
+        choice.speed_rad_per_s.to_degrees(),
+    )?;
+    tracing::info!(
+        frames_per_half_turn = choice.frames_per_half_turn,
+        exposure_us = choice.exposure_s * 1e6,
+        speed_deg_per_s = choice.speed_rad_per_s.to_degrees(),
+        binds = %binding_names(&choice),
+        "continuous.from_planner resolved"
+    );
+    Ok(Some(choice))
+}
+
+fn binding_names(choice: &ContinuousChoice) -> String {
+    if choice.binds.is_empty() {
+        "none".into()
+    } else {
+        choice
+            .binds
+            .iter()
+            .map(|b| b.limit.name())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
+
+/// The choice in one line: the three values, the set time, the spin-up and the limits that
+/// bind.
+pub fn describe(choice: &ContinuousChoice) -> String {
+    let mut s = format!(
+        "continuous.from_planner: {} frames per half turn, exposure {:.3} us, {:.3} deg/s (one \
+         set every {:.4} s, spin-up {:.4} s, DoLP sigma per half turn {:.5})",
+        choice.frames_per_half_turn,
+        choice.exposure_s * 1e6,
+        choice.speed_rad_per_s.to_degrees(),
+        choice.half_turn_s,
+        choice.spin_up_s,
+        choice.sigma_dolp
+    );
+    if let Some(t) = choice.time_to_target_s {
+        s += &format!(", the DoLP target in {t:.3} s");
+    }
+    if choice.binds.is_empty() {
+        s += "; no limit binds";
+    } else {
+        let binds: Vec<String> = choice
+            .binds
+            .iter()
+            .map(|b| format!("{} ({})", b.limit.name(), b.message))
+            .collect();
+        s += &format!("; binding: {}", binds.join("; "));
+    }
+    s
+}
+
+/// The choice as JSON (degrees, microseconds, seconds), with the limits that bind.
+pub fn to_json(choice: &ContinuousChoice) -> Value {
+    let binds: Vec<Value> = choice
+        .binds
+        .iter()
+        .map(|b| json!({"limit": b.limit.name(), "gain": b.gain, "message": b.message}))
+        .collect();
+    json!({
+        "frames_per_half_turn": choice.frames_per_half_turn,
+        "exposure_us": choice.exposure_s * 1e6,
+        "speed_deg_per_s": choice.speed_rad_per_s.to_degrees(),
+        "half_turn_s": choice.half_turn_s,
+        "spin_up_s": choice.spin_up_s,
+        "sigma_dolp_per_half_turn": choice.sigma_dolp,
+        "time_to_target_s": choice.time_to_target_s,
+        "binds": binds,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SCENE: &str = include_str!("../../../examples/rooftop_panels.toml");
+    const CAMERA: &str = include_str!("../../../examples/cameras/cmos_modern.toml");
+
+    fn plan(table: &str, simulation: &str) -> Result<Plan, PlanError> {
+        Plan::from_toml_str(&format!(
+            "kind = \"continuous\"\n[continuous]\nhalf_turns = 2\nfrom_planner = {{ {table} }}\n\
+             [simulation]\n{simulation}\n"
+        ))
+    }
+
+    /// The simulated native stage at 360 deg/s gives `plan continuous`'s default limits
+    /// (360 deg/s, 2880 deg/s^2; exact: the same products of exact binary numbers), the
+    /// default 720 deg/s stage the velocity mode's cap 720 deg/s and 5760 deg/s^2; another
+    /// dialect's stage has none.
+    #[test]
+    fn simulated_stage_limits_are_the_simulators() {
+        let mut sim = Simulation {
+            stage_deg_per_s: 360.0,
+            ..Simulation::default()
+        };
+        let l = simulated_stage_limits(&sim).expect("native");
+        assert_eq!(l.max_speed_rad_per_s, 360f64.to_radians());
+        assert_eq!(l.acceleration_rad_per_s2, 2880f64.to_radians());
+        sim.stage_deg_per_s = 720.0;
+        let l = simulated_stage_limits(&sim).expect("native");
+        assert_eq!(l.max_speed_rad_per_s, 720f64.to_radians());
+        assert_eq!(l.acceleration_rad_per_s2, 5760f64.to_radians());
+        sim.stage = Some(crate::plan::SimStage {
+            dialect: "apt".into(),
+            model: None,
+        });
+        assert!(simulated_stage_limits(&sim).is_none());
+    }
+
+    /// Resolution on the rooftop scene: the section takes the planner's three values
+    /// unchanged (0 tolerance: the same numbers), loses its table and validates; the speed
+    /// stays within the stage's 360 deg/s and the frame rate within 200 Hz (to 1e-9
+    /// relative, rounding); a plan without a table is left alone.
+    #[test]
+    fn resolves_to_the_planners_choice() {
+        let scene = Scene::from_toml_str(SCENE).expect("scene");
+        let camera = Camera::from_toml_str(CAMERA).expect("camera");
+        let mut p = plan(
+            "target = \"panel\", background = \"asphalt\", max_frames_per_half_turn = 12",
+            "stage_deg_per_s = 360",
+        )
+        .expect("plan");
+        let choice = resolve(&mut p, &scene, &camera)
+            .expect("resolve")
+            .expect("a choice");
+        let c = p.continuous.as_ref().expect("section");
+        assert!(c.from_planner.is_none());
+        c.validate().expect("valid");
+        assert_eq!(c.frames_per_half_turn as usize, choice.frames_per_half_turn);
+        assert_eq!(c.exposure_us, choice.exposure_s * 1e6);
+        assert_eq!(c.speed_deg_per_s, choice.speed_rad_per_s.to_degrees());
+        assert!(c.speed_deg_per_s <= 360.0 * (1.0 + 1e-9));
+        let fps = f64::from(c.frames_per_half_turn) * c.speed_deg_per_s / 180.0;
+        assert!(fps <= 200.0 * (1.0 + 1e-9), "{fps}");
+        assert!(describe(&choice).contains("frames per half turn"));
+        assert!(resolve(&mut p, &scene, &camera).expect("again").is_none());
+    }
+
+    /// Errors name the field, the value and what is allowed: a target not in the scene
+    /// (listing the scene's materials), an APT stage without limits, an unresolved section
+    /// at the run's check (naming the commands that resolve it).
+    #[test]
+    fn errors_name_the_field() {
+        let scene = Scene::from_toml_str(SCENE).expect("scene");
+        let camera = Camera::from_toml_str(CAMERA).expect("camera");
+        let mut p = plan("target = \"roof\", background = \"asphalt\"", "").expect("plan");
+        let e = resolve(&mut p, &scene, &camera)
+            .expect_err("unknown")
+            .to_string();
+        assert!(
+            e.contains("continuous.from_planner.target") && e.contains("panel, glass"),
+            "{e}"
+        );
+        let mut p = plan(
+            "target = \"panel\", background = \"asphalt\"",
+            "stage = { dialect = \"apt\" }",
+        )
+        .expect("plan");
+        let e = resolve(&mut p, &scene, &camera)
+            .expect_err("apt")
+            .to_string();
+        assert!(
+            e.contains("continuous.from_planner.max_speed_deg_per_s"),
+            "{e}"
+        );
+        let e = p
+            .continuous
+            .as_ref()
+            .expect("section")
+            .validate()
+            .expect_err("unresolved")
+            .to_string();
+        assert!(
+            e.contains("continuous.from_planner") && e.contains("polarimeter acquire run"),
+            "{e}"
+        );
+    }
+}
