@@ -10,15 +10,10 @@ use polar_engine::plan::Plan;
 use polar_engine::sim::{SimRig, SimWorld};
 use polar_hal::{ContinuousSupport, Roi, Rotator, TURN_RAD};
 use polar_hil_mocks::camera::{noise_seed, CameraFaults, SimCamera, SimCameraConfig};
-use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 
 const PLAN: &str = include_str!("../../../examples/plans/continuous.toml");
-
-fn plan_dir() -> &'static Path {
-    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../examples/plans"))
-}
 
 /// One half turn's simulated frames and the estimates from them.
 struct HalfTurn {
@@ -37,7 +32,7 @@ struct HalfTurn {
 /// the same as in a run).
 fn half_turn(span_deg: f64, seed: u64) -> HalfTurn {
     let plan = Plan::from_toml_str(PLAN).unwrap();
-    let world = SimRig::world(&plan, plan_dir()).unwrap();
+    let world = SimRig::world(&plan, common::spans::plan_dir()).unwrap();
     let camera = SimCamera::new(
         SimCameraConfig {
             id: "test".into(),
@@ -211,7 +206,7 @@ fn trigger_counts_match_the_encoder() {
         .build()
         .unwrap();
     rt.block_on(async {
-        let (rig, _camera) = SimRig::start(&plan, plan_dir(), &link_dir, 0).unwrap();
+        let (rig, _camera) = SimRig::start(&plan, common::spans::plan_dir(), &link_dir, 0).unwrap();
         let mut stage = rig.connect_stage().await.unwrap();
         assert_eq!(
             stage.continuous_support(),
@@ -249,54 +244,6 @@ fn trigger_counts_match_the_encoder() {
 
 mod common;
 
-/// The longest exposure, us, at which the rooftop scene's brightest pixel stays below 60 % of
-/// the full well for any analyzer angle (no pixel saturates: the estimator has no clipping).
-fn unsaturated_exposure_us(world: &SimWorld) -> f64 {
-    let camera = SimCamera::new(
-        SimCameraConfig {
-            id: "exposure".into(),
-            camera: world.camera_model.clone(),
-            scene: Arc::clone(&world.scene),
-            max_frame_rate_hz: 200.0,
-            faults: CameraFaults::default(),
-            seed: 1,
-            noise_stream: 0,
-        },
-        Arc::new(|| 0.0),
-    )
-    .unwrap();
-    let roi = Roi::full(world.scene.width, world.scene.height);
-    let peak_1ms = (0..8)
-        .map(|k| {
-            let a = f64::from(k) * 22.5f64.to_radians();
-            camera
-                .mean_electrons(roi, a, a, 1000.0)
-                .unwrap()
-                .into_iter()
-                .fold(0.0, f64::max)
-        })
-        .fold(0.0, f64::max);
-    (0.6 * world.camera_model.full_well_e / peak_1ms * 1000.0).floor()
-}
-
-/// Runs `plan` on the simulated rig into `dir` with nobody at the controller.
-fn run_sim(
-    plan: &Plan,
-    dir: &Path,
-) -> Result<polar_engine::run::Outcome, polar_engine::run::SimRunError> {
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    let local = tokio::task::LocalSet::new();
-    local.block_on(&rt, async {
-        // Nobody at the controller: a pause detaches (the outcome says why).
-        let (controller, link) = polar_engine::run::link();
-        drop(controller);
-        polar_engine::run::run_simulated(plan, plan_dir(), dir, false, link).await
-    })
-}
-
 /// A continuous run of the example plan (4 frames per half turn at 360 deg/s, 6 half turns,
 /// an exposure that saturates no pixel) on the simulated rig: it finishes with every frame;
 /// each frame's span starts at its frame's trigger angle within 2 encoder counts (0.005 deg:
@@ -312,8 +259,8 @@ fn run_sim(
 #[test]
 fn continuous_run_on_the_simulated_rig() {
     let mut plan = Plan::from_toml_str(PLAN).unwrap();
-    let world = SimRig::world(&plan, plan_dir()).unwrap();
-    let exposure_us = unsaturated_exposure_us(&world);
+    let world = SimRig::world(&plan, common::spans::plan_dir()).unwrap();
+    let exposure_us = common::spans::unsaturated_exposure_us(&world);
     {
         let c = plan.continuous.as_mut().unwrap();
         c.half_turns = 6;
@@ -322,7 +269,7 @@ fn continuous_run_on_the_simulated_rig() {
     let c = plan.continuous.clone().unwrap();
     c.validate().unwrap();
     let dir = common::temp_dir("continuous-run");
-    let outcome = run_sim(&plan, &dir).unwrap();
+    let outcome = common::spans::run_sim(&plan, &dir).unwrap();
     let n = u64::from(c.frames_per_half_turn) * u64::from(c.half_turns);
     let summary = match outcome {
         polar_engine::run::Outcome::Done(s) => s,
@@ -364,30 +311,7 @@ fn continuous_run_on_the_simulated_rig() {
     );
 
     // Per half turn: the span-row estimate from the stored frames against the truth.
-    let mut z = Vec::new();
-    for h in 0..u64::from(c.half_turns) {
-        let mut frames: Vec<_> = records.iter().filter(|r| r.set == Some(h)).collect();
-        frames.sort_by_key(|r| r.step);
-        let spans: Vec<(f64, f64)> = frames
-            .iter()
-            .map(|r| (r.angle_start_deg.to_radians(), r.angle_end_deg.to_radians()))
-            .collect();
-        let pixels: Vec<Vec<u16>> = frames
-            .iter()
-            .map(|r| store.read_frame(r.index).unwrap())
-            .collect();
-        let est =
-            SpanEstimator::new(&world.sensor, &spans, frames[0].exposure_us * 1e-6, 0.0).unwrap();
-        for (p, s) in world.scene.stokes.iter().enumerate() {
-            let y: Vec<f64> = pixels.iter().map(|f| f64::from(f[p])).collect();
-            let e = est.estimate(&y);
-            let predicted = est.predict(Vector3::new(s[0], s[1], s[2])).unwrap();
-            for k in 1..3 {
-                let sigma = predicted.stokes_cov_dn2[(k, k)].sqrt();
-                z.push((e[k] - predicted.stokes_dn[k]) / sigma);
-            }
-        }
-    }
+    let z = common::spans::half_turn_z_scores(&store, &world, &records, u64::from(c.half_turns));
     let within = z.iter().filter(|v| v.abs() <= 2.0).count() as f64 / z.len() as f64;
     let mean = z.iter().sum::<f64>() / z.len() as f64;
     println!(
@@ -422,7 +346,7 @@ fn a_half_turn_cut_by_a_dropped_frame_is_taken_again_whole() {
         c.exposure_us = 500.0;
     }
     let dir = common::temp_dir("continuous-dropped");
-    let summary = match run_sim(&plan, &dir).unwrap() {
+    let summary = match common::spans::run_sim(&plan, &dir).unwrap() {
         polar_engine::run::Outcome::Done(s) => s,
         other => panic!("the run did not finish: {other:?}"),
     };

@@ -7,14 +7,11 @@
 //! `continuous.trigger`.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use nalgebra::Vector3;
-use polar_engine::continuous::{SpanEstimator, TriggerSource};
+use polar_engine::continuous::TriggerSource;
 use polar_engine::plan::{Plan, SimStage};
 use polar_engine::run::{self, Outcome};
-use polar_engine::sim::{SimRig, SimWorld};
+use polar_engine::sim::SimRig;
 use polar_engine::AngleSource;
-use polar_hal::Roi;
-use polar_hil_mocks::camera::{CameraFaults, SimCamera, SimCameraConfig};
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -24,42 +21,8 @@ mod common;
 
 const PLAN: &str = include_str!("../../../examples/plans/continuous_timestamps.toml");
 
-fn plan_dir() -> &'static Path {
-    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../examples/plans"))
-}
-
 fn unix_s(t: SystemTime) -> f64 {
     t.duration_since(UNIX_EPOCH).unwrap().as_secs_f64()
-}
-
-/// The longest exposure, us, at which the rooftop scene's brightest pixel stays below 60 % of
-/// the full well for any analyzer angle (no pixel saturates: the estimator has no clipping).
-fn unsaturated_exposure_us(world: &SimWorld) -> f64 {
-    let camera = SimCamera::new(
-        SimCameraConfig {
-            id: "exposure".into(),
-            camera: world.camera_model.clone(),
-            scene: Arc::clone(&world.scene),
-            max_frame_rate_hz: 200.0,
-            faults: CameraFaults::default(),
-            seed: 1,
-            noise_stream: 0,
-        },
-        Arc::new(|| 0.0),
-    )
-    .unwrap();
-    let roi = Roi::full(world.scene.width, world.scene.height);
-    let peak_1ms = (0..8)
-        .map(|k| {
-            let a = f64::from(k) * 22.5f64.to_radians();
-            camera
-                .mean_electrons(roi, a, a, 1000.0)
-                .unwrap()
-                .into_iter()
-                .fold(0.0, f64::max)
-        })
-        .fold(0.0, f64::max);
-    (0.6 * world.camera_model.full_well_e / peak_1ms * 1000.0).floor()
 }
 
 /// The simulated stage's true output angle (radians, in `[0, 2 pi)`) sampled on the host's
@@ -91,10 +54,14 @@ fn run_with_truth(plan: &Plan, dir: &Path) -> (Result<Outcome, run::RunError>, T
         .unwrap();
     let local = tokio::task::LocalSet::new();
     local.block_on(&rt, async {
-        let (rig, engine_rig) =
-            SimRig::start_rig(plan, plan_dir(), &dir.join(".sim"), run::noise_stream(dir))
-                .await
-                .unwrap();
+        let (rig, engine_rig) = SimRig::start_rig(
+            plan,
+            common::spans::plan_dir(),
+            &dir.join(".sim"),
+            run::noise_stream(dir),
+        )
+        .await
+        .unwrap();
         let stop = Arc::new(AtomicBool::new(false));
         let sampler = {
             let truth = rig.server.truth_handle().angle_source();
@@ -143,8 +110,9 @@ fn run_with_truth(plan: &Plan, dir: &Path) -> (Result<Outcome, run::RunError>, T
 ///   times the exposure, within 0.5 % of the plan's (the fitted speed's standard error over
 ///   reads seconds apart is far below 0.1 %; the K10CR1's velocity parameter rounds 10 deg/s
 ///   to 1e-8);
-/// - each frame's recorded span start is within 3 recorded sigma of the simulator's true
-///   angle at the exposure's start, after removing the one offset the reads cannot see: the
+/// - each frame's recorded span start is within 3 recorded sigma, plus 2 ms of the stage's
+///   turn for the host's scheduling (below), of the simulator's true angle at the exposure's
+///   start, after removing the one offset the reads cannot see: the
 ///   simulated K10CR1's output lags its counter by half its 0.02 deg backlash while it turns
 ///   forward (`polar_hil_mocks::apt::AptSimConfig::k10cr1`), so the true angle is the
 ///   counter's less 0.01 deg. The exposure's end on the wall clock is the frame's device
@@ -164,8 +132,8 @@ fn timestamps_run_on_the_simulated_k10cr1() {
     // check below takes the exposure's end from those stamps.
     plan.simulation.width = 40;
     plan.simulation.height = 30;
-    let world = SimRig::world(&plan, plan_dir()).unwrap();
-    let exposure_us = unsaturated_exposure_us(&world);
+    let world = SimRig::world(&plan, common::spans::plan_dir()).unwrap();
+    let exposure_us = common::spans::unsaturated_exposure_us(&world);
     {
         let c = plan.continuous.as_mut().unwrap();
         c.half_turns = 2;
@@ -189,10 +157,25 @@ fn timestamps_run_on_the_simulated_k10cr1() {
     assert_eq!(summary.sets_accepted, u64::from(c.half_turns));
 
     let store = polar_engine::store::RunStore::open(&dir).unwrap();
-    let records = store.read_frame_metadata().unwrap();
+    // The frames that count: a half turn cut by a late exposure is taken again whole, its
+    // earlier frames stored but superseded in the journal.
+    let superseded = polar_engine::journal::replay(&dir)
+        .unwrap()
+        .rejected_frames();
+    let records: Vec<_> = store
+        .read_frame_metadata()
+        .unwrap()
+        .into_iter()
+        .filter(|r| !superseded.contains(&r.index))
+        .collect();
     assert_eq!(records.len() as u64, n, "one frame per planned step");
     let exposure_s = exposure_us * 1e-6;
     let half_backlash_deg = 0.01;
+    // The reference is no better than 2 ms on a shared 2-core host (10 deg/s x 2 ms): the
+    // truth sampler and the camera's host stamps run on threads the host may run late, and
+    // the run's own exposure-end and read times meet the same scheduling, which the recorded
+    // sigma (the reads' round trip and the line's fit) does not cover.
+    let host_slack_deg = c.speed_deg_per_s * 2e-3;
     let mut worst_z: f64 = 0.0;
     for h in 0..u64::from(c.half_turns) {
         let frames: Vec<_> = records.iter().filter(|r| r.set == Some(h)).collect();
@@ -235,7 +218,7 @@ fn timestamps_run_on_the_simulated_k10cr1() {
             );
             worst_z = worst_z.max(z.abs());
             assert!(
-                z.abs() <= 3.0,
+                d.abs() <= 3.0 * r.angle_sigma_deg + host_slack_deg,
                 "frame {}: span start {} deg is {d} deg from the true {} deg (sigma {} deg)",
                 r.index,
                 r.angle_start_deg,
@@ -250,33 +233,7 @@ fn timestamps_run_on_the_simulated_k10cr1() {
         "one product set per half turn"
     );
 
-    let mut z = Vec::new();
-    for h in 0..u64::from(c.half_turns) {
-        let mut frames: Vec<_> = records.iter().filter(|r| r.set == Some(h)).collect();
-        frames.sort_by_key(|r| r.step);
-        let spans: Vec<(f64, f64)> = frames
-            .iter()
-            .map(|r| (r.angle_start_deg.to_radians(), r.angle_end_deg.to_radians()))
-            .collect();
-        let sigma_rad = frames
-            .iter()
-            .map(|r| r.angle_sigma_deg.to_radians())
-            .fold(0.0, f64::max);
-        let pixels: Vec<Vec<u16>> = frames
-            .iter()
-            .map(|r| store.read_frame(r.index).unwrap())
-            .collect();
-        let est = SpanEstimator::new(&world.sensor, &spans, exposure_s, sigma_rad).unwrap();
-        for (p, s) in world.scene.stokes.iter().enumerate() {
-            let y: Vec<f64> = pixels.iter().map(|f| f64::from(f[p])).collect();
-            let e = est.estimate(&y);
-            let predicted = est.predict(Vector3::new(s[0], s[1], s[2])).unwrap();
-            for k in 1..3 {
-                let sigma = predicted.stokes_cov_dn2[(k, k)].sqrt();
-                z.push((e[k] - predicted.stokes_dn[k]) / sigma);
-            }
-        }
-    }
+    let z = common::spans::half_turn_z_scores(&store, &world, &records, u64::from(c.half_turns));
     let within = z.iter().filter(|v| v.abs() <= 2.0).count() as f64 / z.len() as f64;
     let mean = z.iter().sum::<f64>() / z.len() as f64;
     println!(
@@ -290,20 +247,6 @@ fn timestamps_run_on_the_simulated_k10cr1() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Runs `plan` on the simulated rig into `dir` with nobody at the controller.
-fn run_sim(plan: &Plan, dir: &Path) -> Result<Outcome, run::SimRunError> {
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    let local = tokio::task::LocalSet::new();
-    local.block_on(&rt, async {
-        let (controller, link) = run::link();
-        drop(controller);
-        run::run_simulated(plan, plan_dir(), dir, false, link).await
-    })
-}
-
 /// `trigger = "encoder"` on the K10CR1 (no position-compare output) is refused at the start
 /// with an error naming `continuous.trigger`, its value and the allowed `timestamps`, and a
 /// continuous plan on a stage that cannot spin at all (an Elliptec ELL14) is refused naming
@@ -313,7 +256,9 @@ fn refusals_name_the_trigger() {
     let mut plan = Plan::from_toml_str(PLAN).unwrap();
     plan.continuous.as_mut().unwrap().trigger = TriggerSource::Encoder;
     let dir = common::temp_dir("continuous-timestamps-encoder");
-    let e = run_sim(&plan, &dir).expect_err("refused").to_string();
+    let e = common::spans::run_sim(&plan, &dir)
+        .expect_err("refused")
+        .to_string();
     assert!(
         e.contains("continuous.trigger = \"encoder\"") && e.contains("\"timestamps\""),
         "{e}"
@@ -327,7 +272,9 @@ fn refusals_name_the_trigger() {
         model: Some("ell14".into()),
     });
     let dir = common::temp_dir("continuous-timestamps-elliptec");
-    let e = run_sim(&plan, &dir).expect_err("refused").to_string();
+    let e = common::spans::run_sim(&plan, &dir)
+        .expect_err("refused")
+        .to_string();
     assert!(
         e.contains("continuous.trigger = timestamps") && e.contains("cannot spin"),
         "{e}"

@@ -760,35 +760,18 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
         let spec = self.steps[step as usize].clone();
         let index = self.next_index;
         self.next_index += 1;
-        let host_ns = now_unix_ns(frame.host_time);
-        let (zen, az) = self
-            .rig
-            .sun_deg
-            .or_else(|| self.plan.site.as_ref().and_then(|s| sun_at(host_ns, s)))
-            .map_or((None, None), |(z, a)| (Some(z), Some(a)));
-        let record = FrameRecord {
-            index,
-            step,
-            kind: spec.kind,
-            set: spec.set,
-            label: spec.label.clone(),
-            commanded_angle_deg: spec.angle_deg.rem_euclid(180.0),
-            measured_angle_deg: span_deg.0,
-            angle_start_deg: span_deg.0,
-            angle_end_deg: span_deg.1,
-            angle_source: source,
-            angle_sigma_deg: sigma_deg,
-            exposure_us: frame.exposure_us,
-            gain: frame.gain,
-            host_time_unix_ns: host_ns,
-            device_timestamp_ns: frame.device_timestamp_ns,
-            frame_id: frame.frame_id,
-            sun_zenith_deg: zen,
-            sun_azimuth_deg: az,
-            width: frame.width,
-            height: frame.height,
-            hash: pixel_hash(&frame.pixels),
-        };
+        let record = frame_record(
+            (index, step, &spec),
+            &frame,
+            FrameSpan {
+                start_deg: span_deg.0,
+                end_deg: span_deg.1,
+                source,
+                sigma_deg,
+            },
+            self.rig.sun_deg,
+            self.plan.site.as_ref(),
+        );
         self.records.insert(index, record.clone());
         self.accepted.insert(step, index);
         self.in_flight.insert(index);

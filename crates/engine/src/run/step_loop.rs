@@ -448,56 +448,14 @@ impl Loop<'_> {
         measured_deg: f64,
         frame: &Frame,
     ) -> FrameRecord {
-        let host_ns = now_unix_ns(frame.host_time);
-        let (zen, az) = self
-            .sun_deg
-            .or_else(|| self.plan.site.as_ref().and_then(|s| sun_at(host_ns, s)))
-            .map_or((None, None), |(z, a)| (Some(z), Some(a)));
-        FrameRecord {
-            index,
-            step,
-            kind: spec.kind,
-            set: spec.set,
-            label: spec.label.clone(),
-            commanded_angle_deg: spec.angle_deg.rem_euclid(180.0),
-            measured_angle_deg: measured_deg,
-            angle_start_deg: measured_deg,
-            angle_end_deg: measured_deg,
-            angle_source: crate::AngleSource::Settled,
-            angle_sigma_deg: f64::NAN,
-            exposure_us: frame.exposure_us,
-            gain: frame.gain,
-            host_time_unix_ns: host_ns,
-            device_timestamp_ns: frame.device_timestamp_ns,
-            frame_id: frame.frame_id,
-            sun_zenith_deg: zen,
-            sun_azimuth_deg: az,
-            width: frame.width,
-            height: frame.height,
-            hash: pixel_hash(&frame.pixels),
-        }
+        frame_record(
+            (index, step, spec),
+            frame,
+            FrameSpan::settled(measured_deg),
+            self.sun_deg,
+            self.plan.site.as_ref(),
+        )
     }
-}
-
-/// The sun's zenith and azimuth at a Unix time (ns) for a site (NREL SPA, geometric).
-pub(super) fn sun_at(unix_ns: i64, site: &crate::plan::Site) -> Option<(f64, f64)> {
-    use chrono::{Datelike, Timelike};
-    let t = chrono::DateTime::from_timestamp(
-        unix_ns.div_euclid(1_000_000_000),
-        u32::try_from(unix_ns.rem_euclid(1_000_000_000)).ok()?,
-    )?;
-    let time = polar_model::sun::UtcTime {
-        year: t.year(),
-        month: t.month(),
-        day: t.day(),
-        hour: t.hour(),
-        minute: t.minute(),
-        second: f64::from(t.second()) + f64::from(t.nanosecond()) * 1e-9,
-    };
-    let s = polar_model::sun::Site::new(site.latitude_deg, site.longitude_deg, site.elevation_m)
-        .ok()?;
-    let p = polar_model::sun::sun_position(&time, &s, None, None).ok()?;
-    Some((p.zenith_deg, p.azimuth_deg))
 }
 
 /// The units of work of a static plan's steps (consecutive steps of a set form one unit).

@@ -39,12 +39,15 @@
 //! independent terms,
 //!
 //! ```text
-//! sigma_theta^2 = (omega sigma_t)^2 + var theta(t_c) + (omega rtt_bar / (2 sqrt 3))^2
+//! sigma_theta^2 = (omega sigma_t)^2 + max(var theta(t_c), s^2) + (omega rtt_bar / (2 sqrt 3))^2
 //! ```
 //!
 //! with `sigma_t` the uncertainty of `t_end` on the host clock (the camera's stated timing
 //! uncertainty, the plan's `timing_sigma_us`, widened where the end is only bracketed),
-//! `t_c = t_end - T / 2` the span's centre and `rtt_bar` the window's mean round trip. This is
+//! `t_c = t_end - T / 2` the span's centre and `rtt_bar` the window's mean round trip. The line
+//! term is at least one read's scatter `s`: reads made while the host runs the reading task
+//! late err together, so the window's average does not shrink their error as it would for
+//! independent reads. This is
 //! the `angle_sigma_rad` of `polar_model::span` (the spread of the span's centre), which enters
 //! the products' rows and covariance.
 //!
@@ -200,7 +203,12 @@ impl SpinFit {
         let end_rad = self.angle_at(end_s);
         let start_rad = end_rad - self.omega_rad_per_s * exposure_s;
         let timing = self.omega_rad_per_s.abs() * timing_sigma_s;
-        let line = self.line_sigma_rad(end_s - 0.5 * exposure_s);
+        // At least one read's scatter: a host that runs the reading task late does so for a
+        // while, so neighbouring reads err together and the window's average does not shrink
+        // their error as independent reads would.
+        let line = self
+            .line_sigma_rad(end_s - 0.5 * exposure_s)
+            .max(self.residual_rad);
         let latch = self.latch_sigma_rad();
         Span {
             start_rad,

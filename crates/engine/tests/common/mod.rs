@@ -9,6 +9,8 @@ use polar_engine::sim::SimRig;
 use polar_engine::store::RunStore;
 use std::path::{Path, PathBuf};
 
+pub mod spans;
+
 pub fn temp_dir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("polar-engine-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
