@@ -216,7 +216,13 @@ fn grid_best(contrast: &Contrast, n: usize, cons: &Constraints, m: usize) -> (f6
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 96, .. ProptestConfig::default() })]
+    // A fixed seed: CI draws the same 96 cases every run, so a failure reproduces exactly;
+    // another seed here draws others.
+    #![proptest_config(ProptestConfig {
+        cases: 96,
+        rng_seed: proptest::test_runner::RngSeed::Fixed(20_261_128),
+        .. ProptestConfig::default()
+    })]
 
     /// The planner's SCR is the forecast's and beats the allowed conventional sets and a
     /// fine exhaustive grid.
