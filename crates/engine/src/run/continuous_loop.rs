@@ -337,28 +337,17 @@ where
         final_angles_deg: None,
     };
     let result = match outcome {
-        Some(Outcome::Aborted(reason)) => {
-            lp.set_state(RunState::Aborting);
-            lp.send_store(ToStore::Entry(Entry::Aborted {
-                reason: reason.clone(),
-            }))?;
-            lp.set_state(RunState::Aborted(reason.clone()));
-            Ok(Outcome::Aborted(reason))
-        }
+        Some(Outcome::Aborted(reason)) => end_aborted(&lp.link, &lp.to_store, reason),
         Some(other) => Ok(other),
         None => {
-            let (tx, rx) = std::sync::mpsc::channel();
-            lp.send_store(ToStore::Finish {
-                reply: tx,
-                summary: json!({ "run": serde_json::to_value(&summary).unwrap_or(Value::Null) }),
-                checks: FinishChecks {
-                    planned_steps: (0..lp.steps.len() as u64).collect(),
-                    accepted: lp.accepted.clone(),
-                    damaged: lp.damaged.clone(),
-                },
-            })?;
-            finish_verdict(rx).await?;
-            lp.set_state(RunState::Done);
+            let summary_json =
+                json!({ "run": serde_json::to_value(&summary).unwrap_or(Value::Null) });
+            let checks = FinishChecks {
+                planned_steps: (0..lp.steps.len() as u64).collect(),
+                accepted: lp.accepted.clone(),
+                damaged: lp.damaged.clone(),
+            };
+            end_done(&lp.link, &lp.to_store, summary_json, checks).await?;
             Ok(Outcome::Done(summary))
         }
     };
@@ -376,10 +365,6 @@ enum After {
 impl<R: Rotator, C: Camera> Cont<'_, R, C> {
     fn set_state(&self, s: RunState) {
         self.link.set_state(s);
-    }
-
-    fn send_store(&self, msg: ToStore) -> Result<(), RunError> {
-        send_store(&self.to_store, msg)
     }
 
     /// Sends without blocking the loop's thread (the channel holds two messages).

@@ -194,19 +194,6 @@ pub enum RunError {
     Storage(String),
 }
 
-/// Waits for the storage thread's answer to `ToStore::Finish`: the run's final checks passed,
-/// or the check that failed.
-async fn finish_verdict(
-    rx: std::sync::mpsc::Receiver<Result<Value, String>>,
-) -> Result<(), RunError> {
-    tokio::task::spawn_blocking(move || rx.recv())
-        .await
-        .map_err(|e| RunError::Storage(e.to_string()))?
-        .map_err(|_| RunError::Storage("the storage thread stopped".into()))?
-        .map(|_| ())
-        .map_err(RunError::Check)
-}
-
 /// The light of a simulated scene, as the run sets it: the fraction of the scene's light that
 /// reaches the sensor, 0 (the lens capped, for darks) to 1 (a passing cloud in between).
 pub type SceneLight = std::sync::Arc<dyn Fn(f64) + Send + Sync>;
@@ -283,6 +270,7 @@ mod actors;
 mod adaptive;
 mod calibration;
 mod continuous_loop;
+mod ending;
 mod pause;
 mod record;
 mod run_dir;
@@ -296,6 +284,7 @@ pub use adaptive::replayed_decisions;
 use adaptive::*;
 use calibration::*;
 pub use continuous_loop::{run_continuous, RUN_UP_S};
+use ending::*;
 use pause::*;
 use record::*;
 use run_dir::*;
@@ -867,14 +856,7 @@ where
         final_angles_deg: final_angles.clone(),
     };
     let result = match outcome {
-        Some(Outcome::Aborted(reason)) => {
-            lp.set_state(RunState::Aborting);
-            lp.send_store(ToStore::Entry(Entry::Aborted {
-                reason: reason.clone(),
-            }))?;
-            lp.set_state(RunState::Aborted(reason.clone()));
-            Ok(Outcome::Aborted(reason))
-        }
+        Some(Outcome::Aborted(reason)) => end_aborted(&lp.link, &lp.to_store, reason),
         Some(Outcome::Paused(reason)) => Ok(Outcome::Paused(reason)),
         Some(Outcome::Done(s)) => Ok(Outcome::Done(s)),
         None => {
@@ -899,22 +881,16 @@ where
                     .map_err(|_| RunError::Storage("the storage thread stopped".into()))?;
                 r.map_err(RunError::Storage)?;
             }
-            let (tx, rx) = std::sync::mpsc::channel();
             let summary_json = json!({
                 "run": serde_json::to_value(&summary).unwrap_or(Value::Null),
                 "decisions": decisions,
             });
-            lp.send_store(ToStore::Finish {
-                reply: tx,
-                summary: summary_json,
-                checks: FinishChecks {
-                    planned_steps,
-                    accepted: lp.accepted.clone(),
-                    damaged: damaged.clone(),
-                },
-            })?;
-            finish_verdict(rx).await?;
-            lp.set_state(RunState::Done);
+            let checks = FinishChecks {
+                planned_steps,
+                accepted: lp.accepted.clone(),
+                damaged: damaged.clone(),
+            };
+            end_done(&lp.link, &lp.to_store, summary_json, checks).await?;
             Ok(Outcome::Done(summary))
         }
     };
