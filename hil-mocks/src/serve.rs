@@ -90,11 +90,13 @@ impl TruthHandle {
     }
 }
 
-/// A running simulated device. Dropping it stops the server (and removes a pty's link).
+/// A running simulated device. Dropping it stops the server (and removes a pty's link, and
+/// the link's folder when [`SimServer::pty_in_new_dir`] made it).
 pub struct SimServer {
     shared: Arc<Shared>,
     memory: Option<MemoryPort>,
     link: Option<PathBuf>,
+    made_dir: Option<PathBuf>,
     stop: watch::Sender<bool>,
     unplug: mpsc::UnboundedSender<f64>,
     task: Option<JoinHandle<()>>,
@@ -135,6 +137,29 @@ impl SimServer {
         Ok(server)
     }
 
+    /// [`SimServer::pty`] with its link in a new folder `dir` (made here, which must not exist
+    /// yet): dropping or shutting down the server removes the link and the folder, so no
+    /// stopped simulator leaves a trace in the temporary directory.
+    pub fn pty_in_new_dir(
+        sim: impl Simulator,
+        faults: FaultProfile,
+        seed: u64,
+        dir: &Path,
+        name: &str,
+    ) -> io::Result<SimServer> {
+        std::fs::create_dir(dir)?;
+        match SimServer::pty(sim, faults, seed, &dir.join(name)) {
+            Ok(mut server) => {
+                server.made_dir = Some(dir.to_path_buf());
+                Ok(server)
+            }
+            Err(e) => {
+                let _ = std::fs::remove_dir_all(dir);
+                Err(e)
+            }
+        }
+    }
+
     fn spawn(
         sim: Box<dyn Simulator>,
         faults: FaultProfile,
@@ -164,6 +189,7 @@ impl SimServer {
             shared,
             memory: None,
             link: None,
+            made_dir: None,
             stop,
             unplug,
             task: Some(task),
@@ -239,6 +265,9 @@ impl Drop for SimServer {
         }
         if let Some(link) = &self.link {
             let _ = std::fs::remove_file(link);
+        }
+        if let Some(dir) = &self.made_dir {
+            let _ = std::fs::remove_dir_all(dir);
         }
     }
 }

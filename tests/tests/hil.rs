@@ -6,11 +6,14 @@
 //! * [`hil::cameras`]: the camera backends' registry, and Aravis's fake GigE Vision camera opened
 //!   through it (skipped, with the reason printed, where `arv-fake-gv-camera-0.8` is absent).
 //! * [`hil::plans`]: a capture plan end to end on `examples/rigs/sim.toml` (the simulated stage on
-//!   a pseudo-terminal, the camera rendering through the stage's true angle).
-//! * [`hil::plan_kinds`]: time-lapse, adaptive and continuous on the devices of
-//!   `examples/rigs/sim.toml`, and calibrate-analyzer (written back to a copy of the rig file)
-//!   and calibrate-noise with it on the simulated rig, through the `run` command's entry point
-//!   (small plans, `tests/fixtures/`).
+//!   a pseudo-terminal, the camera rendering through the stage's true angle, its lens capped
+//!   by the run for darks), and the operator's lens-cap pauses of a hardware camera resumed in
+//!   new connections.
+//! * [`hil::plan_kinds`]: time-lapse, adaptive, continuous, calibrate-analyzer (written back to
+//!   a copy of the rig file) and calibrate-noise on the devices of `examples/rigs/sim.toml`,
+//!   through the `run` command's entry point (small plans, `tests/fixtures/`).
+//! * [`hil::following`]: the simulated camera behind a stage simulator served apart, following
+//!   the positions it reports; a continuous plan on that pair refused.
 //! * [`hil::k10cr1`]: a capture on `examples/rigs/sim_k10cr1.toml` (the simulated K10CR1 through
 //!   the APT driver) through the `run` command's entry point; its Stokes products against the
 //!   rendered truth.
@@ -26,6 +29,7 @@ mod hil {
     pub mod conformance_apt;
     pub mod conformance_elliptec;
     pub mod dialects;
+    pub mod following;
     pub mod k10cr1;
     pub mod plan_kinds;
     pub mod plans;

@@ -240,10 +240,15 @@ fn runtime() -> Result<tokio::runtime::Runtime, CommandError> {
 
 fn outcome_json(o: &Outcome, run_dir: &Path) -> (Value, i32) {
     match o {
-        Outcome::Done(s) => (
-            json!({"state": "done", "run_dir": run_dir.display().to_string(), "summary": s}),
-            0,
-        ),
+        Outcome::Done(s) => {
+            let mut v =
+                json!({"state": "done", "run_dir": run_dir.display().to_string(), "summary": s});
+            if !s.saturation.warning.is_empty() {
+                eprintln!("warning: {}", s.saturation.warning);
+                v["warnings"] = json!([s.saturation.warning]);
+            }
+            (v, 0)
+        }
         Outcome::Paused(r) => (
             json!({"state": "paused", "reason": r, "run_dir": run_dir.display().to_string(),
                    "resume": format!("polarimeter acquire resume {}", run_dir.display())}),
@@ -285,6 +290,23 @@ pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandEr
     Ok(v)
 }
 
+/// The forecast's saturation warnings for a run of `plan` on the simulated camera (its scene
+/// and camera): what `plan check` says, said again when the run starts. A forecast that
+/// cannot be made says nothing here (the run itself refuses what is wrong).
+fn saturation_forecast(plan: &Plan, plan_dir: &Path) -> Vec<String> {
+    let Ok((scene, camera)) = forecast_models(plan, plan_dir) else {
+        return Vec::new();
+    };
+    let timing = polar_engine::forecast::Timing::simulated(plan);
+    let Ok(f) = polar_engine::forecast::forecast(plan, &scene, &camera, &timing) else {
+        return Vec::new();
+    };
+    f.notes
+        .into_iter()
+        .filter(|n| n.contains("saturation"))
+        .collect()
+}
+
 /// `acquire run PLAN [--simulate | hardware] [--rig RIG] [--out DIR]`. With a rig: its site for a
 /// plan without one, and a finished calibrate-analyzer run's result written back to it as a new
 /// revision (`rig_written` in the output).
@@ -300,6 +322,15 @@ pub fn run_cmd(
         crate::rig::apply_site(&mut plan, r);
     }
     let run_dir = out.unwrap_or_else(|| run::default_run_dir(Path::new("."), &plan));
+    let simulated_camera = hardware.as_ref().is_none_or(|h| h.camera == "sim");
+    let start_warnings = if simulated_camera {
+        saturation_forecast(&plan, &plan_dir)
+    } else {
+        Vec::new()
+    };
+    for w in &start_warnings {
+        eprintln!("warning (forecast): {w}");
+    }
     let _log = crate::logging::to_run_dir(&run_dir);
     let rt = runtime()?;
     let local = tokio::task::LocalSet::new();
@@ -314,6 +345,9 @@ pub fn run_cmd(
         }
     })?;
     let (mut v, code) = outcome_json(&outcome, &run_dir);
+    if !start_warnings.is_empty() {
+        v["forecast_warnings"] = json!(start_warnings);
+    }
     if let (Some(r), Outcome::Done(_)) = (rig, &outcome) {
         let hw_zero = hardware.as_ref().map_or(0.0, |h| h.zero_offset_deg);
         if let Some(written) = crate::rig::write_back(r, &plan, &run_dir, hw_zero)? {
@@ -323,8 +357,11 @@ pub fn run_cmd(
     Ok((v, code))
 }
 
-/// `acquire resume RUN_DIR`: continues a paused or crashed run with the devices it was started on
-/// (simulated runs get a new simulated rig; hardware runs need `hardware`).
+/// `acquire resume RUN_DIR`: continues a paused or crashed run with the devices it was started on:
+/// simulated runs get a new simulated rig; hardware runs take `hardware` when given, else the
+/// rig file and flags the store recorded (refused, naming the values, when the analyzer's
+/// values, the camera file or the dialect differ from the run's; other differences are named
+/// in the output's `rig_differences`).
 pub fn resume_cmd(
     run_dir: &Path,
     hardware: Option<Hardware>,
@@ -341,26 +378,47 @@ pub fn resume_cmd(
             _ => None,
         })
         .unwrap_or(Value::Null);
+    let simulated = devices["kind"].as_str() == Some("simulated");
+    let mut differences = Vec::new();
+    let mut recorded_rig = None;
+    let hardware = match hardware {
+        Some(hw) => Some(hw),
+        None if simulated => None,
+        None => match crate::rig::recorded(&devices)? {
+            Some((r, hw, diff)) => {
+                refuse_changed_devices(run_dir, &diff)?;
+                differences = diff;
+                recorded_rig = Some(r);
+                Some(hw)
+            }
+            None => {
+                return Err(CommandError(format!(
+                    "the run was started on {} devices without a rig file: give --rig, or \
+                     --port, --dialect, --camera and --camera-file, to resume it",
+                    devices["kind"].as_str().unwrap_or("unknown")
+                )))
+            }
+        },
+    };
+    let rig = rig.or(recorded_rig.as_ref());
     let _log = crate::logging::to_run_dir(run_dir);
     let rt = runtime()?;
     let local = tokio::task::LocalSet::new();
     let outcome = local.block_on(&rt, async {
-        match (devices["kind"].as_str(), &hardware) {
-            (Some("simulated"), _) => {
+        match &hardware {
+            Some(hw) if !simulated => run_hardware(&plan, hw, run_dir, true, ui).await,
+            _ => {
                 let plan_dir = PathBuf::from(devices["plan_dir"].as_str().unwrap_or("."));
                 let (o, rig) = run_simulated(&plan, &plan_dir, run_dir, true, ui).await?;
                 rig.shutdown().await;
                 Ok(o)
             }
-            (_, Some(hw)) => run_hardware(&plan, hw, run_dir, true, ui).await,
-            (kind, None) => Err(CommandError(format!(
-                "the run was started on {} devices: give --port, --dialect, --camera and \
-                 --camera-file to resume it",
-                kind.unwrap_or("unknown")
-            ))),
         }
     })?;
     let (mut v, code) = outcome_json(&outcome, run_dir);
+    if !differences.is_empty() {
+        v["rig_differences"] = json!(differences);
+    }
     // A calibration that finishes in a resume (after a lens-cap pause) writes back as a run.
     if let (Some(r), Outcome::Done(_)) = (rig, &outcome) {
         let hw_zero = hardware.as_ref().map_or(0.0, |h| h.zero_offset_deg);
@@ -369,6 +427,35 @@ pub fn resume_cmd(
         }
     }
     Ok((v, code))
+}
+
+/// The values a resumed run may not change without being told: the analyzer's zero offset and
+/// extinction ratio, the camera file (the products' noise model) and the stage's dialect. A
+/// difference in any of them refuses the resume, naming it; give `--rig` or flags to choose.
+fn refuse_changed_devices(run_dir: &Path, differences: &[String]) -> Result<(), CommandError> {
+    const FIXED: [&str; 4] = [
+        "zero_offset_deg:",
+        "extinction_ratio:",
+        "camera_file:",
+        "stage.dialect:",
+    ];
+    let changed: Vec<&String> = differences
+        .iter()
+        .filter(|d| FIXED.iter().any(|k| d.starts_with(k)))
+        .collect();
+    if changed.is_empty() {
+        return Ok(());
+    }
+    Err(CommandError(format!(
+        "the rig file changed since run {} started, in values its frames depend on: {}. \
+         Restore them, or give --rig and flags to resume with these devices deliberately",
+        run_dir.display(),
+        changed
+            .iter()
+            .map(|s| s.as_str())
+            .collect::<Vec<_>>()
+            .join("; ")
+    )))
 }
 
 /// `acquire check RUN_DIR`: the run's frames and products against its journal; exit status 1 when

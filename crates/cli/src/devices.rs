@@ -146,19 +146,40 @@ fn sim_root() -> PathBuf {
     std::env::temp_dir()
 }
 
+/// The prefix of a `simulate stage` process's folder of links in [`sim_root`], followed by
+/// its process id.
+const SIM_DIR_PREFIX: &str = "polarimeter-sim-";
+
+/// Whether `port` is a link a `simulate stage` process made.
+pub fn is_simulator_link(port: &str) -> bool {
+    Path::new(port)
+        .parent()
+        .and_then(|d| d.file_name())
+        .is_some_and(|n| n.to_string_lossy().starts_with(SIM_DIR_PREFIX))
+}
+
+/// The links of the `simulate stage` processes that are running. A folder whose process is
+/// gone (killed before it could clean up) is removed, so a stopped simulator is never listed.
 fn running_simulators() -> Vec<(String, PathBuf)> {
     let Ok(entries) = std::fs::read_dir(sim_root()) else {
         return Vec::new();
     };
-    entries
-        .flatten()
-        .filter(|e| {
-            e.file_name()
-                .to_string_lossy()
-                .starts_with("polarimeter-sim-")
-        })
-        .flat_map(|e| stable_names(&e.path()))
-        .collect()
+    let mut out = Vec::new();
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(pid) = name.strip_prefix(SIM_DIR_PREFIX) else {
+            continue;
+        };
+        let alive = pid
+            .parse::<u32>()
+            .is_ok_and(|pid| Path::new(&format!("/proc/{pid}")).exists());
+        if alive || !Path::new("/proc/self").exists() {
+            out.extend(stable_names(&e.path()));
+        } else {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
+    out
 }
 
 fn runtime() -> Result<tokio::runtime::Runtime, DevicesError> {
@@ -400,14 +421,19 @@ pub fn sim_stage(
     seed: u64,
 ) -> Result<(), DevicesError> {
     let sim = simulator(dialect.name, model, faults, seed)?;
-    let dir = sim_root().join(format!("polarimeter-sim-{}", std::process::id()));
-    std::fs::create_dir_all(&dir)
-        .map_err(|e| DevicesError(format!("cannot create {}: {e}", dir.display())))?;
-    let link = dir.join(format!("{}-{seed}", dialect.name));
+    let dir = sim_root().join(format!("{SIM_DIR_PREFIX}{}", std::process::id()));
+    // A folder with this process's id is a dead process's (ids are reused): not ours to keep.
+    let _ = std::fs::remove_dir_all(&dir);
+    let name = format!("{}-{seed}", dialect.name);
+    let link = dir.join(&name);
     let rt = runtime()?;
     let result = rt.block_on(async {
-        let server = SimServer::pty(sim, faults, seed, &link)
-            .map_err(|e| DevicesError(format!("cannot open a pseudo-terminal: {e}")))?;
+        let server = SimServer::pty_in_new_dir(sim, faults, seed, &dir, &name).map_err(|e| {
+            DevicesError(format!(
+                "cannot open a pseudo-terminal in {}: {e}",
+                dir.display()
+            ))
+        })?;
         let line = json!({
             "port": link,
             "pty": server.port(),
@@ -419,7 +445,7 @@ pub fn sim_stage(
         println!("{line}");
         use std::io::Write;
         let _ = std::io::stdout().flush();
-        let _ = tokio::signal::ctrl_c().await;
+        stop_signal().await;
         let stats = server.stats();
         eprintln!(
             "simulator stopped: {} connections, {} bytes in, {} bytes out, {} unplugs",
@@ -430,6 +456,23 @@ pub fn sim_stage(
     });
     let _ = std::fs::remove_dir_all(&dir);
     result
+}
+
+/// Ctrl-C, or (on Unix) SIGTERM as a service manager or `kill` sends: the simulator then
+/// removes its links before it exits.
+async fn stop_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        if let Ok(mut term) = signal(SignalKind::terminate()) {
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = term.recv() => {}
+            }
+            return;
+        }
+    }
+    let _ = tokio::signal::ctrl_c().await;
 }
 
 /// Tries each dialect's identify on `port`, each given `deadline`, in registry order; the
@@ -525,6 +568,16 @@ pub fn list_cmd(
                 });
                 break;
             }
+        }
+        if simulate && found.is_none() {
+            // The simulated devices `--simulate` offers: our firmware's rotator, simulated by
+            // the rig itself (port "sim").
+            found = Some(polar_rig::file::StageEntry {
+                dialect: "native".into(),
+                port: polar_rig::SIM_PORT.into(),
+                address: 0,
+                model: Some("rotator".into()),
+            });
         }
         out["rig_written"] = crate::rig::write_starting_rig(path, found, &out["cameras"])
             .map_err(|e| DevicesError(e.0))?;

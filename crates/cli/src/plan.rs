@@ -65,6 +65,12 @@ pub struct PlanAnglesArgs {
     /// False-alarm rate for the Pd figures, (0, 1).
     #[arg(long, default_value_t = 1e-3)]
     pub pfa: f64,
+    /// The detection-only optimum: the SCR-optimal set whatever it forms (repeated angles and
+    /// 1 or 2 channels allowed), with no Stokes image; by default the set forms a Stokes image,
+    /// as in `plan scene` (3 or more angles whose ideal measurement matrix has a condition
+    /// number of at most 6.21, that of 0/30/60).
+    #[arg(long)]
+    pub detection_only: bool,
 }
 
 fn vec3(field: &str, v: &[f64]) -> Result<Vector3<f64>, CommandError> {
@@ -118,6 +124,14 @@ pub fn angles(args: &PlanAnglesArgs) -> Result<Value, CommandError> {
             args.channels
         )));
     }
+    let stokes = !args.detection_only;
+    if stokes && args.channels < 3 {
+        return Err(CommandError(format!(
+            "--channels {} is out of range for a Stokes set: allowed 3 to {MAX_CHANNELS} (a \
+             linear Stokes vector has 3 unknowns), or add --detection-only for 1 or 2 channels",
+            args.channels
+        )));
+    }
     let t_mean = vec3("target_mean", &args.target_mean)?;
     let b_mean = vec3("background_mean", &args.background_mean)?;
     let b_cov = mat3("background_cov", &args.background_cov)?;
@@ -144,7 +158,7 @@ pub fn angles(args: &PlanAnglesArgs) -> Result<Value, CommandError> {
             .fixed_angles_deg
             .as_ref()
             .map(|v| v.iter().map(|d| d.to_radians()).collect()),
-        max_condition: None,
+        max_condition: stokes.then_some(STOKES_MAX_CONDITION),
     };
     let t0 = Instant::now();
     let opt = optimise(
@@ -179,8 +193,36 @@ pub fn angles(args: &PlanAnglesArgs) -> Result<Value, CommandError> {
         pd_conv.insert(name.into(), json!(pd_of(&rad)?));
     }
     let limit = contrast.clutter_limit();
+    let mut notes = contrast.notes.clone();
+    let distinct = {
+        let mut a: Vec<f64> = opt.angles_rad.clone();
+        a.sort_by(f64::total_cmp);
+        a.dedup_by(|x, y| (*x - *y).abs() < 1e-9);
+        a.len()
+    };
+    if !stokes && distinct < 3 {
+        notes.push(format!(
+            "detection only: the set has {distinct} distinct angle(s); it detects in the \
+             intensity frames but forms no Stokes image"
+        ));
+    }
+    let ideal_condition = polar_planner::stokes::stokes_condition(&opt.angles_rad);
+    let set = json!({
+        "kind": if stokes { "stokes" } else { "detection-only" },
+        "rule": if stokes {
+            format!(
+                "{} angles whose ideal measurement matrix has a condition number of at most \
+                 {STOKES_MAX_CONDITION} (that of 0/30/60, the worst 3-angle set 30 deg apart)",
+                args.channels
+            )
+        } else {
+            format!("{} angles, repeats allowed: {distinct} distinct angle(s)", args.channels)
+        },
+        "condition_number_ideal": if ideal_condition.is_finite() { json!(ideal_condition) } else { Value::Null },
+    });
     Ok(json!({
         "angles_deg": opt.angles_rad.iter().map(|a| a.to_degrees()).collect::<Vec<_>>(),
+        "set": set,
         "scr": opt.scr,
         "pd": pd_of(&opt.angles_rad)?,
         "pfa": args.pfa,
@@ -190,7 +232,7 @@ pub fn angles(args: &PlanAnglesArgs) -> Result<Value, CommandError> {
         "clutter_condition": if contrast.clutter_condition.is_finite() { json!(contrast.clutter_condition) } else { Value::Null },
         "evaluations": opt.evaluations,
         "elapsed_ms": elapsed_ms,
-        "notes": contrast.notes,
+        "notes": notes,
     }))
 }
 
@@ -814,6 +856,68 @@ pub struct PlanAptdArgs {
     pub pfa: f64,
 }
 
+/// The frames of a stack's `frames.csv`, by its header: the `file` column and the angle in
+/// `angle_deg` (a stack written by hand) or `commanded_angle_deg` (an `acquire export tiff`,
+/// whose measured angles sit within the driver's readback tolerance of it). In an export,
+/// dark frames (`kind` = dark) and frames that do not count (`accepted` = false) are left out.
+fn read_stack_list(
+    list: &std::path::Path,
+    text: &str,
+) -> Result<Vec<(f64, std::path::PathBuf)>, CommandError> {
+    let dir = list.parent().unwrap_or(std::path::Path::new("."));
+    let mut lines = text.lines().enumerate();
+    let header: Vec<&str> = lines
+        .next()
+        .map(|(_, h)| h.split(',').map(str::trim).collect())
+        .unwrap_or_default();
+    let col = |name: &str| header.iter().position(|h| *h == name);
+    let (Some(file_col), Some(angle_col)) = (
+        col("file"),
+        col("angle_deg").or_else(|| col("commanded_angle_deg")),
+    ) else {
+        return Err(CommandError(format!(
+            "{}: the header {:?} lacks a column: allowed file and angle_deg (or an export's \
+             file and commanded_angle_deg)",
+            list.display(),
+            header.join(",")
+        )));
+    };
+    let (kind_col, accepted_col) = (col("kind"), col("accepted"));
+    let mut stack = Vec::new();
+    for (i, line) in lines {
+        if line.trim().is_empty() {
+            continue;
+        }
+        let cols: Vec<&str> = line.split(',').map(str::trim).collect();
+        let cell = |c: usize| cols.get(c).copied();
+        if kind_col.and_then(cell) == Some("dark") || accepted_col.and_then(cell) == Some("false") {
+            continue;
+        }
+        let (Some(file), Some(angle)) = (cell(file_col), cell(angle_col)) else {
+            return Err(CommandError(format!(
+                "{} line {}: expected the columns {}",
+                list.display(),
+                i + 1,
+                header.join(",")
+            )));
+        };
+        let angle: f64 = angle
+            .parse()
+            .ok()
+            .filter(|a: &f64| a.is_finite())
+            .ok_or_else(|| {
+                CommandError(format!(
+                    "{} line {}: {} = {angle:?} is not a finite number",
+                    list.display(),
+                    i + 1,
+                    header[angle_col]
+                ))
+            })?;
+        stack.push((angle, dir.join(file)));
+    }
+    Ok(stack)
+}
+
 /// `analyze aptd`: runs the loop over the stack. The sets are restricted to the stack's angles (the
 /// best subset each round); a frame asked for again is served by the next unused copy at that
 /// angle, or by the first copy again once all are used (then the "re-acquired" frame repeats,
@@ -825,32 +929,7 @@ pub fn aptd_offline(args: &PlanAptdArgs) -> Result<Value, CommandError> {
     let list = dir.join("frames.csv");
     let text = std::fs::read_to_string(&list)
         .map_err(|e| CommandError(format!("{}: cannot read: {e}", list.display())))?;
-    let mut stack: Vec<(f64, std::path::PathBuf)> = Vec::new();
-    for (i, line) in text.lines().enumerate().skip(1) {
-        if line.trim().is_empty() {
-            continue;
-        }
-        let mut cols = line.split(',').map(str::trim);
-        let (Some(file), Some(angle)) = (cols.next(), cols.next()) else {
-            return Err(CommandError(format!(
-                "{} line {}: expected file,angle_deg",
-                list.display(),
-                i + 1
-            )));
-        };
-        let angle: f64 = angle
-            .parse()
-            .ok()
-            .filter(|a: &f64| a.is_finite())
-            .ok_or_else(|| {
-                CommandError(format!(
-                    "{} line {}: angle_deg = {angle:?} is not a finite number",
-                    list.display(),
-                    i + 1
-                ))
-            })?;
-        stack.push((angle, dir.join(file)));
-    }
+    let stack = read_stack_list(&list, &text)?;
     if stack.len() < 3 {
         return Err(CommandError(format!(
             "{}: {} frames; allowed at least 3 at distinct angles",

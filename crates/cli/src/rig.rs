@@ -5,13 +5,72 @@
 use crate::commands::CommandError;
 use polar_engine::plan::{Plan, PlanKind};
 use polar_rig::file::{starting_rig, CameraEntry, StageEntry};
-use polar_rig::Rig;
+use polar_rig::{Hardware, Rig};
 use serde_json::{json, Value};
 use std::path::Path;
 
 /// Reads a rig file; the error names `--rig` and the file.
 pub fn load(path: &Path) -> Result<Rig, CommandError> {
     Rig::load(path).map_err(|e| CommandError(format!("--rig: {e}")))
+}
+
+/// The rig a run was started with, from what its store recorded (the `devices` attribute's
+/// `rig`: the file's path, its content hash and the flags given), for `acquire resume RUN`
+/// without `--rig` or device flags. Returns the rig, its hardware and the differences between
+/// the devices now and those the run recorded, each named ("zero_offset_deg: 0 then, 0.4
+/// now"). `None` when the run was not started from a rig file.
+pub fn recorded(devices: &Value) -> Result<Option<(Rig, Hardware, Vec<String>)>, CommandError> {
+    let recorded = &devices["rig"];
+    let Some(path) = recorded["absolute_file"]
+        .as_str()
+        .or_else(|| recorded["file"].as_str())
+    else {
+        return Ok(None);
+    };
+    let rig = Rig::load(Path::new(path)).map_err(|e| {
+        CommandError(format!(
+            "the run was started with the rig file {path}, which cannot be read now ({e}): \
+             give --rig (and any flags) to resume it"
+        ))
+    })?;
+    let overrides = polar_rig::Overrides::from_json(&recorded["overrides"]);
+    let hw = rig
+        .hardware(&overrides)
+        .map_err(|e| CommandError(e.to_string()))?
+        .ok_or_else(|| CommandError(format!("rig {path} names no devices now")))?;
+    let mut differences = Vec::new();
+    if let Some(then) = recorded["content_xxh3"].as_str() {
+        if then != rig.content_xxh3 {
+            differences.push(format!(
+                "rig file {path}: content hash {then} then, {} now",
+                rig.content_xxh3
+            ));
+        }
+    }
+    let now = json!({
+        "stage.port": hw.port,
+        "stage.dialect": hw.dialect.name,
+        "stage.address": hw.address,
+        "camera": hw.camera,
+        "camera_file": hw.camera_file.display().to_string(),
+        "zero_offset_deg": hw.zero_offset_deg,
+        "extinction_ratio": hw.extinction_ratio,
+    });
+    let then = json!({
+        "stage.port": devices["stage"]["port"],
+        "stage.dialect": devices["stage"]["dialect"],
+        "stage.address": devices["stage"]["address"],
+        "camera": devices["camera"],
+        "camera_file": devices["camera_file"],
+        "zero_offset_deg": devices["zero_offset_deg"],
+        "extinction_ratio": devices["extinction_ratio"],
+    });
+    for (key, value) in now.as_object().into_iter().flatten() {
+        if then[key] != *value {
+            differences.push(format!("{key}: {} then, {value} now", then[key]));
+        }
+    }
+    Ok(Some((rig, hw, differences)))
 }
 
 /// The rig's site for a plan that names none (a plan's own `[site]` wins).
@@ -168,6 +227,61 @@ pub fn record_camera_file(rig: &Rig, measured: &Path) -> Result<Value, CommandEr
     }))
 }
 
+/// A starting rig's simulated camera made usable: it needs a camera file (the simulated rig's
+/// default camera, written beside the rig as `STEM.camera.toml`, never over an existing file)
+/// and a stage it can follow (it renders through the true angle of a stage simulator the rig
+/// starts itself, so a stage found on a running simulator's link is written as `port =
+/// "sim"`, the same dialect and model). Returns the entries and a comment saying what was done.
+fn simulated_bench(
+    rig_path: &Path,
+    stage: Option<StageEntry>,
+    camera: Option<CameraEntry>,
+) -> Result<(Option<StageEntry>, Option<CameraEntry>, String), CommandError> {
+    let camera = camera.unwrap_or(CameraEntry {
+        backend: "sim".into(),
+        id: None,
+        file: None,
+    });
+    if camera.backend != "sim" {
+        return Ok((stage, Some(camera), String::new()));
+    }
+    let mut note = String::new();
+    let stage = stage.map(|mut s| {
+        if !s.is_simulated() && crate::devices::is_simulator_link(&s.port) {
+            note.push_str(&format!(
+                "# The stage was found on a simulator's link ({}); the simulated camera follows\n\
+                 # only a stage the rig simulates itself, so the rig names port = \"sim\".\n",
+                s.port
+            ));
+            s.port = polar_rig::SIM_PORT.to_string();
+        }
+        s
+    });
+    let stem = rig_path
+        .file_stem()
+        .map_or_else(|| "rig".into(), |s| s.to_string_lossy().into_owned());
+    let name = format!("{stem}.camera.toml");
+    let camera_path = rig_path.parent().unwrap_or(Path::new(".")).join(&name);
+    polar_rig::file::write_new(&camera_path, polar_engine::sim::DEFAULT_CAMERA).map_err(|e| {
+        CommandError(format!(
+            "--write-rig {}: the camera file: {e}",
+            rig_path.display()
+        ))
+    })?;
+    note.push_str(&format!(
+        "# The simulated camera's noise model is {name} (the modern CMOS example); edit it or\n\
+         # point camera.file at a calibrated camera file.\n\n"
+    ));
+    Ok((
+        stage,
+        Some(CameraEntry {
+            file: Some(name.into()),
+            ..camera
+        }),
+        note,
+    ))
+}
+
 /// `devices list --write-rig FILE`: a starting rig file from what was found (the first stage
 /// that identified, the first camera listed), refusing to overwrite an existing file.
 pub fn write_starting_rig(
@@ -193,7 +307,8 @@ pub fn write_starting_rig(
             },
         })
         .next();
-    let text = starting_rig(stage.clone(), camera.clone());
+    let (stage, camera, note) = simulated_bench(path, stage, camera)?;
+    let text = format!("{note}{}", starting_rig(stage.clone(), camera.clone()));
     use std::io::Write;
     let mut f = std::fs::OpenOptions::new()
         .write(true)

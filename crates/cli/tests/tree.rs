@@ -143,3 +143,27 @@ fn plan_with_scene_flags_is_plan_scene() {
     assert!(stderr.contains("--channels"), "{stderr}");
     assert_eq!(old.stderr, new.stderr);
 }
+
+/// A mistyped subcommand or flag is refused (exit status 2) on one line that names clap's
+/// suggestion, so a user can guess their way: `plan scen` suggests `scene`, `model fresnel
+/// --theta-i 60` suggests `--theta-i-deg`.
+#[test]
+fn mistypes_suggest_the_name_meant() {
+    for (args, meant) in [
+        (&["plan", "scen"][..], "`scene`"),
+        (&["acquire", "resum", "x"][..], "`resume`"),
+        (
+            &["model", "fresnel", "--n", "1.5", "--theta-i", "60"][..],
+            "`--theta-i-deg`",
+        ),
+    ] {
+        let out = polarimeter(args);
+        assert_eq!(out.status.code(), Some(2), "{args:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(err.trim().lines().count(), 1, "{args:?}: {err}");
+        assert!(
+            err.contains(&format!("did you mean {meant}?")),
+            "{args:?}: {err}"
+        );
+    }
+}

@@ -335,6 +335,11 @@ pub struct Suspender {
     pub action: SuspendAction,
     /// Re-acquisitions of one set before the run pauses, 0..=100.
     pub max_reacquire: u32,
+    /// The largest share of a set's pixels that may saturate before the run warns, [0, 1]
+    /// (their products are NaN). A set over it still counts (taking it again would saturate
+    /// again); the run's summary names it and the store records every set's share
+    /// (`products` attribute `saturated_fraction`).
+    pub max_saturated_fraction: f64,
 }
 
 impl Default for Suspender {
@@ -346,6 +351,7 @@ impl Default for Suspender {
             max_angle_error_deg: 1.0,
             action: SuspendAction::Reacquire,
             max_reacquire: 3,
+            max_saturated_fraction: 0.01,
         }
     }
 }
@@ -713,6 +719,13 @@ impl Plan {
             u64::from(s.max_reacquire),
             0,
             100,
+        )?;
+        check(
+            "suspender.max_saturated_fraction",
+            s.max_saturated_fraction,
+            0.0,
+            1.0,
+            false,
         )?;
         if let Some(site) = &self.site {
             check("site.latitude_deg", site.latitude_deg, -90.0, 90.0, false)?;

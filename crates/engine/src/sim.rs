@@ -111,6 +111,65 @@ fn uniform(
     }
 }
 
+/// The bench a calibration plan needs in front of the simulated camera, as a scene of
+/// `width x height`: an integrating sphere (uniform, unpolarised) for a noise calibration,
+/// bright enough that the plan's longest exposure reaches 1.1 full wells (the series crosses
+/// saturation, as EMVA 1288 asks); a reference polarizer of diattenuation 0.999 (extinction
+/// ratio about 2000) at the plan's reference angle in front of a uniform source for an
+/// analyzer calibration, its brightest frame at 60 % of the full well. `None` for the other
+/// plan kinds, which look at their scene. The simulated rig (`--simulate`) and a rig file's
+/// simulated camera both place these themselves, so a calibration runs unattended.
+pub fn calibration_scene(
+    plan: &Plan,
+    camera_model: &CameraModel,
+    band: polar_model::atmosphere::Band,
+    width: u32,
+    height: u32,
+) -> Result<Option<SimScene>, SimError> {
+    let unit_sensor = SensorModel::new(camera_model, &band)
+        .map_err(|e| SimError::Input(format!("simulation.camera: {e}")))?;
+    // Electrons per unit S0 radiance for an exposure, unpolarised, through the analyzer.
+    let electrons_per_radiance = |exposure_us: f64| -> Result<f64, SimError> {
+        let w = unit_sensor
+            .intensities_from_stokes(&[0.0])
+            .map_err(|e| SimError::Input(e.to_string()))?;
+        Ok(w[(0, 0)] * unit_sensor.responsivity_e_per_s() * exposure_us * 1e-6)
+    };
+    match plan.kind {
+        PlanKind::CalibrateNoise => {
+            let c = plan
+                .calibrate_noise
+                .as_ref()
+                .ok_or_else(|| SimError::Input("calibrate-noise: the section is missing".into()))?;
+            let longest = c.exposure_us.iter().copied().fold(0.0, f64::max);
+            let l = 1.1 * camera_model.full_well_e / electrons_per_radiance(longest)?;
+            Ok(Some(uniform(
+                "integrating sphere",
+                [l, 0.0, 0.0],
+                width,
+                height,
+                band,
+            )))
+        }
+        PlanKind::CalibrateAnalyzer => {
+            let c = plan.calibrate_analyzer.as_ref().ok_or_else(|| {
+                SimError::Input("calibrate-analyzer: the section is missing".into())
+            })?;
+            let d = 0.999;
+            let two = 2.0 * c.reference_angle_deg.to_radians();
+            let l = 0.6 * camera_model.full_well_e / (2.0 * electrons_per_radiance(c.exposure_us)?);
+            Ok(Some(uniform(
+                "reference polarizer",
+                [l, l * d * two.cos(), l * d * two.sin()],
+                width,
+                height,
+                band,
+            )))
+        }
+        _ => Ok(None),
+    }
+}
+
 /// The plan's simulated stage and camera fault profiles, checked (unknown knobs, rates
 /// outside `[0, 1]`).
 fn fault_profiles(plan: &Plan) -> Result<(FaultProfile, CameraFaults), SimError> {
@@ -284,45 +343,9 @@ impl SimRig {
         .map_err(|e| SimError::Input(format!("simulation.scene: {e}")))?;
         let band = scene_file.spec.band.clone();
         let (w, h) = (sim.width, sim.height);
-        let unit_sensor = SensorModel::new(&camera_model, &band)
-            .map_err(|e| SimError::Input(format!("simulation.camera: {e}")))?;
-        // Electrons per unit S0 radiance for an exposure, unpolarised, through the analyzer.
-        let electrons_per_radiance = |exposure_us: f64| -> Result<f64, SimError> {
-            let w = unit_sensor
-                .intensities_from_stokes(&[0.0])
-                .map_err(|e| SimError::Input(e.to_string()))?;
-            Ok(w[(0, 0)] * unit_sensor.responsivity_e_per_s() * exposure_us * 1e-6)
-        };
-        let scene = match plan.kind {
-            PlanKind::CalibrateNoise => {
-                let c = plan.calibrate_noise.as_ref().ok_or_else(|| {
-                    SimError::Input("calibrate-noise: the section is missing".into())
-                })?;
-                let longest = c.exposure_us.iter().copied().fold(0.0, f64::max);
-                // The longest exposure reaches 1.1 full wells: the series crosses saturation
-                // as EMVA 1288 asks.
-                let l = 1.1 * camera_model.full_well_e / electrons_per_radiance(longest)?;
-                uniform("integrating sphere", [l, 0.0, 0.0], w, h, band)
-            }
-            PlanKind::CalibrateAnalyzer => {
-                let c = plan.calibrate_analyzer.as_ref().ok_or_else(|| {
-                    SimError::Input("calibrate-analyzer: the section is missing".into())
-                })?;
-                // A reference polarizer of diattenuation 0.999 (extinction ratio ~2000) at its
-                // angle; the brightest frame reaches 60 % of the full well.
-                let d = 0.999;
-                let two = 2.0 * c.reference_angle_deg.to_radians();
-                let l =
-                    0.6 * camera_model.full_well_e / (2.0 * electrons_per_radiance(c.exposure_us)?);
-                uniform(
-                    "reference polarizer",
-                    [l, l * d * two.cos(), l * d * two.sin()],
-                    w,
-                    h,
-                    band,
-                )
-            }
-            _ => {
+        let scene = match calibration_scene(plan, &camera_model, band, w, h)? {
+            Some(scene) => scene,
+            None => {
                 let names: Vec<String> = scene_file
                     .materials
                     .iter()

@@ -133,6 +133,29 @@ fn pause_now_and_resume() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Abort while the run is going (the GUI's Abort button, no pause first): the run ends aborted
+/// at once, without a pause, with no more than the frame in flight stored after the abort
+/// was asked (at most 2 + 1 frames of the 14), and the journal says so.
+#[test]
+fn abort_while_running() {
+    let plan = Plan::from_toml_str(CAPTURE).unwrap();
+    let dir = temp_dir("abort-running");
+    let (o, states, _) = go(&plan, &dir, false, Script::AbortRunning(2));
+    assert!(
+        matches!(&o, Outcome::Aborted(r) if r.contains("aborted by the user")),
+        "{o:?}"
+    );
+    assert!(
+        !states.iter().any(|s| matches!(s, RunState::Paused(_))),
+        "{states:?}"
+    );
+    let r = replay(&dir).unwrap();
+    assert!(r.aborted().is_some());
+    let n = r.frames().len();
+    assert!((2..=3).contains(&n), "{n} frames stored");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Abort from a pause: the run ends aborted, the journal says so, what was acquired stays
 /// readable, and it cannot be resumed.
 #[test]

@@ -660,8 +660,14 @@ impl App {
                 self.control(Control::Resume);
             }
             if ui
-                .add_enabled(self.active && paused, egui::Button::new("Abort"))
-                .on_hover_text("end the paused run for good (what was acquired stays)")
+                .add_enabled(
+                    self.active && (paused || running),
+                    egui::Button::new("Abort"),
+                )
+                .on_hover_text(
+                    "end the run for good, now (the operation in flight is cancelled; what was \
+                     acquired stays)",
+                )
                 .clicked()
             {
                 self.control(Control::Abort);

@@ -125,6 +125,29 @@ fn start_pause_resume_done() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Abort while the run is going, no pause first: the button is enabled while running and the
+/// run ends aborted, with fewer frames than planned and no pause on the way.
+#[test]
+fn abort_while_running() {
+    let (dir, mut h) = start("abort-running");
+    h.get_by_label("Start").click();
+    step_until(&mut h, Duration::from_secs(30), "a frame", |h| {
+        label_shows(h, "State: Running") && h.state().progress().0 >= 1
+    });
+    h.get_by_label("Abort").click();
+    step_until(&mut h, Duration::from_secs(30), "Aborted", |h| {
+        label_shows(h, "State: Aborted")
+    });
+    let (done, planned) = h.state().progress();
+    assert!(done < planned, "{done} of {planned}");
+    assert!(
+        !h.state().log_lines().any(|l| l.contains("paused")),
+        "{}",
+        h.state().log_lines().collect::<Vec<_>>().join("\n")
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// A plan that does not parse: the error is shown and nothing runs.
 #[test]
 fn bad_plan_shows_error() {
@@ -249,9 +272,9 @@ fn device_command_without_devices_is_refused() {
 }
 
 /// The hardware path (`--port --dialect --camera --camera-file`), on our stage's simulator
-/// behind a real pseudo-terminal and the CLI's simulated camera: connect by label, move, then a
-/// run whose dark frame pauses for the operator to cap the lens (as on real hardware) and
-/// goes on after Resume.
+/// behind a real pseudo-terminal and the rig's simulated camera, which follows that stage
+/// through the positions it reports and caps its own lens for darks: connect by label, move,
+/// then a run that finishes with no operator pause.
 #[test]
 fn hardware_flags_path_on_a_simulated_stage() {
     use polar_engine::plan::Plan;
@@ -297,27 +320,6 @@ fn hardware_flags_path_on_a_simulated_stage() {
             .is_some_and(|a| (a - 45.0).abs() < 0.0125)
     });
     h.get_by_label("Start").click();
-    step_until(&mut h, Duration::from_secs(60), "the lens-cap pause", |h| {
-        label_shows(h, "State: Paused")
-    });
-    let Status::Run(RunState::Paused(reason)) = h.state().status().clone() else {
-        panic!("{:?}", h.state().status());
-    };
-    assert!(reason.contains("cap"), "{reason}");
-    h.get_by_label("Resume").click();
-    // The plan's lights follow the dark: the operator is asked to uncap; resume again.
-    step_until(
-        &mut h,
-        Duration::from_secs(60),
-        "the uncap pause or done",
-        |h| {
-            label_shows(h, "State: Paused") && h.state().progress().0 >= 1
-                || label_shows(h, "State: Done")
-        },
-    );
-    if label_shows(&h, "State: Paused") {
-        h.get_by_label("Resume").click();
-    }
     step_until(&mut h, Duration::from_secs(60), "Done", |h| {
         label_shows(h, "State: Done")
     });

@@ -156,6 +156,18 @@ pub fn sim_camera_following(
     opts: &SimOptions,
     angle: AngleSource,
 ) -> Result<SimCamera, CameraError> {
+    sim_camera_for_plan(opts, angle, None)
+}
+
+/// [`sim_camera_following`] set up for a run of `plan`: a calibration plan finds the bench it
+/// needs in front of the camera (the integrating sphere or the reference polarizer of
+/// `polar_engine::sim::calibration_scene`), as the simulated rig of `--simulate` places them;
+/// the other kinds look at the scene.
+pub fn sim_camera_for_plan(
+    opts: &SimOptions,
+    angle: AngleSource,
+    plan: Option<&polar_engine::plan::Plan>,
+) -> Result<SimCamera, CameraError> {
     let scene_text = match &opts.scene {
         Some(p) => read(p, "scene")?,
         None => DEFAULT_SCENE.to_string(),
@@ -175,17 +187,33 @@ pub fn sim_camera_following(
     };
     let camera = CameraModel::from_toml_str(&camera_text)
         .map_err(|e| CameraError::Input(format!("camera file: {e}")))?;
-    let names: Vec<String> = scene.materials.iter().map(|m| m.name.clone()).collect();
-    let sim_scene = SimScene::render(
-        &scene.spec,
-        &scene.materials,
-        &Layout::panels_on_ground(&names),
-        opts.width,
-        opts.height,
-        1e-3,
-        opts.seed,
-    )
-    .map_err(|e| CameraError::Input(e.to_string()))?;
+    let bench = match plan {
+        Some(plan) => polar_engine::sim::calibration_scene(
+            plan,
+            &camera,
+            scene.spec.band.clone(),
+            opts.width,
+            opts.height,
+        )
+        .map_err(|e| CameraError::Input(e.to_string()))?,
+        None => None,
+    };
+    let sim_scene = match bench {
+        Some(bench) => bench,
+        None => {
+            let names: Vec<String> = scene.materials.iter().map(|m| m.name.clone()).collect();
+            SimScene::render(
+                &scene.spec,
+                &scene.materials,
+                &Layout::panels_on_ground(&names),
+                opts.width,
+                opts.height,
+                1e-3,
+                opts.seed,
+            )
+            .map_err(|e| CameraError::Input(e.to_string()))?
+        }
+    };
     SimCamera::new(
         SimCameraConfig {
             id: "sim".into(),

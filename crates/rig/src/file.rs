@@ -141,6 +141,14 @@ pub struct Rig {
     pub camera_file: Option<PathBuf>,
     /// The analyzer's values.
     pub analyzer: Option<AnalyzerValues>,
+    /// The file's content hash as it was read (XXH3-64 of its bytes, 16 hex digits): the store
+    /// records it, and `acquire resume` says so when the file changed since.
+    pub content_xxh3: String,
+}
+
+/// The content hash a rig records of its file's text (XXH3-64, 16 hex digits).
+pub fn content_hash(text: &str) -> String {
+    format!("{:016x}", xxhash_rust::xxh3::xxh3_64(text.as_bytes()))
 }
 
 /// Flags that override a rig file's entries (`None`: the rig's, then the default).
@@ -158,6 +166,33 @@ pub struct Overrides {
     pub camera_file: Option<PathBuf>,
     /// `--zero-offset-deg`.
     pub zero_offset_deg: Option<f64>,
+}
+
+impl Overrides {
+    /// The flags given, as the store records them (`acquire resume` gives them again).
+    pub fn to_json(&self) -> Value {
+        json!({
+            "port": self.port,
+            "dialect": self.dialect,
+            "address": self.address,
+            "camera": self.camera,
+            "camera_file": self.camera_file.as_ref().map(|f| f.display().to_string()),
+            "zero_offset_deg": self.zero_offset_deg,
+        })
+    }
+
+    /// The flags a store recorded ([`Overrides::to_json`]); absent keys are not given.
+    pub fn from_json(v: &Value) -> Overrides {
+        let text = |k: &str| v[k].as_str().map(String::from);
+        Overrides {
+            port: text("port"),
+            dialect: text("dialect"),
+            address: v["address"].as_u64().and_then(|a| u8::try_from(a).ok()),
+            camera: text("camera"),
+            camera_file: text("camera_file").map(PathBuf::from),
+            zero_offset_deg: v["zero_offset_deg"].as_f64(),
+        }
+    }
 }
 
 fn bad(path: &Path, key: &str, value: impl std::fmt::Debug, allowed: &str) -> RigError {
@@ -262,6 +297,7 @@ impl Rig {
             file,
             camera_file,
             analyzer,
+            content_xxh3: content_hash(text),
         })
     }
 
@@ -340,8 +376,12 @@ impl Rig {
         .into_iter()
         .filter_map(|(f, given)| given.then_some(f))
         .collect();
+        let file = std::path::absolute(&self.path).unwrap_or_else(|_| self.path.clone());
         json!({
             "file": self.path.display().to_string(),
+            "absolute_file": file.display().to_string(),
+            "content_xxh3": self.content_xxh3,
+            "overrides": o.to_json(),
             "analyzer": analyzer,
             "camera_file": self.camera_file.as_ref().map(|f| f.display().to_string()),
             "camera_file_revision": self.camera_file.as_deref().and_then(revision_of),
@@ -441,6 +481,28 @@ impl Rig {
         edit(&mut doc);
         write_atomically(&self.path, &doc.to_string())
     }
+}
+
+/// Writes `text` to a new file `path`; an existing file is refused, never overwritten.
+pub fn write_new(path: &Path, text: &str) -> Result<(), RigError> {
+    use std::io::Write;
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(path)
+        .map_err(|e| {
+            RigError(if e.kind() == std::io::ErrorKind::AlreadyExists {
+                format!(
+                    "{} exists: allowed a new file (it is never overwritten)",
+                    path.display()
+                )
+            } else {
+                format!("{}: cannot create: {e}", path.display())
+            })
+        })?;
+    f.write_all(text.as_bytes())
+        .and_then(|()| f.sync_all())
+        .map_err(|e| RigError(format!("{}: cannot write: {e}", path.display())))
 }
 
 /// Writes `text` to `path` through a temporary file in the same folder and a rename.

@@ -5,9 +5,13 @@
 //! A stage port `sim` starts the dialect's simulator (`polar_hil_mocks::sim::SIMULATORS`) on a
 //! pseudo-terminal and connects to it through the same serial code; the `sim` camera then
 //! renders through the simulated stage's true angle. That is the rig of `examples/rigs/sim.toml`
-//! and of the workspace's hardware-in-the-loop tests.
+//! and of the workspace's hardware-in-the-loop tests. The `sim` camera with any other stage
+//! renders through the positions that stage reports (`crate::follow`). Either way the
+//! simulated camera is a whole bench: the run caps its lens for darks, and a calibration plan
+//! finds its integrating sphere or reference polarizer in front of it.
 
 use crate::camera::{self, SimOptions};
+use crate::follow::{ReadBack, ReportedAngle};
 use crate::RigError;
 use polar_drivers::any::AnyRotator;
 use polar_drivers::registry::{self, DeviceKind, Dialect};
@@ -129,26 +133,32 @@ pub async fn connect_hardware(hw: &Hardware) -> Result<Connected, RigError> {
     connect(hw, None).await
 }
 
-/// [`connect_hardware`] for a run of `plan`. On the simulated stage with the simulated camera,
-/// a continuous plan with `trigger = "encoder"` also gets the camera's trigger line wired to
-/// the stage's position-compare output (`polar_engine::sim::compare_line`), as the cable
-/// from a real stage's trigger output to a real camera's line input would be.
+/// [`connect_hardware`] for a run of `plan`. On the simulated stage with the simulated camera
+/// the rig is a whole simulated bench: the camera's lens cap is the run's to put on for dark
+/// frames, a calibration plan finds its integrating sphere or reference polarizer in front of
+/// the camera (`polar_engine::sim::calibration_scene`), and a continuous plan with
+/// `trigger = "encoder"` has the camera's trigger line wired to the stage's position-compare
+/// output (`polar_engine::sim::compare_line`), as the cable from a real stage's trigger output
+/// to a real camera's line input would be.
 pub async fn connect_hardware_for(
     hw: &Hardware,
     plan: &polar_engine::plan::Plan,
 ) -> Result<Connected, RigError> {
-    let line_interval_rad = plan
-        .continuous
-        .as_ref()
-        .filter(|c| {
-            plan.kind == polar_engine::plan::PlanKind::Continuous
-                && c.trigger == polar_engine::continuous::TriggerSource::Encoder
-        })
-        .map(|c| c.interval_deg().to_radians());
-    connect(hw, line_interval_rad).await
+    connect(hw, Some(plan)).await
 }
 
-async fn connect(hw: &Hardware, line_interval_rad: Option<f64>) -> Result<Connected, RigError> {
+async fn connect(
+    hw: &Hardware,
+    plan: Option<&polar_engine::plan::Plan>,
+) -> Result<Connected, RigError> {
+    let line_interval_rad = plan
+        .and_then(|plan| {
+            plan.continuous.as_ref().filter(|c| {
+                plan.kind == polar_engine::plan::PlanKind::Continuous
+                    && c.trigger == polar_engine::continuous::TriggerSource::Encoder
+            })
+        })
+        .map(|c| c.interval_deg().to_radians());
     let d = hw.dialect;
     let Some(connect_rotator) = d.rotator else {
         return Err(RigError(format!(
@@ -179,6 +189,9 @@ async fn connect(hw: &Hardware, line_interval_rad: Option<f64>) -> Result<Connec
     } else {
         (hw.port.clone(), None)
     };
+    let mut illumination = None;
+    let reported = ReportedAngle::default();
+    let mut follows_reports = false;
     let camera = match (&simulator, hw.camera.as_str()) {
         (Some(server), "sim") => {
             let handle = server.truth_handle();
@@ -190,13 +203,35 @@ async fn connect(hw: &Hardware, line_interval_rad: Option<f64>) -> Result<Connec
                 camera_file: Some(hw.camera_file.clone()),
                 ..SimOptions::default()
             };
-            let mut cam = camera::sim_camera_following(&opts, angle).map_err(RigError::of)?;
+            let mut cam = camera::sim_camera_for_plan(&opts, angle, plan).map_err(RigError::of)?;
+            illumination = Some(polar_engine::sim::scene_light(&cam.illumination()));
             if let Some(interval_rad) = line_interval_rad {
                 cam.wire_line(polar_engine::sim::compare_line(
                     server.truth_handle(),
                     interval_rad,
                 ));
             }
+            ThreadedCamera::spawn(cam, ThreadPolicy::default()).map_err(RigError::of)?
+        }
+        (None, "sim") => {
+            if line_interval_rad.is_some() || plan.is_some_and(|p| p.continuous.is_some()) {
+                return Err(RigError(format!(
+                    "camera = \"sim\" with stage port = {:?}: the simulated camera follows a \
+                     stage the rig does not simulate through the positions the stage reports, \
+                     which cannot render a spinning analyzer. Allowed for a continuous plan: \
+                     stage port = \"sim\" (the rig simulates the stage), or a real camera",
+                    hw.port
+                )));
+            }
+            let angle = reported.clone();
+            let source: AngleSource = Arc::new(move || angle.get());
+            let opts = SimOptions {
+                camera_file: Some(hw.camera_file.clone()),
+                ..SimOptions::default()
+            };
+            let cam = camera::sim_camera_for_plan(&opts, source, plan).map_err(RigError::of)?;
+            illumination = Some(polar_engine::sim::scene_light(&cam.illumination()));
+            follows_reports = true;
             ThreadedCamera::spawn(cam, ThreadPolicy::default()).map_err(RigError::of)?
         }
         _ => camera::open(&hw.camera, &SimOptions::default())
@@ -211,11 +246,23 @@ async fn connect(hw: &Hardware, line_interval_rad: Option<f64>) -> Result<Connec
         "zero_offset_deg": hw.zero_offset_deg,
         "extinction_ratio": hw.extinction_ratio,
         "rig": hw.provenance,
+        "camera_follows": match (&simulator, hw.camera.as_str()) {
+            (Some(_), "sim") => "the simulated stage's true angle",
+            (None, "sim") => "the positions the stage reports (a stage the rig does not simulate)",
+            _ => "the real scene",
+        },
     });
     let connector = d.connector(&port);
-    let rotator = connect_rotator(connector, hw.address, (d.policy)())
+    let mut rotator = connect_rotator(connector, hw.address, (d.policy)())
         .await
         .map_err(|e| RigError(format!("stage {} ({}): {e}", hw.port, d.name)))?;
+    if follows_reports {
+        let mut read_back = ReadBack::new(rotator, reported);
+        polar_hal::Rotator::position_rad(&mut read_back)
+            .await
+            .map_err(|e| RigError(format!("stage {} ({}): {e}", hw.port, d.name)))?;
+        rotator = AnyRotator::new(read_back);
+    }
     Ok(Connected {
         rig: Rig {
             analyzer: OnRotator {
@@ -227,7 +274,7 @@ async fn connect(hw: &Hardware, line_interval_rad: Option<f64>) -> Result<Connec
             camera,
             camera_model,
             sensor,
-            illumination: None,
+            illumination,
             target_mask: None,
             sun_deg: None,
             devices,
@@ -237,7 +284,7 @@ async fn connect(hw: &Hardware, line_interval_rad: Option<f64>) -> Result<Connec
 }
 
 /// The dialect's simulator (model `hw.model` or its first) on a pseudo-terminal whose link is
-/// in the temporary directory.
+/// in a folder of its own in the temporary directory, removed with the simulator.
 fn start_simulator(hw: &Hardware) -> Result<SimServer, RigError> {
     let faults = FaultProfile::default();
     let seed = 1;
@@ -248,10 +295,12 @@ fn start_simulator(hw: &Hardware) -> Result<SimServer, RigError> {
         std::process::id(),
         NEXT_LINK.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
     ));
-    std::fs::create_dir_all(&dir)
-        .map_err(|e| RigError(format!("cannot create {}: {e}", dir.display())))?;
-    SimServer::pty(sim, faults, seed, &dir.join(hw.dialect.name))
-        .map_err(|e| RigError(format!("cannot open a pseudo-terminal: {e}")))
+    SimServer::pty_in_new_dir(sim, faults, seed, &dir, hw.dialect.name).map_err(|e| {
+        RigError(format!(
+            "cannot open a pseudo-terminal in {}: {e}",
+            dir.display()
+        ))
+    })
 }
 
 static NEXT_LINK: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);

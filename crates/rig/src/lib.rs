@@ -5,6 +5,8 @@
 //!   this crate's cargo features of the same names) and the simulated camera.
 //! * [`hardware`]: the hardware rig `run`, `resume` and the GUI connect, through the serial
 //!   dialects' registry (`polar_drivers::registry`) and the camera backends' registry.
+//! * [`follow`]: a simulated camera behind a stage the rig does not simulate, rendering through
+//!   the positions the stage reports.
 //! * [`file`]: the rig file (TOML) that names a lab's stage, camera, site and analyzer once,
 //!   and the calibrations written back to it as new revisions.
 //!
@@ -13,6 +15,7 @@
 
 pub mod camera;
 pub mod file;
+pub mod follow;
 pub mod hardware;
 
 pub use file::{Overrides, Rig};

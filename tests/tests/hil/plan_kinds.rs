@@ -2,10 +2,9 @@
 //! (`polarimeter run --rig RIG PLAN --out DIR`, `polar_cli::acquire::run_cmd`), each a small
 //! plan from `tests/fixtures/`. Time-lapse, adaptive and continuous run on the devices of
 //! `examples/rigs/sim.toml` (the native stage's simulator on a pseudo-terminal, the camera
-//! rendering through its true angle). The two calibrations run as `run --simulate --rig`: they
-//! need the simulated rig's reference polarizer, lens cap and integrating sphere, which the
-//! rig file's rendering camera does not have; the rig file gives the site and, for
-//! calibrate-analyzer, receives the result.
+//! rendering through its true angle). The two calibrations run on the same devices: the rig's
+//! simulated camera finds the reference polarizer or the integrating sphere in front of it and
+//! caps its own lens for darks, so they run unattended, and the rig file receives the result.
 
 use polar_hil_tests::{repo_root, run_cli, scratch};
 use serde_json::Value;
@@ -14,11 +13,11 @@ use std::path::{Path, PathBuf};
 /// Runs `tests/fixtures/FIXTURE` with `rig` into `scratch_dir/run`; asserts it finishes done
 /// (exit status 0) and that `check` finds every frame intact. Returns the command's output and
 /// the store's attributes.
-fn run_fixture(fixture: &str, rig: &Path, scratch_dir: &Path, simulate: bool) -> (Value, Value) {
+fn run_fixture(fixture: &str, rig: &Path, scratch_dir: &Path) -> (Value, Value) {
     let plan = repo_root().join("tests/fixtures").join(fixture);
     let run_dir = scratch_dir.join("run");
     let (out, code) =
-        run_cli(&plan, rig, &run_dir, 32, simulate).unwrap_or_else(|e| panic!("{fixture}: {e}"));
+        run_cli(&plan, rig, &run_dir, 0, false).unwrap_or_else(|e| panic!("{fixture}: {e}"));
     assert_eq!(
         (out["state"].as_str(), code),
         (Some("done"), 0),
@@ -41,7 +40,7 @@ fn sim_rig() -> PathBuf {
 #[test]
 fn time_lapse_on_the_simulated_rig_file() {
     let dir = scratch("timelapse");
-    let (out, attrs) = run_fixture("timelapse.toml", &sim_rig(), &dir, false);
+    let (out, attrs) = run_fixture("timelapse.toml", &sim_rig(), &dir);
     let s = &out["summary"];
     assert_eq!(s["sets_accepted"], 3, "the plan's count: {out}");
     assert_eq!(s["frames_accepted"], 9, "3 sets x 3 angles: {out}");
@@ -63,7 +62,7 @@ fn time_lapse_on_the_simulated_rig_file() {
 #[test]
 fn adaptive_on_the_simulated_rig_file() {
     let dir = scratch("adaptive");
-    let (out, attrs) = run_fixture("adaptive.toml", &sim_rig(), &dir, false);
+    let (out, attrs) = run_fixture("adaptive.toml", &sim_rig(), &dir);
     let decisions = attrs["decisions"].as_array().cloned().unwrap_or_default();
     let sets = out["summary"]["sets_accepted"].as_u64().expect("sets");
     assert!(sets >= 1, "{out}");
@@ -97,7 +96,7 @@ fn adaptive_on_the_simulated_rig_file() {
 }
 
 /// `tests/fixtures/calibrate_analyzer.toml` (12 steps through a reference polarizer) on the
-/// simulated rig, with `--rig` a copy of `examples/rigs/sim.toml` (and its camera file) in a
+/// rig file's devices, `--rig` a copy of `examples/rigs/sim.toml` (and its camera file) in a
 /// scratch folder: the measured zero offset is within 0.1 deg of the simulated analyzer's true
 /// offset, 0 (the simulated stage settles within its encoder count and half its backlash, a
 /// few hundredths of a degree), the extinction ratio is above 100 (the simulated polarizer
@@ -116,7 +115,7 @@ fn calibrate_analyzer_on_the_simulated_rig_file() {
         dir.join("cameras/cmos_modern.toml"),
     )
     .expect("copy the camera file");
-    let (out, attrs) = run_fixture("calibrate_analyzer.toml", &rig_copy, &dir, true);
+    let (out, attrs) = run_fixture("calibrate_analyzer.toml", &rig_copy, &dir);
     let cal = &attrs["calibration"]["analyzer"];
     let measured = cal["zero_offset_deg"].as_f64().expect("zero offset");
     assert!(measured.abs() <= 0.1, "{cal}");
@@ -161,7 +160,7 @@ fn calibrate_noise_on_the_simulated_rig_file() {
     std::fs::copy(sim_rig(), &rig_copy).expect("copy the rig");
     let base = root.join("examples/cameras/cmos_modern.toml");
     std::fs::copy(&base, dir.join("cameras/cmos_modern.toml")).expect("copy the camera file");
-    let (out, attrs) = run_fixture("calibrate_noise.toml", &rig_copy, &dir, true);
+    let (out, attrs) = run_fixture("calibrate_noise.toml", &rig_copy, &dir);
     let revision = dir.join("cameras/cmos_modern.r1.toml");
     let same = |a: &Path, b: &Path| a.canonicalize().ok() == b.canonicalize().ok();
     let reported = out["rig_written"]["camera_file"].as_str().expect("written");
@@ -213,7 +212,7 @@ fn calibrate_noise_on_the_simulated_rig_file() {
 #[test]
 fn continuous_on_the_simulated_rig_file() {
     let dir = scratch("continuous");
-    let (out, _attrs) = run_fixture("continuous.toml", &sim_rig(), &dir, false);
+    let (out, _attrs) = run_fixture("continuous.toml", &sim_rig(), &dir);
     let s = &out["summary"];
     assert_eq!(s["sets_accepted"], 5, "the plan's half turns: {out}");
     assert_eq!(s["frames_accepted"], 20, "5 half turns x 4 frames: {out}");

@@ -26,8 +26,24 @@ pub fn argv() -> Vec<OsString> {
 }
 
 /// A clap parse error as one line naming the flag, the value (cut when long) and what is
-/// allowed.
+/// allowed, with clap's suggestion when the user mistyped a subcommand or a flag ("did you
+/// mean `scene`?").
 pub fn one_line_error(e: &clap::Error) -> String {
+    let line = error_line(e);
+    let suggested = [ContextKind::SuggestedSubcommand, ContextKind::SuggestedArg]
+        .into_iter()
+        .find_map(|k| match e.get(k) {
+            Some(ContextValue::String(s)) => Some(s.clone()),
+            Some(ContextValue::Strings(v)) if !v.is_empty() => Some(v.join("` or `")),
+            _ => None,
+        });
+    match suggested {
+        Some(s) => format!("{line}; did you mean `{s}`?"),
+        None => line,
+    }
+}
+
+fn error_line(e: &clap::Error) -> String {
     let arg = match e.get(ContextKind::InvalidArg) {
         Some(ContextValue::String(s)) => s.clone(),
         _ => String::new(),

@@ -335,6 +335,10 @@ where
         elapsed_s: started.elapsed().as_secs_f64(),
         device_s: lp.device_s,
         final_angles_deg: None,
+        saturation: Saturation::of(
+            &RunStore::open(run_dir)?,
+            plan.suspender.max_saturated_fraction,
+        )?,
     };
     let result = match outcome {
         Some(Outcome::Aborted(reason)) => end_aborted(&lp.link, &lp.to_store, reason),

@@ -5,8 +5,9 @@
 //! plan's retries, a storage error, the suspender, a dark series that needs the lens capped);
 //! aborting; done. [`Control::Pause`] asks for the next safe point; [`Control::PauseNow`]
 //! cancels the device operation in flight (its step is taken again on resume);
-//! [`Control::Resume`] and [`Control::Abort`] act on a paused run; [`Control::Detach`] (or
-//! dropping the controller) leaves a paused run to `polarimeter resume`.
+//! [`Control::Resume`] continues a paused run; [`Control::Abort`] ends a paused or a running
+//! run (a running one at once: the device operation in flight is cancelled);
+//! [`Control::Detach`] (or dropping the controller) leaves the run to `polarimeter resume`.
 //!
 //! **Actors.** The analyzer and the camera are each owned by one task
 //! ([`tokio::task::spawn_local`]) that takes commands from a bounded channel; nothing else
@@ -44,6 +45,12 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tokio::sync::{mpsc, oneshot, watch};
 use tracing::{info, info_span, warn, Instrument};
 
+/// The pause before dark frames on hardware (no simulated lens cap): the operator caps the
+/// lens and resumes the run.
+pub const CAP_LENS: &str = "cap the lens for the dark frames, then resume";
+/// The pause after dark frames on hardware: the operator uncaps the lens and resumes.
+pub const UNCAP_LENS: &str = "uncap the lens, then resume";
+
 /// What a controller can ask of a run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Control {
@@ -53,7 +60,7 @@ pub enum Control {
     PauseNow,
     /// Continue a paused run.
     Resume,
-    /// Stop a paused run for good (what was acquired stays).
+    /// Stop the run for good, paused or running (what was acquired stays).
     Abort,
     /// Leave a paused run to be resumed later (`polarimeter resume`).
     Detach,
@@ -122,6 +129,9 @@ pub struct Verdict {
     pub mean_s0_dn: f64,
     /// Largest |commanded - measured| analyzer angle, degrees.
     pub max_angle_error_deg: f64,
+    /// The share of the set's pixels where a frame saturated (their products are NaN).
+    #[serde(default)]
+    pub saturated_fraction: f64,
 }
 
 /// How a run ended.
@@ -157,6 +167,52 @@ pub struct Summary {
     pub device_s: f64,
     /// The planner's last set, degrees (adaptive runs).
     pub final_angles_deg: Option<Vec<f64>>,
+    /// The sets (of the whole run, every process's) whose saturated share of pixels is over
+    /// the plan's `suspender.max_saturated_fraction`.
+    pub saturation: Saturation,
+}
+
+/// Saturated pixels over a run, from the store's per-set record.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize)]
+pub struct Saturation {
+    /// The plan's limit, a share of a set's pixels.
+    pub max_fraction: f64,
+    /// The largest share of any set.
+    pub worst_fraction: f64,
+    /// The sets over the limit and their shares.
+    pub sets_over: Vec<(u64, f64)>,
+    /// What to do about it (empty when no set is over the limit).
+    pub warning: String,
+}
+
+impl Saturation {
+    /// The run's saturation from the store's per-set shares and the plan's limit.
+    pub fn of(store: &RunStore, max_fraction: f64) -> Result<Saturation, RunError> {
+        let shares = store.product_saturation()?;
+        let worst_fraction = shares.values().copied().fold(0.0, f64::max);
+        let sets_over: Vec<(u64, f64)> = shares
+            .into_iter()
+            .filter(|(_, f)| *f > max_fraction)
+            .collect();
+        let warning = if sets_over.is_empty() {
+            String::new()
+        } else {
+            format!(
+                "{} set(s) saturate more than {:.1} % of their pixels (the worst {:.1} %; \
+                 suspender.max_saturated_fraction): their products are NaN there. Shorten the \
+                 exposure or lower the gain (plan check shows the saturation margin)",
+                sets_over.len(),
+                100.0 * max_fraction,
+                100.0 * worst_fraction
+            )
+        };
+        Ok(Saturation {
+            max_fraction,
+            worst_fraction,
+            sets_over,
+            warning,
+        })
+    }
 }
 
 /// Why a run could not go on at all (as opposed to pausing).
@@ -380,8 +436,13 @@ where
     let mut damaged: BTreeSet<u64> = BTreeSet::new();
     // Late time-lapse sets the plan's policy skipped: neither taken nor planned.
     let mut skipped_sets: BTreeSet<u64> = BTreeSet::new();
+    // The lens as the operator left it: a run resumed from a lens-cap pause was resumed by
+    // the operator who did what the pause asked (in a new process, or at the prompt).
+    let mut lens_capped = None;
     for e in &entries {
         match e {
+            Entry::Paused { reason, .. } if reason == CAP_LENS => lens_capped = Some(true),
+            Entry::Paused { reason, .. } if reason == UNCAP_LENS => lens_capped = Some(false),
             Entry::Frame(r) => {
                 records.insert(r.index, r.clone());
             }
@@ -493,11 +554,12 @@ where
         rejections,
         keep_pixels: plan.kind == PlanKind::Adaptive,
         kept: HashMap::new(),
-        lens_capped: None,
+        lens_capped,
         light_level: 1.0,
         device_s: 0.0,
         verdicts: VecDeque::new(),
         pending_move: first_move,
+        ending: None,
     };
     lp.set_state(RunState::Running);
 
@@ -647,18 +709,23 @@ where
                 AfterPause::Detach(r) => break Some(Outcome::Paused(r)),
             }
         }
+        // A unit an earlier process finished has nothing to take (and asks nothing of the
+        // operator).
+        let finished = match &unit {
+            Unit::Single(step, _) => lp.accepted.contains_key(step),
+            Unit::Set(_, members) => members.iter().all(|(s, _)| lp.accepted.contains_key(s)),
+        };
+        if finished && !matches!(unit, Unit::Set(..)) {
+            continue;
+        }
         // Darks on hardware: the operator caps the lens at a pause.
-        if lp.illumination.is_none() {
+        if lp.illumination.is_none() && !finished {
             let wants_dark = match &unit {
                 Unit::Single(_, s) => s.kind == FrameKind::Dark,
                 Unit::Set(..) => false,
             };
             if lp.lens_capped != Some(wants_dark) && (wants_dark || lp.lens_capped.is_some()) {
-                let reason = if wants_dark {
-                    "cap the lens for the dark frames, then resume"
-                } else {
-                    "uncap the lens, then resume"
-                };
+                let reason = if wants_dark { CAP_LENS } else { UNCAP_LENS };
                 match lp.pause(reason.into(), unit_first_step(&unit)).await? {
                     AfterPause::Resume => lp.lens_capped = Some(wants_dark),
                     AfterPause::Abort(r) => break Some(Outcome::Aborted(r)),
@@ -854,6 +921,7 @@ where
         elapsed_s: started.elapsed().as_secs_f64(),
         device_s: lp.device_s,
         final_angles_deg: final_angles.clone(),
+        saturation: Saturation::of(&reader, plan.suspender.max_saturated_fraction)?,
     };
     let result = match outcome {
         Some(Outcome::Aborted(reason)) => end_aborted(&lp.link, &lp.to_store, reason),

@@ -61,6 +61,9 @@ pub(super) struct Loop<'a> {
     pub(super) verdicts: VecDeque<(u64, Verdict, f64)>,
     /// The move to the next step's angle, started when the last exposure ended.
     pub(super) pending_move: Option<PendingMove>,
+    /// An abort or a detach asked while the run was going: the next safe point (reached at
+    /// once, the operation in flight interrupted) ends the run that way instead of pausing.
+    pub(super) ending: Option<Control>,
 }
 
 /// A move started ahead of its step (at the end of the previous step's exposure), so that it
@@ -99,6 +102,7 @@ impl Loop<'_> {
             }
             Control::Abort | Control::Detach => {
                 self.pausing = true;
+                self.ending = Some(c);
                 Some(OpError::Interrupted)
             }
             Control::Resume => None,
@@ -192,8 +196,13 @@ impl Loop<'_> {
         if let Err(e) = self.drain().await {
             warn!("while pausing: {e}");
         }
-        self.pauses += 1;
         self.pausing = false;
+        match self.ending.take() {
+            Some(Control::Abort) => return Ok(AfterPause::Abort("aborted by the user".into())),
+            Some(Control::Detach) => return Ok(AfterPause::Detach("detached by the user".into())),
+            _ => {}
+        }
+        self.pauses += 1;
         hold_paused(&mut self.link, &self.to_store, &reason, next_step).await
     }
 

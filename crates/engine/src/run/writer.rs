@@ -226,6 +226,19 @@ impl Writer {
             self.store
                 .set_product_dark(job.set, &dark_text)
                 .map_err(|e| format!("products of set {}: {e}", job.set))?;
+            self.store
+                .set_product_saturation(job.set, verdict.saturated_fraction)
+                .map_err(|e| format!("products of set {}: {e}", job.set))?;
+            if verdict.saturated_fraction > self.suspender.max_saturated_fraction {
+                warn!(
+                    set = job.set,
+                    "set {}: {:.1} % of its pixels saturated (more than the {:.1} % of \
+                     suspender.max_saturated_fraction); their products are NaN",
+                    job.set,
+                    100.0 * verdict.saturated_fraction,
+                    100.0 * self.suspender.max_saturated_fraction
+                );
+            }
             self.last_s0.insert(
                 (job.exposure_us.to_bits(), job.gain_db.to_bits()),
                 verdict.mean_s0_dn,
@@ -348,12 +361,16 @@ impl Writer {
             reasons.push("every pixel of the set is saturated or dark".into());
         }
         let accepted = !cfg.enabled || reasons.is_empty();
+        let saturated = (0..p.s0.len())
+            .filter(|&i| p.s0[i].is_nan() && p.s1[i].is_nan() && p.s2[i].is_nan())
+            .count();
         Verdict {
             accepted,
             reason: reasons.join("; "),
             reduced_chi2: chi2,
             mean_s0_dn: mean_s0,
             max_angle_error_deg,
+            saturated_fraction: saturated as f64 / p.s0.len().max(1) as f64,
         }
     }
 

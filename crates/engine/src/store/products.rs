@@ -173,6 +173,32 @@ impl RunStore {
         self.insert_into_attribute(PRODUCTS, "dark", &set.to_string(), json!(description))
     }
 
+    /// Records the share of set `set`'s pixels where a frame saturated (the
+    /// `saturated_fraction` attribute of `products/`, an object by set number).
+    pub fn set_product_saturation(&self, set: u64, fraction: f64) -> Result<(), StoreError> {
+        self.insert_into_attribute(
+            PRODUCTS,
+            "saturated_fraction",
+            &set.to_string(),
+            json!(fraction),
+        )
+    }
+
+    /// Every set's saturated share of pixels ([`RunStore::set_product_saturation`]), by set.
+    pub fn product_saturation(&self) -> Result<std::collections::BTreeMap<u64, f64>, StoreError> {
+        if !self.node_exists(PRODUCTS) {
+            return Ok(Default::default());
+        }
+        let attrs = self.group_attributes(PRODUCTS)?;
+        Ok(attrs
+            .get("saturated_fraction")
+            .and_then(Value::as_object)
+            .into_iter()
+            .flatten()
+            .filter_map(|(k, v)| Some((k.parse().ok()?, v.as_f64()?)))
+            .collect())
+    }
+
     /// Reads product `name` of `slot`.
     pub fn read_product(&self, name: &str, slot: u64) -> Result<Vec<f32>, StoreError> {
         check_product_name(name)?;

@@ -30,6 +30,8 @@ pub enum Script {
     PauseAbort(u64),
     /// Pause after `n` frames, then detach.
     PauseDetach(u64),
+    /// Abort after `n` frames, while the run is going (no pause first).
+    AbortRunning(u64),
 }
 
 /// Runs `plan` on a new simulated rig; returns the outcome, the states seen and the events.
@@ -88,6 +90,7 @@ fn go_result(
                             | Script::PauseAbort(n)
                             | Script::PauseDetach(n) => Some((n, Control::Pause)),
                             Script::PauseNowResume(n) => Some((n, Control::PauseNow)),
+                            Script::AbortRunning(n) => Some((n, Control::Abort)),
                             Script::Watch => None,
                         };
                         if let Some((n, c)) = trigger {
