@@ -9,8 +9,13 @@ What a reader of the dataset is promised, checked without any of our code:
 - `xarray.open_zarr` opens the `frames` and `products` groups with named dimensions, and
   every array carries a `long_name` (and `units` where it has one);
 - the journal's frame records (RUN_DIR/journal.jsonl) are frames 0..N-1, each once, and the
-  store holds exactly those N frames, each with its metadata (step, kind, hash) equal to the
-  journal's and its pixels hashing (XXH3-64 of the little-endian bytes) to the recorded hash;
+  store holds the first M of them (M = N once the run is finished; a run that stopped without
+  finishing, killed say, mirrors its journal up to its last metadata sync, at most about a
+  second behind, and `acquire resume` catches up), each with its metadata (step, kind, hash)
+  equal to the journal's and its pixels hashing (XXH3-64 of the little-endian bytes) to the
+  recorded hash; every per-frame array holds M values, so xarray opens the group whole;
+- which frames count (frames/accepted 1, frames/status 0) matches the journal: a rejected
+  set's frames have status 1, an unfinished set's taken again whole 2, damaged frames 3;
 - every frame's analyzer span (frames/angle_start_deg, angle_end_deg, angle_source,
   angle_sigma_deg) has one value per frame; the start is in [0, 180) and end - start (the
   span swept, unwrapped from the start) in [0, 180); step-and-shoot frames (source 0) have
@@ -115,10 +120,13 @@ def main(argv):
             problems.append(f"xarray cannot open {group}: {type(e).__name__}: {e}")
 
     pixels = values.get("frames/pixels")
+    # The frames the store mirrors: all N once the run is finished, the first M <= N before.
+    m = n
     if pixels is not None:
-        if pixels.shape[0] != n:
+        m = min(n, pixels.shape[0])
+        if pixels.shape[0] > n or (finished and pixels.shape[0] != n):
             problems.append(f"frames/pixels holds {pixels.shape[0]} frames; the journal {n}")
-        for i in range(min(n, pixels.shape[0])):
+        for i in range(m):
             if i in damaged:
                 continue
             h = xxhash.xxh3_64_intdigest(np.ascontiguousarray(pixels[i], dtype="<u2").tobytes())
@@ -129,18 +137,55 @@ def main(argv):
         if v is None:
             problems.append(f"frames/{name} missing")
             continue
-        if len(v) != n:
-            problems.append(f"frames/{name} has {len(v)} values; the journal {n} frames")
+        if len(v) != m:
+            problems.append(f"frames/{name} has {len(v)} values; frames/pixels {m} frames")
             continue
-        bad = [i for i in range(n) if int(v[i]) != int(frames[i][key])]
+        bad = [i for i in range(m) if int(v[i]) != int(frames[i][key])]
         if bad:
             problems.append(f"frames/{name} differs from the journal at frames {bad[:10]}")
     kinds = values.get("frames/kind")
-    if kinds is not None and len(kinds) == n:
+    if kinds is not None and len(kinds) == m:
         codes = {"light": 0, "dark": 1}
-        bad = [i for i in range(n) if int(kinds[i]) != codes.get(frames[i]["kind"], -1)]
+        bad = [i for i in range(m) if int(kinds[i]) != codes.get(frames[i]["kind"], -1)]
         if bad:
             problems.append(f"frames/kind differs from the journal at frames {bad[:10]}")
+
+    # Which frames count, from the store alone (frames/accepted, frames/status) against the
+    # journal: 0 counts, 1 a rejected set, 2 superseded (an unfinished set taken again), 3
+    # damaged. A run written before frames recorded them has neither array. Before the run
+    # finishes the store may not yet know of a frame superseded since its last sync, so
+    # there only the two arrays' agreement is checked.
+    accepted_flag, status = values.get("frames/accepted"), values.get("frames/status")
+    if (accepted_flag is None) != (status is None):
+        problems.append("frames: only one of accepted and status is stored")
+    elif accepted_flag is not None and (len(accepted_flag) != m or len(status) != m):
+        problems.append(f"frames/accepted and status hold {len(accepted_flag)} and "
+                        f"{len(status)} values; frames/pixels {m} frames")
+    elif accepted_flag is not None and not finished:
+        bad = [i for i in range(m) if int(status[i]) not in (0, 1, 2, 3)
+               or int(accepted_flag[i]) != int(status[i] == 0)]
+        if bad:
+            problems.append(f"frames/accepted and status disagree at frames {bad[:10]}")
+    elif accepted_flag is not None:
+        superseded = set()
+        for e in journal:
+            if e.get("event") == "frames-superseded":
+                superseded.update(e["frames"])
+        want = []
+        for i in range(n):
+            if i in damaged:
+                want.append(3)
+            elif i in superseded:
+                want.append(2)
+            elif i in rejected:
+                want.append(1)
+            else:
+                want.append(0)
+        bad = [i for i in range(n) if int(status[i]) != want[i]
+               or int(accepted_flag[i]) != int(want[i] == 0)]
+        if bad:
+            problems.append(f"frames/accepted or status differ from the journal at frames "
+                            f"{bad[:10]}")
 
     span_names = ("angle_start_deg", "angle_end_deg", "angle_source", "angle_sigma_deg")
     span = {name: values.get(f"frames/{name}") for name in span_names}
@@ -148,9 +193,9 @@ def main(argv):
     if present and len(present) != len(span_names):
         problems.append(f"frames: span arrays {present} present but not all of {span_names}")
     elif present:
-        short = [name for name in span_names if len(span[name]) != n]
+        short = [name for name in span_names if len(span[name]) != m]
         if short:
-            problems.append(f"frames/{short} do not hold one value per frame ({n} frames)")
+            problems.append(f"frames/{short} do not hold one value per frame ({m} frames)")
         else:
             start = np.asarray(span["angle_start_deg"], dtype=float)
             end = np.asarray(span["angle_end_deg"], dtype=float)

@@ -115,10 +115,19 @@ pub fn problem(
                     .join(", "),
             })
     };
-    let materials = [
+    // The target and the background, then every other material of the scene: none of their
+    // frames may saturate.
+    let mut materials = vec![
         pick(Role::Target, target)?,
         pick(Role::Background, background)?,
     ];
+    materials.extend(
+        scene
+            .materials
+            .iter()
+            .filter(|m| m.name != target && m.name != background)
+            .cloned(),
+    );
     let results = polar_model::scene::evaluate(&scene.spec, &materials, tolerance)
         .map_err(|e| ProblemError::Scene(e.to_string()))?;
     let sensor = SensorModel::new(camera, &scene.spec.band)
@@ -132,6 +141,7 @@ pub fn problem(
         sensor,
         target: class(&results[0]),
         background: class(&results[1]),
+        others: results[2..].iter().map(class).collect(),
         camera: settings.camera,
         stage: settings.stage,
         timing_sigma_s: settings.timing_sigma_s,

@@ -7,7 +7,8 @@
 //!   set_0003_dolp.tif ...       float32, one per product image of each processed set
 //!                               (set_0003_slot_0002_dolp.tif if a set number repeats)
 //!   dark_mean.tif               float32, if the run has darks
-//!   frames.csv                  one row per frame record, with a header
+//!   frames.csv                  one row per frame record, with a header: its analyzer
+//!                               span, whether it counts (accepted, status) and its file
 //! ```
 //!
 //! TIFFs are uncompressed, one image per file, so that any viewer opens them.
@@ -87,6 +88,7 @@ fn write_tiff_f32(path: &Path, width: u32, height: u32, data: &[f32]) -> Result<
 
 /// The `frames.csv` header.
 pub const CSV_HEADER: &str = "index,step,kind,set,label,commanded_angle_deg,measured_angle_deg,\
+angle_start_deg,angle_end_deg,angle_source,angle_sigma_deg,accepted,status,\
 exposure_us,gain,host_time_unix_ns,device_timestamp_ns,frame_id,sun_zenith_deg,sun_azimuth_deg,\
 width,height,hash,file";
 
@@ -98,7 +100,7 @@ fn csv_field(s: &str) -> String {
     }
 }
 
-fn csv_row(r: &FrameRecord, file: &str) -> String {
+fn csv_row(r: &FrameRecord, status: u8, file: &str) -> String {
     let opt_f = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
     [
         r.index.to_string(),
@@ -111,6 +113,20 @@ fn csv_row(r: &FrameRecord, file: &str) -> String {
         csv_field(&r.label),
         r.commanded_angle_deg.to_string(),
         r.measured_angle_deg.to_string(),
+        r.angle_start_deg.to_string(),
+        r.angle_end_deg.to_string(),
+        crate::AngleSource::CODES
+            .iter()
+            .find(|(c, _)| *c == r.angle_source.code())
+            .map_or("unknown", |(_, n)| n)
+            .to_string(),
+        r.angle_sigma_deg.to_string(),
+        (status == 0).to_string(),
+        crate::store::STATUS_CODES
+            .iter()
+            .find(|(c, _)| *c == status)
+            .map_or("unknown", |(_, n)| n)
+            .to_string(),
         r.exposure_us.to_string(),
         r.gain.to_string(),
         r.host_time_unix_ns.to_string(),
@@ -188,6 +204,7 @@ pub fn export_tiff(run_dir: &Path, out_dir: &Path) -> Result<ExportSummary, Expo
     }
 
     let records = store.read_frame_metadata().map_err(store_err)?;
+    let status = store.read_frame_status().map_err(store_err)?;
     let csv_path = out_dir.join("frames.csv");
     let file = File::create(&csv_path).map_err(write_err(&csv_path))?;
     let mut csv = BufWriter::new(file);
@@ -198,7 +215,8 @@ pub fn export_tiff(run_dir: &Path, out_dir: &Path) -> Result<ExportSummary, Expo
         } else {
             String::new()
         };
-        writeln!(csv, "{}", csv_row(r, &file)).map_err(write_err(&csv_path))?;
+        let code = status.get(r.index as usize).copied().unwrap_or(0);
+        writeln!(csv, "{}", csv_row(r, code, &file)).map_err(write_err(&csv_path))?;
         summary.csv_rows += 1;
     }
     csv.flush().map_err(write_err(&csv_path))?;

@@ -705,6 +705,27 @@ impl Replay {
     }
 }
 
+/// The stored frames that do not count, by index, with their `frames/status` code
+/// (`store::STATUS_CODES`): 1 a set the suspender rejected, 2 superseded (an unfinished set
+/// taken again whole), 3 found damaged on a resume (a frame with two findings gets the
+/// highest). Every other recorded frame counts.
+pub fn frame_status(entries: &[Entry]) -> std::collections::BTreeMap<u64, u8> {
+    let mut out = std::collections::BTreeMap::new();
+    let mut mark = |index: u64, code: u8| {
+        let c = out.entry(index).or_insert(code);
+        *c = (*c).max(code);
+    };
+    for e in entries {
+        match e {
+            Entry::SetRejected { frames, .. } => frames.iter().for_each(|&i| mark(i, 1)),
+            Entry::FramesSuperseded { frames, .. } => frames.iter().for_each(|&i| mark(i, 2)),
+            Entry::FrameDamaged { index, .. } => mark(*index, 3),
+            _ => {}
+        }
+    }
+    out
+}
+
 /// Reads every entry of `dir/journal.jsonl`. A torn last line is dropped (and reported in
 /// [`Replay::torn_tail`]); a bad line before it is an error naming its line number.
 pub fn replay(dir: &Path) -> Result<Replay, JournalError> {

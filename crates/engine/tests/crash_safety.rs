@@ -372,7 +372,9 @@ fn frames_record_their_span_and_the_outside_check_reads_it() {
         )
     };
     records[3].angle_end_deg = records[3].angle_start_deg - 1.0;
-    store.write_frame_metadata(&records).unwrap();
+    store
+        .write_frame_metadata(&records, &Default::default())
+        .unwrap();
     let (code, text) = check();
     assert_eq!(code, Some(1), "{text}");
     assert!(

@@ -156,7 +156,9 @@ fn write_run(dir: &Path) -> RunStore {
         store.write_frame(i, &pixels(i)).unwrap();
     }
     let records: Vec<FrameRecord> = (0..N).map(record).collect();
-    store.write_frame_metadata(&records).unwrap();
+    store
+        .write_frame_metadata(&records, &Default::default())
+        .unwrap();
     for slot in 0..2u64 {
         let images: Vec<(&str, Vec<f32>)> = PRODUCT_NAMES
             .iter()
@@ -288,7 +290,9 @@ fn store_without_span_arrays_reads_as_step_and_shoot() {
     let store = write_run(&tmp.path().join("again"));
     let mut records: Vec<FrameRecord> = (0..N).map(record).collect();
     records[2].angle_source = AngleSource::Timestamps;
-    store.write_frame_metadata(&records).unwrap();
+    store
+        .write_frame_metadata(&records, &Default::default())
+        .unwrap();
     let back = store.read_frame_metadata().unwrap();
     assert_eq!(back[2].angle_source, AngleSource::Timestamps);
 }
@@ -298,12 +302,14 @@ fn frame_metadata_must_cover_every_index() {
     let tmp = TempDir::new("gaps");
     let store = RunStore::create(tmp.path(), W, H, Map::new()).unwrap();
     let e = store
-        .write_frame_metadata(&[record(0), record(2)])
+        .write_frame_metadata(&[record(0), record(2)], &Default::default())
         .unwrap_err();
     assert!(e.to_string().contains("records[1].index = 2"), "{e}");
     let mut r = record(0);
     r.width = 10;
-    let e = store.write_frame_metadata(&[r]).unwrap_err();
+    let e = store
+        .write_frame_metadata(&[r], &Default::default())
+        .unwrap_err();
     assert!(
         e.to_string().contains("records[0].width x height = 10x48"),
         "{e}"
@@ -325,7 +331,7 @@ fn a_second_reader_sees_new_frames_and_metadata_trims_unrecorded_frames() {
     assert_eq!(reader.frame_count(), 3);
     // Frame 2 was written but never journaled (a crash): the metadata mirrors the journal.
     writer
-        .write_frame_metadata(&[record(0), record(1)])
+        .write_frame_metadata(&[record(0), record(1)], &Default::default())
         .unwrap();
     assert_eq!(reader.frame_count(), 2);
     let v = writer.verify(&[record(0), record(1)]).unwrap();
@@ -420,7 +426,9 @@ fn torn_journal_resumes_into_the_same_frame_index() {
     assert!(!replay.torn_tail);
     let records = replay.frame_records();
     assert_eq!(records.len(), 4);
-    store.write_frame_metadata(&records).unwrap();
+    store
+        .write_frame_metadata(&records, &Default::default())
+        .unwrap();
     let v = store.verify(&records).unwrap();
     assert!(v.is_ok() && v.unrecorded.is_empty(), "{v:?}");
     assert!(same_records(
@@ -577,6 +585,9 @@ fn expected_for_python(store: &RunStore) -> Value {
             col(&|r| json!(r.sun_azimuth_deg)),
         ),
         ("hash", "uint64", col(&|r| json!(r.hash))),
+        // Written with no frame marked as not counting: every frame counts.
+        ("status", "uint8", col(&|_| json!(0))),
+        ("accepted", "uint8", col(&|_| json!(1))),
     ];
     for (name, dtype, values) in small {
         arrays.insert(
@@ -713,7 +724,9 @@ fn write_frame_timing_full_size() {
         })
         .collect();
     let t = Instant::now();
-    store.write_frame_metadata(&records).unwrap();
+    store
+        .write_frame_metadata(&records, &Default::default())
+        .unwrap();
     let meta_ms = t.elapsed().as_secs_f64() * 1e3;
     println!(
         "write_frame {w}x{h} (10 MB, durable): {} ms; read_frame: {read_ms:.1} ms; \
@@ -746,7 +759,9 @@ fn an_index_array_torn_between_chunk_and_metadata_reads_as_its_older_state() {
     for i in N..N + 2 {
         store.write_frame(i, &pixels(i)).unwrap();
     }
-    store.write_frame_metadata(&records).unwrap();
+    store
+        .write_frame_metadata(&records, &Default::default())
+        .unwrap();
     drop(store);
     std::fs::write(&set_meta, older_set_meta).unwrap();
     std::fs::write(&frames_meta, older_frames_meta).unwrap();
@@ -760,7 +775,9 @@ fn an_index_array_torn_between_chunk_and_metadata_reads_as_its_older_state() {
     let err = reopened.read_frame_metadata().unwrap_err().to_string();
     assert!(err.contains("frames/"), "{err}");
     // The next writer rewrites from its own records and everything reads again.
-    reopened.write_frame_metadata(&records).unwrap();
+    reopened
+        .write_frame_metadata(&records, &Default::default())
+        .unwrap();
     assert!(same_records(
         &reopened.read_frame_metadata().unwrap(),
         &records

@@ -140,6 +140,9 @@ pub struct ContinuousProblem {
     pub target: ClassRadiance,
     /// The background class.
     pub background: ClassRadiance,
+    /// The scene's other classes: not in the objective, but no frame of theirs may saturate
+    /// either (a bright metal panel beside the target and background).
+    pub others: Vec<ClassRadiance>,
     /// The camera's limits.
     pub camera: CameraLimits,
     /// The stage's limits.
@@ -430,18 +433,17 @@ pub fn dolp_sigma_delta(s: &Vector3<f64>, cov: &Matrix3<f64>) -> f64 {
     }
 }
 
-/// Whether either class's brightest frame, span `d`, exposure `t`, is within the margin of
-/// saturation; and the worst peak as a fraction of saturation.
+/// The brightest frame of every class of the scene (target, background and the others), span
+/// `d`, exposure `t`, with its margin, as a fraction of saturation.
 fn peak_fraction(p: &ContinuousProblem, lim: &Limits, d: f64, t: f64) -> Result<f64, PlanError> {
     let sat = p.sensor.camera().saturation_dn() * lim.saturation_scale;
     let mut worst: f64 = 0.0;
-    for class in [&p.target, &p.background] {
+    let classes = [("target", &p.target), ("background", &p.background)]
+        .into_iter()
+        .chain(p.others.iter().map(|c| ("scene material", c)));
+    for (role, class) in classes {
         let (mean, sd) = span_peak(&p.sensor, d, t, &class.mean_w_m2_sr, &class.cov_w2_m4_sr2)
-            .map_err(model(if std::ptr::eq(class, &p.target) {
-                "target"
-            } else {
-                "background"
-            }))?;
+            .map_err(model(role))?;
         worst = worst.max((mean + lim.camera.saturation_sigma * sd) / sat);
     }
     Ok(worst)
@@ -974,6 +976,7 @@ mod tests {
             sensor: sensor(),
             target: class("panel", [30.0, 6.0, 3.0]),
             background: class("roof", [28.0, 1.0, 0.5]),
+            others: Vec::new(),
             camera: CameraLimits {
                 min_exposure_s: 10e-6,
                 max_exposure_s: 1.0,
@@ -1087,6 +1090,45 @@ mod tests {
             b.message.contains("frame rate") && b.message.contains("20 Hz"),
             "{}",
             b.message
+        );
+    }
+
+    /// A scene material brighter than the target and the background (a metal panel, twice the
+    /// target's radiance) limits the exposure too: with it among the others the planner picks
+    /// a shorter exposure, and its brightest frame, margin included, stays within saturation
+    /// (the same 1e-9 relative the saturation bisection reaches).
+    #[test]
+    fn every_scene_material_stays_below_saturation() {
+        let alone = plan_continuous(&problem(1.0, TIME)).unwrap();
+        let mut p = problem(1.0, TIME);
+        let mut metal = p.target.clone();
+        metal.name = "metal".into();
+        metal.mean_w_m2_sr *= 2.0;
+        p.others.push(metal.clone());
+        let c = plan_continuous(&p).unwrap();
+        assert!(
+            c.exposure_s < alone.exposure_s,
+            "{} s with the metal, {} s without",
+            c.exposure_s,
+            alone.exposure_s
+        );
+        let (mean, sd) = span_peak(
+            &p.sensor,
+            c.span_rad,
+            c.exposure_s,
+            &metal.mean_w_m2_sr,
+            &metal.cov_w2_m4_sr2,
+        )
+        .unwrap();
+        let peak = (mean + p.camera.saturation_sigma * sd) / p.sensor.camera().saturation_dn();
+        assert!(
+            peak <= 1.0 + 1e-9,
+            "the metal's peak is {peak} of saturation"
+        );
+        assert!(
+            (c.peak_fraction - peak).abs() < 1e-9,
+            "{} {peak}",
+            c.peak_fraction
         );
     }
 

@@ -374,15 +374,31 @@ impl Writer {
         }
     }
 
+    /// Mirrors the journal's frame records into the store's metadata, with which of them
+    /// count (`frames/accepted`, `frames/status`, from the journal's rejected, superseded and
+    /// damaged frames).
+    pub(super) fn sync_metadata(&self) -> Result<(), String> {
+        let dir = self
+            .journal
+            .path()
+            .parent()
+            .ok_or_else(|| "the journal has no folder".to_string())?;
+        let entries = crate::journal::replay(dir)
+            .map_err(|e| format!("journal: {e}"))?
+            .entries;
+        let status = crate::journal::frame_status(&entries);
+        let records: Vec<FrameRecord> = self.records.values().cloned().collect();
+        self.store
+            .write_frame_metadata(&records, &status)
+            .map_err(|e| format!("frame metadata: {e}"))
+    }
+
     pub(super) fn finish(
         &mut self,
         summary: Value,
         checks: &FinishChecks,
     ) -> Result<Value, String> {
-        let records: Vec<FrameRecord> = self.records.values().cloned().collect();
-        self.store
-            .write_frame_metadata(&records)
-            .map_err(|e| format!("frame metadata: {e}"))?;
+        self.sync_metadata()?;
         // Planned against written.
         let missing: Vec<u64> = checks
             .planned_steps
@@ -402,8 +418,9 @@ impl Writer {
                  steps not planned {extra:?}"
             ));
         }
-        let intact: Vec<FrameRecord> = records
-            .iter()
+        let intact: Vec<FrameRecord> = self
+            .records
+            .values()
             .filter(|r| !checks.damaged.contains(&r.index))
             .cloned()
             .collect();
@@ -435,7 +452,7 @@ impl Writer {
         self.store
             .set_attribute("state", json!("done"))
             .map_err(|e| format!("state: {e}"))?;
-        let frames = records.len() as u64;
+        let frames = self.records.len() as u64;
         self.journal
             .append(&Entry::Finished { frames })
             .map_err(|e| format!("journal: {e}"))?;
@@ -513,9 +530,8 @@ pub(super) fn spawn_writer(mut writer: Writer) -> Result<WriterEnds, RunError> {
                         }
                     }
                     ToStore::SyncMetadata => {
-                        let records: Vec<FrameRecord> = writer.records.values().cloned().collect();
-                        if let Err(e) = writer.store.write_frame_metadata(&records) {
-                            let _ = back.send(FromStore::Failed(format!("frame metadata: {e}")));
+                        if let Err(e) = writer.sync_metadata() {
+                            let _ = back.send(FromStore::Failed(e));
                         }
                     }
                     ToStore::Attribute { key, value, reply } => {

@@ -66,9 +66,16 @@ impl RunStore {
     /// `records`, which must be sorted by index and cover `0..N` without gaps, and resizes
     /// `frames/pixels` to N frames: the journal is the truth, the store mirrors it.
     ///
+    /// `status` holds the frames that do not count, by index, with their `frames/status` code
+    /// ([`crate::journal::frame_status`]); every other frame counts (`frames/accepted` 1).
+    ///
     /// Each call rewrites every array (O(N), about 30 small synced files): call it at set
     /// boundaries and at the end, not for every frame.
-    pub fn write_frame_metadata(&self, records: &[FrameRecord]) -> Result<(), StoreError> {
+    pub fn write_frame_metadata(
+        &self,
+        records: &[FrameRecord],
+        status: &std::collections::BTreeMap<u64, u8>,
+    ) -> Result<(), StoreError> {
         let n = records.len();
         let mut kind = Vec::with_capacity(n);
         let mut step = Vec::with_capacity(n);
@@ -240,6 +247,21 @@ impl RunStore {
             0u64,
             &hash,
         )?;
+        let codes: Vec<u8> = (0..n)
+            .map(|i| status.get(&i).copied().unwrap_or(0))
+            .collect();
+        let accepted: Vec<u8> = codes.iter().map(|&c| u8::from(c == 0)).collect();
+        for (node, values) in [("/frames/status", &codes), ("/frames/accepted", &accepted)] {
+            self.write_whole(
+                node,
+                vec![n],
+                index_chunk(1),
+                &dims,
+                data_type::uint8(),
+                0u8,
+                values,
+            )?;
+        }
         self.update_group_attribute(FRAMES, "labels", Value::Array(labels))?;
 
         let mut array = lock(&self.pixels);
@@ -352,6 +374,15 @@ impl RunStore {
                 message: "its chunks do not cover its shape".into(),
             })?;
         Ok((shape, values))
+    }
+
+    /// Each frame's `frames/status` code (0: it counts); empty for a store written before
+    /// frames recorded it.
+    pub fn read_frame_status(&self) -> Result<Vec<u8>, StoreError> {
+        if !self.node_exists(&format!("{FRAMES}/status")) {
+            return Ok(Vec::new());
+        }
+        Ok(self.read_whole::<u8>(&format!("{FRAMES}/status"))?.1)
     }
 
     /// Reads the per-frame metadata back as frame records (labels from the `labels`

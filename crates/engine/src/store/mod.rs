@@ -89,6 +89,7 @@ mod durable;
 mod metadata;
 mod products;
 mod schema;
+pub use schema::STATUS_CODES;
 
 pub use schema::{conventions, HASH_ALGORITHM, KIND_CODES};
 
@@ -423,7 +424,7 @@ impl RunStore {
             products: Mutex::new(None),
             attrs: Mutex::new(()),
         };
-        rs.write_frame_metadata(&[])?;
+        rs.write_frame_metadata(&[], &Default::default())?;
         rs.write_product_index(&[], &[])?;
         Ok(rs)
     }

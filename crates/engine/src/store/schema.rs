@@ -18,6 +18,14 @@ use zarrs::array::{
 /// The frame-kind codes of `frames/kind`.
 pub const KIND_CODES: [(u8, &str); 2] = [(0, "light"), (1, "dark")];
 
+/// The codes of `frames/status`: whether a stored frame counts, and why not.
+pub const STATUS_CODES: [(u8, &str); 4] = [
+    (0, "counts"),
+    (1, "rejected_set"),
+    (2, "superseded"),
+    (3, "damaged"),
+];
+
 /// The hash of `frames/hash`.
 pub const HASH_ALGORITHM: &str = "XXH3-64 of the frame's little-endian uint16 pixel bytes";
 
@@ -36,6 +44,8 @@ pub fn conventions() -> Value {
         "angle_source_codes": AngleSource::CODES.iter().map(|(c, n)| (c.to_string(), json!(n)))
             .collect::<Map<String, Value>>(),
         "frame_kind_codes": KIND_CODES.iter().map(|(c, n)| (c.to_string(), json!(n)))
+            .collect::<Map<String, Value>>(),
+        "frame_status_codes": STATUS_CODES.iter().map(|(c, n)| (c.to_string(), json!(n)))
             .collect::<Map<String, Value>>(),
         "hash_algorithm": HASH_ALGORITHM,
         "host_time_epoch": "1970-01-01T00:00:00Z (UTC, the host's clock)",
@@ -132,6 +142,27 @@ pub fn attributes(node: &str) -> Map<String, Value> {
             Some("degree"),
             "sun azimuth at the frame, from north through east (NaN: none)",
         ),
+        "accepted" => a(
+            None,
+            "1: the frame counts (its set's products use it); 0: stored but superseded, \
+             frames/status says why",
+        ),
+        "status" => {
+            let mut m = a(None, "whether the frame counts, and why not");
+            m.insert(
+                "flag_values".into(),
+                json!(STATUS_CODES.iter().map(|k| k.0).collect::<Vec<_>>()),
+            );
+            m.insert(
+                "flag_meanings".into(),
+                json!(STATUS_CODES
+                    .iter()
+                    .map(|k| k.1)
+                    .collect::<Vec<_>>()
+                    .join(" ")),
+            );
+            m
+        }
         "hash" => {
             let mut m = a(None, "hash of the frame's pixels");
             m.insert("hash_algorithm".into(), json!(HASH_ALGORITHM));
