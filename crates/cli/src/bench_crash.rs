@@ -4,7 +4,9 @@
 //! until they finish. Each finished dataset is then checked by [`polar_engine::check`] and,
 //! given a Python with zarr, xarray and xxhash, from the outside by `scripts/check_run.py`
 //! (every array readable by zarr-python, frames as planned, no duplicate frame or product
-//! slot, every frame's metadata present, hashes equal to the journal's).
+//! slot, every frame's metadata present, hashes equal to the journal's); with that Python,
+//! every interrupted dataset is also checked from the outside before its resume (xarray
+//! opens both groups whole; the store mirrors the journal's first frames).
 
 use crate::commands::CommandError;
 use polar_engine::journal::replay;
@@ -156,6 +158,13 @@ pub struct KindTally {
     pub kills_in_resume: u32,
     /// Ctrl-C pauses (then resumed).
     pub pauses: u32,
+    /// Interrupted datasets checked from the outside (zarr-python and xarray open them
+    /// whole) before their resume.
+    pub checked_before_resume: u32,
+    /// Of those, how many passed.
+    pub passed_before_resume: u32,
+    /// What the outside check found in the others (dataset and finding).
+    pub before_resume_findings: Vec<String>,
     /// Datasets that passed every check.
     pub passed: u32,
     /// What failed (dataset and finding).
@@ -171,6 +180,10 @@ pub struct CrashReport {
     pub kills: u32,
     /// Datasets in all.
     pub datasets: u32,
+    /// Interrupted datasets checked from the outside before their resume, in all.
+    pub checked_before_resume: u32,
+    /// Of those, how many passed.
+    pub passed_before_resume: u32,
     /// Datasets that passed every check.
     pub passed: u32,
     /// The outside checker ran (zarr-python, xarray).
@@ -268,7 +281,8 @@ fn one_dataset(
         if *kills_left > 0 && attempt < 30 && dice.chance(0.8) {
             let after = Duration::from_millis(30 + dice.index(1200) as u64);
             let ctrl_c = dice.chance(0.2);
-            match interrupt_after(&mut child, after, ctrl_c) {
+            let ended = interrupt_after(&mut child, after, ctrl_c);
+            match ended {
                 Ended::Exited => {}
                 Ended::Interrupted => tally.pauses += 1,
                 Ended::Killed => {
@@ -279,6 +293,9 @@ fn one_dataset(
                         tally.kills_in_resume += 1;
                     }
                 }
+            }
+            if !matches!(ended, Ended::Exited) {
+                check_interrupted(cfg, dir, tally);
             }
         } else if !wait_for(&mut child, Duration::from_secs(120))? && !paused(dir) {
             return Ok(Some(format!(
@@ -306,6 +323,29 @@ fn paused(dir: &Path) -> bool {
             Some(polar_engine::journal::Entry::Paused { .. })
         )
     })
+}
+
+/// Checks an interrupted dataset from the outside, before its resume (if a Python is
+/// configured and the run has started): zarr-python reads every array and xarray opens both
+/// groups whole.
+fn check_interrupted(cfg: &CrashConfig, dir: &Path, tally: &mut KindTally) {
+    let Some((py, script)) = &cfg.outside else {
+        return;
+    };
+    if !replay(dir).is_ok_and(|r| r.run_started().is_some()) {
+        return;
+    }
+    tally.checked_before_resume += 1;
+    match Command::new(py).arg(script).arg(dir).output() {
+        Ok(o) if o.status.success() => tally.passed_before_resume += 1,
+        Ok(o) => tally.before_resume_findings.push(format!(
+            "{} (interrupted, before its resume): check_run.py: {}{}",
+            dir.display(),
+            String::from_utf8_lossy(&o.stdout).trim(),
+            String::from_utf8_lossy(&o.stderr).trim()
+        )),
+        Err(e) => tally.failures.push(format!("{}: {py}: {e}", dir.display())),
+    }
 }
 
 /// Checks a finished dataset: the engine's check and, if configured, the outside one.
@@ -394,6 +434,8 @@ pub fn campaign(cfg: &CrashConfig) -> Result<CrashReport, CommandError> {
             .map(|k| k.kills_in_run + k.kills_in_resume)
             .sum(),
         datasets: kinds.iter().map(|k| k.datasets).sum(),
+        checked_before_resume: kinds.iter().map(|k| k.checked_before_resume).sum(),
+        passed_before_resume: kinds.iter().map(|k| k.passed_before_resume).sum(),
         passed: kinds.iter().map(|k| k.passed).sum(),
         outside_checked: cfg.outside.is_some(),
         elapsed_s: t0.elapsed().as_secs_f64(),
@@ -404,13 +446,21 @@ pub fn campaign(cfg: &CrashConfig) -> Result<CrashReport, CommandError> {
 /// The report as a Markdown table (one row per plan kind) and the failures.
 pub fn markdown(r: &CrashReport) -> String {
     let mut s = String::from(
-        "| plan kind | datasets | SIGKILL in run | SIGKILL in resume | Ctrl-C pauses | passed |\n\
-         |---|---:|---:|---:|---:|---:|\n",
+        "| plan kind | datasets | SIGKILL in run | SIGKILL in resume | Ctrl-C pauses | \
+         opened whole before resume | passed |\n\
+         |---|---:|---:|---:|---:|---:|---:|\n",
     );
     for k in &r.kinds {
         s.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} |\n",
-            k.kind, k.datasets, k.kills_in_run, k.kills_in_resume, k.pauses, k.passed
+            "| {} | {} | {} | {} | {} | {}/{} | {} |\n",
+            k.kind,
+            k.datasets,
+            k.kills_in_run,
+            k.kills_in_resume,
+            k.pauses,
+            k.passed_before_resume,
+            k.checked_before_resume,
+            k.passed
         ));
     }
     s.push_str(&format!(
@@ -428,6 +478,9 @@ pub fn markdown(r: &CrashReport) -> String {
     for k in &r.kinds {
         for f in &k.failures {
             s.push_str(&format!("- {}: {f}\n", k.kind));
+        }
+        for f in &k.before_resume_findings {
+            s.push_str(&format!("- {} (repaired by its resume): {f}\n", k.kind));
         }
     }
     s

@@ -711,19 +711,24 @@ impl Replay {
 /// highest). Every other recorded frame counts.
 pub fn frame_status(entries: &[Entry]) -> std::collections::BTreeMap<u64, u8> {
     let mut out = std::collections::BTreeMap::new();
-    let mut mark = |index: u64, code: u8| {
-        let c = out.entry(index).or_insert(code);
-        *c = (*c).max(code);
-    };
     for e in entries {
-        match e {
-            Entry::SetRejected { frames, .. } => frames.iter().for_each(|&i| mark(i, 1)),
-            Entry::FramesSuperseded { frames, .. } => frames.iter().for_each(|&i| mark(i, 2)),
-            Entry::FrameDamaged { index, .. } => mark(*index, 3),
-            _ => {}
-        }
+        mark_frame_status(&mut out, e);
     }
     out
+}
+
+/// Adds what `entry` says of which frames count to `status` (see [`frame_status`]).
+pub fn mark_frame_status(status: &mut std::collections::BTreeMap<u64, u8>, entry: &Entry) {
+    let mut mark = |index: u64, code: u8| {
+        let c = status.entry(index).or_insert(code);
+        *c = (*c).max(code);
+    };
+    match entry {
+        Entry::SetRejected { frames, .. } => frames.iter().for_each(|&i| mark(i, 1)),
+        Entry::FramesSuperseded { frames, .. } => frames.iter().for_each(|&i| mark(i, 2)),
+        Entry::FrameDamaged { index, .. } => mark(*index, 3),
+        _ => {}
+    }
 }
 
 /// Reads every entry of `dir/journal.jsonl`. A torn last line is dropped (and reported in

@@ -319,6 +319,10 @@ fn frame_metadata_must_cover_every_index() {
     assert_eq!(store.frame_count(), 0);
 }
 
+/// Frames become part of the group (frames/pixels' shape on disk) when the metadata mirrors
+/// the journal, so a reader such as xarray always finds every per-frame array as long as the
+/// pixels; a frame written since reads from its chunk by index, and a store reopened after a
+/// crash verifies the frames the journal records past the shape on disk.
 #[test]
 fn a_second_reader_sees_new_frames_and_metadata_trims_unrecorded_frames() {
     let tmp = TempDir::new("reader");
@@ -328,17 +332,36 @@ fn a_second_reader_sees_new_frames_and_metadata_trims_unrecorded_frames() {
         writer.write_frame(i, &pixels(i)).unwrap();
     }
     assert_eq!(reader.read_frame(2).unwrap(), pixels(2));
-    assert_eq!(reader.frame_count(), 3);
+    assert_eq!(reader.frame_count(), 0);
+    assert_eq!(writer.frame_count(), 3);
     // Frame 2 was written but never journaled (a crash): the metadata mirrors the journal.
     writer
         .write_frame_metadata(&[record(0), record(1)], &Default::default())
         .unwrap();
     assert_eq!(reader.frame_count(), 2);
+    assert_eq!(writer.frame_count(), 2);
     let v = writer.verify(&[record(0), record(1)]).unwrap();
     assert!(v.is_ok(), "{v:?}");
     // Taking the step again overwrites the chunk.
     writer.write_frame(2, &pixels(4)).unwrap();
     assert_eq!(reader.read_frame(2).unwrap(), pixels(4));
+    // Frames 2 and 3 journaled, then a crash before the next sync: the shape on disk says 2,
+    // and a store opened for the resume finds both.
+    writer.write_frame(3, &pixels(3)).unwrap();
+    drop(writer);
+    let mut r2 = record(2);
+    r2.hash = polar_engine::pixel_hash(&pixels(4));
+    let resumed = RunStore::open(tmp.path()).unwrap();
+    assert_eq!(resumed.frame_count(), 2);
+    let v = resumed
+        .verify(&[record(0), record(1), r2.clone(), record(3)])
+        .unwrap();
+    assert!(v.is_ok() && v.ok == 4, "{v:?}");
+    // A frame nobody wrote is past the store's frames, not a chunk gone missing.
+    let v = resumed
+        .verify(&[record(0), record(1), r2, record(3), record(4)])
+        .unwrap();
+    assert_eq!(v.missing, vec![4], "{v:?}");
 }
 
 #[test]

@@ -266,7 +266,7 @@ where
         &rig.camera_model,
         records.clone(),
         HashMap::new(),
-    );
+    )?;
     let (to_store, from_store, writer_thread) = spawn_writer(writer)?;
     if resume {
         to_store

@@ -514,7 +514,7 @@ where
         &rig.camera_model,
         records.clone(),
         darks,
-    );
+    )?;
     let reader = RunStore::open(run_dir)?;
     let (to_store, from_store, writer_thread) = spawn_writer(writer)?;
     if resume {

@@ -13,8 +13,9 @@ pub(super) enum ToStore {
     },
     Entry(Entry),
     ProcessSet(SetJob),
-    /// Mirror the journal's frame records into the store's metadata arrays (at pauses and
-    /// the end; the journal is the truth in between).
+    /// Mirror the journal's frame records into the store's metadata arrays now (at a pause;
+    /// the storage thread also does at set boundaries, at most about once a second, and at
+    /// the end: the journal is the truth in between).
     SyncMetadata,
     Attribute {
         key: String,
@@ -78,6 +79,10 @@ pub(super) struct Writer {
     pub(super) threads: usize,
     /// Sum and count of dark frames by exposure (bits of the f64).
     pub(super) darks: HashMap<u64, (Vec<f64>, u32)>,
+    /// The frames that do not count, with their `frames/status` code (from the journal).
+    pub(super) status: BTreeMap<u64, u8>,
+    /// When the metadata last mirrored the journal, and how long that took.
+    pub(super) last_sync: Option<(Instant, Duration)>,
 }
 
 impl Writer {
@@ -91,8 +96,16 @@ impl Writer {
         camera_model: &CameraModel,
         records: BTreeMap<u64, FrameRecord>,
         darks: HashMap<u64, (Vec<f64>, u32)>,
-    ) -> Writer {
-        Writer {
+    ) -> Result<Writer, RunError> {
+        // Which recorded frames count so far: the journal as it stands (with the damaged
+        // frames this resume found).
+        let dir = journal
+            .path()
+            .parent()
+            .map(Path::to_path_buf)
+            .unwrap_or_default();
+        let status = crate::journal::frame_status(&crate::journal::replay(&dir)?.entries);
+        Ok(Writer {
             store,
             journal,
             sensor: sensor.clone(),
@@ -104,7 +117,18 @@ impl Writer {
             last_s0: HashMap::new(),
             threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
             darks,
-        }
+            status,
+            last_sync: None,
+        })
+    }
+
+    /// Appends `entry` to the journal, noting which frames it says do not count.
+    pub(super) fn append(&mut self, entry: &Entry) -> Result<(), String> {
+        self.journal
+            .append(entry)
+            .map_err(|e| format!("journal: {e}"))?;
+        crate::journal::mark_frame_status(&mut self.status, entry);
+        Ok(())
     }
 
     pub(super) fn pixels(&mut self, index: u64) -> Result<Vec<u16>, String> {
@@ -251,13 +275,11 @@ impl Writer {
                 })
                 .map_err(|e| format!("journal: {e}"))?;
         } else {
-            self.journal
-                .append(&Entry::SetRejected {
-                    set: job.set,
-                    frames: job.frames.clone(),
-                    reason: verdict.reason.clone(),
-                })
-                .map_err(|e| format!("journal: {e}"))?;
+            self.append(&Entry::SetRejected {
+                set: job.set,
+                frames: job.frames.clone(),
+                reason: verdict.reason.clone(),
+            })?;
         }
         for i in &job.frames {
             self.cache.remove(i);
@@ -377,20 +399,28 @@ impl Writer {
     /// Mirrors the journal's frame records into the store's metadata, with which of them
     /// count (`frames/accepted`, `frames/status`, from the journal's rejected, superseded and
     /// damaged frames).
-    pub(super) fn sync_metadata(&self) -> Result<(), String> {
-        let dir = self
-            .journal
-            .path()
-            .parent()
-            .ok_or_else(|| "the journal has no folder".to_string())?;
-        let entries = crate::journal::replay(dir)
-            .map_err(|e| format!("journal: {e}"))?
-            .entries;
-        let status = crate::journal::frame_status(&entries);
+    pub(super) fn sync_metadata(&mut self) -> Result<(), String> {
+        let t0 = Instant::now();
         let records: Vec<FrameRecord> = self.records.values().cloned().collect();
         self.store
-            .write_frame_metadata(&records, &status)
-            .map_err(|e| format!("frame metadata: {e}"))
+            .write_frame_metadata(&records, &self.status)
+            .map_err(|e| format!("frame metadata: {e}"))?;
+        self.last_sync = Some((t0, t0.elapsed()));
+        Ok(())
+    }
+
+    /// At a set boundary: mirrors the metadata if at least [`SYNC_INTERVAL`], and ten times
+    /// the last mirror's own duration, have passed since it was last mirrored. A reader
+    /// (xarray, say) then sees the run whole up to about a second behind, even after a
+    /// crash, for at most a tenth of the storage thread's time as the run grows.
+    fn sync_if_due(&mut self) -> Result<(), String> {
+        let due = self
+            .last_sync
+            .is_none_or(|(at, took)| at.elapsed() >= SYNC_INTERVAL.max(took * 10));
+        if due {
+            self.sync_metadata()?;
+        }
+        Ok(())
     }
 
     pub(super) fn finish(
@@ -482,6 +512,9 @@ pub(super) type WriterEnds = (
     std::thread::JoinHandle<()>,
 );
 
+/// The least time between two metadata syncs at set boundaries ([`Writer::sync_if_due`]).
+const SYNC_INTERVAL: Duration = Duration::from_secs(1);
+
 pub(super) fn spawn_writer(mut writer: Writer) -> Result<WriterEnds, RunError> {
     // Two frames in flight at most: the grab loop never runs far ahead of the disk.
     let (tx, rx) = std::sync::mpsc::sync_channel::<ToStore>(2);
@@ -504,8 +537,8 @@ pub(super) fn spawn_writer(mut writer: Writer) -> Result<WriterEnds, RunError> {
                         }
                     }
                     ToStore::Entry(e) => {
-                        if let Err(e) = writer.journal.append(&e) {
-                            let _ = back.send(FromStore::Failed(format!("journal: {e}")));
+                        if let Err(e) = writer.append(&e) {
+                            let _ = back.send(FromStore::Failed(e));
                         } else if let Entry::SetLate { .. } = &e {
                             let v = serde_json::to_value(&e).unwrap_or(Value::Null);
                             if let Err(e) = writer.store.push_late_set(v) {
@@ -516,7 +549,10 @@ pub(super) fn spawn_writer(mut writer: Writer) -> Result<WriterEnds, RunError> {
                     ToStore::ProcessSet(job) => {
                         let set = job.set;
                         let _s = info_span!("products", set).entered();
-                        match writer.process(job) {
+                        match writer.process(job).and_then(|r| {
+                            writer.sync_if_due()?;
+                            Ok(r)
+                        }) {
                             Ok((verdict, mean_dolp)) => {
                                 let _ = back.send(FromStore::SetChecked {
                                     set,

@@ -12,7 +12,48 @@ impl DurableStore {
         Ok(DurableStore {
             inner,
             root: root.to_path_buf(),
+            batch: Mutex::new(None),
         })
+    }
+
+    /// From now until [`Self::commit_batch`], this thread's writes are written and synced
+    /// to their temporary files but not renamed over their targets: readers keep seeing the
+    /// old files.
+    pub(super) fn begin_batch(&self) {
+        *lock(&self.batch) = Some(Batch {
+            thread: std::thread::current().id(),
+            renames: Vec::new(),
+        });
+    }
+
+    /// Renames every held-back write over its target, in write order, then syncs each
+    /// directory once: the files change together, within microseconds, so a reader (or a
+    /// crash) almost never sees some new and some old. With `keep` false (a write of the
+    /// batch failed) the temporary files are removed and the targets keep their old content.
+    pub(super) fn commit_batch(&self, keep: bool) -> std::io::Result<()> {
+        let Some(batch) = lock(&self.batch).take() else {
+            return Ok(());
+        };
+        if !keep {
+            for (tmp, _) in &batch.renames {
+                let _ = std::fs::remove_file(tmp);
+            }
+            return Ok(());
+        }
+        let mut dirs = BTreeSet::new();
+        for (i, (tmp, path)) in batch.renames.iter().enumerate() {
+            if let Err(e) = std::fs::rename(tmp, path) {
+                for (tmp, _) in &batch.renames[i..] {
+                    let _ = std::fs::remove_file(tmp);
+                }
+                return Err(e);
+            }
+            dirs.insert(path.parent().unwrap_or(&self.root).to_path_buf());
+        }
+        for d in dirs {
+            File::open(&d)?.sync_all()?;
+        }
+        Ok(())
     }
 
     fn write_atomic(&self, path: &Path, bytes: &[u8]) -> std::io::Result<()> {
@@ -31,6 +72,13 @@ impl DurableStore {
             f.write_all(bytes)?;
             f.sync_all()?;
             drop(f);
+            if let Some(batch) = lock(&self.batch)
+                .as_mut()
+                .filter(|b| b.thread == std::thread::current().id())
+            {
+                batch.renames.push((tmp.clone(), path.to_path_buf()));
+                return Ok(());
+            }
             std::fs::rename(&tmp, path)?;
             File::open(parent)?.sync_all()
         })();
@@ -39,6 +87,13 @@ impl DurableStore {
         }
         result
     }
+}
+
+/// Writes held back by [`DurableStore::begin_batch`].
+#[derive(Debug)]
+pub(super) struct Batch {
+    thread: std::thread::ThreadId,
+    renames: Vec<(PathBuf, PathBuf)>,
 }
 
 /// Creates `dir` and its missing ancestors, syncing the parent of each directory created so

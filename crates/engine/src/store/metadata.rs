@@ -70,8 +70,23 @@ impl RunStore {
     /// ([`crate::journal::frame_status`]); every other frame counts (`frames/accepted` 1).
     ///
     /// Each call rewrites every array (O(N), about 30 small synced files): call it at set
-    /// boundaries and at the end, not for every frame.
+    /// boundaries and at the end, not for every frame. The files are written and synced
+    /// first and renamed into place together at the end, so a reader (or a crash) finds
+    /// every per-frame array and frames/pixels at one length, the old or the new.
     pub fn write_frame_metadata(
+        &self,
+        records: &[FrameRecord],
+        status: &std::collections::BTreeMap<u64, u8>,
+    ) -> Result<(), StoreError> {
+        self.store.begin_batch();
+        let written = self.write_frame_metadata_files(records, status);
+        self.store
+            .commit_batch(written.is_ok())
+            .map_err(io_err(&self.path, "renaming the frame metadata into place"))?;
+        written
+    }
+
+    fn write_frame_metadata_files(
         &self,
         records: &[FrameRecord],
         status: &std::collections::BTreeMap<u64, u8>,
@@ -264,16 +279,16 @@ impl RunStore {
         }
         self.update_group_attribute(FRAMES, "labels", Value::Array(labels))?;
 
+        // frames/pixels last: its shape on disk is what readers take as the frame count.
         let mut array = lock(&self.pixels);
-        let count = array.shape().first().copied().unwrap_or(0);
-        if count != n {
-            let resized = pixels_array(&self.store, n, self.width, self.height)
-                .map_err(zarr_err(self.node(PIXELS), "resizing"))?;
-            resized
-                .store_metadata()
-                .map_err(zarr_err(self.node(PIXELS), "writing the array metadata"))?;
-            *array = resized;
-        }
+        let resized = pixels_array(&self.store, n, self.width, self.height)
+            .map_err(zarr_err(self.node(PIXELS), "resizing"))?;
+        resized
+            .store_metadata()
+            .map_err(zarr_err(self.node(PIXELS), "writing the array metadata"))?;
+        *array = resized;
+        self.pixels_ahead
+            .store(false, std::sync::atomic::Ordering::SeqCst);
         Ok(())
     }
 

@@ -75,11 +75,13 @@
 //! Attribute updates are read-modify-write of a group's `zarr.json`: serialised within one
 //! `RunStore`, not across `RunStore`s or processes (the run has one writer).
 //!
-//! [`RunStore::write_frame`] stores the chunk first and grows `frames/pixels` afterwards, so a
-//! frame is either stored and visible or invisible. A frame counts once its journal entry is
-//! written (after `write_frame` returns); [`RunStore::write_frame_metadata`] resizes
-//! `frames/pixels` to the frames the journal records, hiding a frame written by a process that
-//! crashed before journaling it.
+//! [`RunStore::write_frame`] stores the chunk only; [`RunStore::write_frame_metadata`] (at set
+//! boundaries, pauses and the end) writes every per-frame array and then resizes
+//! `frames/pixels` to the frames the journal records, renaming the synced files into place
+//! together: the frames group always has one length (xarray opens it whole, a killed run
+//! included), frames written since the last mirror read by index from their chunks, and a
+//! frame written by a process that crashed before journaling it stays hidden. A frame counts
+//! once its journal entry is written (after `write_frame` returns).
 //!
 //! A `RunStore` may be used from several threads (`&self` methods; the arrays are held behind
 //! mutexes), and several `RunStore`s may be open on one run (one writer, any readers: readers
@@ -100,7 +102,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::fs::File;
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use zarrs::array::builder::ArrayBuilderFillValue;
 use zarrs::array::{
@@ -306,6 +308,10 @@ pub struct RunStore {
     width: u32,
     height: u32,
     pixels: Mutex<Array<DurableStore>>,
+    /// This instance holds frames past the `frames/pixels` shape on disk (written, or looked
+    /// for by [`RunStore::verify`], since the metadata last mirrored the journal): it keeps
+    /// its own shape instead of re-reading the disk's.
+    pixels_ahead: AtomicBool,
     products: Mutex<Option<ProductsState>>,
     /// Serialises read-modify-write of group attributes within this process.
     attrs: Mutex<()>,
@@ -421,6 +427,7 @@ impl RunStore {
             width,
             height,
             pixels: Mutex::new(pixels),
+            pixels_ahead: AtomicBool::new(false),
             products: Mutex::new(None),
             attrs: Mutex::new(()),
         };
@@ -461,6 +468,7 @@ impl RunStore {
             width,
             height,
             pixels: Mutex::new(pixels),
+            pixels_ahead: AtomicBool::new(false),
             products: Mutex::new(None),
             attrs: Mutex::new(()),
         })
@@ -517,15 +525,15 @@ impl RunStore {
         if index < count {
             return self.store_frame_chunk(&array, index, pixels);
         }
-        // The chunk first, then the larger shape: a crash in between leaves the frame
-        // invisible, never a visible frame without its pixels.
+        // The chunk only: the shape on disk grows when the metadata mirrors the journal
+        // (`write_frame_metadata`), so every per-frame array and frames/pixels always have
+        // one length and the group opens whole (a crash leaves the frame invisible until a
+        // resume, never a visible frame without its pixels or its metadata).
         let grown = pixels_array(&self.store, index + 1, self.width, self.height)
             .map_err(zarr_err(self.node(PIXELS), "growing"))?;
         self.store_frame_chunk(&grown, index, pixels)?;
-        grown
-            .store_metadata()
-            .map_err(zarr_err(self.node(PIXELS), "writing the array metadata"))?;
         *array = grown;
+        self.pixels_ahead.store(true, Ordering::SeqCst);
         Ok(())
     }
 
@@ -546,6 +554,9 @@ impl RunStore {
     /// Re-reads `frames/pixels` metadata if `index` is past the shape this instance knows
     /// (another `RunStore` may have written frames since).
     fn refresh_pixels(&self, array: &mut Array<DurableStore>) -> Result<(), StoreError> {
+        if self.pixels_ahead.load(Ordering::SeqCst) {
+            return Ok(());
+        }
         let fresh = Array::open(self.store.clone(), PIXELS)
             .map_err(zarr_err(self.node(PIXELS), "re-reading the array metadata"))?;
         *array = fresh;
@@ -575,7 +586,18 @@ impl RunStore {
         if index >= count(&array) {
             self.refresh_pixels(&mut array)?;
             if index >= count(&array) {
-                return Ok(FrameRead::OutOfRange(count(&array)));
+                // Past the shape on disk: a frame written since the metadata last mirrored
+                // the journal reads from its chunk.
+                let wider = pixels_array(&self.store, index + 1, self.width, self.height)
+                    .map_err(zarr_err(self.node(PIXELS), "growing"))?;
+                return Ok(
+                    match wider
+                        .retrieve_chunk_if_exists_opt::<Vec<u16>>(&[index, 0, 0], &codec_options())
+                    {
+                        Ok(Some(p)) => FrameRead::Pixels(p),
+                        _ => FrameRead::OutOfRange(count(&array)),
+                    },
+                );
             }
         }
         let path = self.chunk_path(&array, &[index, 0, 0]);
@@ -586,7 +608,8 @@ impl RunStore {
         }
     }
 
-    /// Frames in `frames/pixels` (its first dimension, as on disk).
+    /// Frames in `frames/pixels`: as on disk (the frames the metadata mirrors), or, in the
+    /// instance that wrote frames since, every frame it wrote.
     pub fn frame_count(&self) -> u64 {
         let mut array = lock(&self.pixels);
         if let Err(e) = self.refresh_pixels(&mut array) {
@@ -729,6 +752,9 @@ impl RunStore {
     /// Re-reads every recorded frame, recomputes its [`pixel_hash`] and reports frames that
     /// are missing or do not match (findings, not errors). Also lists stored frames that no
     /// record describes.
+    ///
+    /// A recorded frame is looked for whatever the shape of `frames/pixels` on disk says: a
+    /// run stopped between two metadata syncs holds frames the journal records past it.
     pub fn verify(&self, records: &[FrameRecord]) -> Result<Verification, StoreError> {
         let mut v = Verification::default();
         let mut recorded = BTreeMap::new();
@@ -811,4 +837,7 @@ enum FrameRead {
 struct DurableStore {
     inner: FilesystemStore,
     root: PathBuf,
+    /// Writes of one thread held back for [`DurableStore::commit_batch`] (synced temporary
+    /// files and their targets, in write order).
+    batch: Mutex<Option<durable::Batch>>,
 }

@@ -79,7 +79,25 @@ impl RunStore {
     /// crashed before its journal recorded the set), else a new slot at the end. Product
     /// arrays are created on first use; every product array grows to the same number of
     /// slots. Returns the slot.
+    ///
+    /// The files are written and synced first and renamed into place together at the end,
+    /// so a reader (or a crash) finds every product array and the index at one number of
+    /// slots, the old or the new.
     pub fn write_products(
+        &self,
+        set: u64,
+        angles_deg: &[f64],
+        images: &[(&str, &[f32])],
+    ) -> Result<u64, StoreError> {
+        self.store.begin_batch();
+        let written = self.write_products_files(set, angles_deg, images);
+        self.store
+            .commit_batch(written.is_ok())
+            .map_err(io_err(&self.path, "renaming the products into place"))?;
+        written
+    }
+
+    fn write_products_files(
         &self,
         set: u64,
         angles_deg: &[f64],
