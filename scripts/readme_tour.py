@@ -9,7 +9,8 @@ blocks (before its "Lab hardware" section) and each command in the examples' hea
 (`#   polarimeter ...` lines and `polarimeter ...` in backticks that name a file of examples/)
 runs with stdin closed, in a scratch directory holding a copy of examples/, under a time limit,
 and must exit 0. Paths under /tmp/ are moved into the scratch directory, so nothing outside it
-is touched. A line whose comment says `needs hardware` is listed as skipped.
+is touched. A line whose comment says `needs hardware` is listed as skipped; one whose comment
+says `exits N` must exit N (an example of an error).
 
 `polarimeter simulate stage ... &` starts the simulator in the background, and the
 `/tmp/polarimeter-sim-PID/...` placeholders of the lines after it become the link it prints;
@@ -144,12 +145,15 @@ def main(argv):
             if status != 0:
                 failed += 1
             continue
+        expected = re.search(r"#.*\bexits (\d+)", command)
+        expected = int(expected.group(1)) if expected else 0
         t0 = time.monotonic()
         try:
             r = subprocess.run(["bash", "-o", "pipefail", "-c", run], cwd=scratch, env=env,
                                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, timeout=limit_s)
-            status = r.returncode
+            status = (0 if r.returncode == expected
+                      else r.returncode or f"exited 0, expected {expected}")
             tail = r.stderr.decode(errors="replace").strip().splitlines()[-3:]
         except subprocess.TimeoutExpired:
             status = f"hung past {limit_s:.0f} s"

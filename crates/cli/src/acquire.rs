@@ -368,6 +368,20 @@ pub fn resume_cmd(
     rig: Option<&RigFile>,
     ui: Ui,
 ) -> Result<(Value, i32), CommandError> {
+    // A finished run has nothing left to take: say so and change nothing (a script that
+    // resumes whatever it finds, or a user following the README after a run that was never
+    // interrupted, is not in error).
+    if run::is_finished(run_dir) {
+        return Ok((
+            json!({
+                "run_dir": run_dir.display().to_string(),
+                "state": "done",
+                "note": "the run is already finished: nothing to resume, nothing changed \
+                         (`polarimeter acquire check RUN_DIR` verifies it)",
+            }),
+            0,
+        ));
+    }
     let plan = run::plan_of(run_dir).map_err(err)?;
     let devices = polar_engine::journal::replay(run_dir)
         .map_err(err)?

@@ -70,7 +70,8 @@ fn demo_shows_that_the_angles_matter() {
 }
 
 /// `demo --out DIR` replaces an earlier demo's run only: a directory holding another run is
-/// refused, and that run's journal and store stay as they were.
+/// refused, and that run's journal and store stay as they were. `acquire resume` of that
+/// finished run says so, exits 0 and changes nothing.
 #[test]
 fn demo_never_replaces_another_run() {
     let base = std::env::temp_dir().join(format!("polar-demo-other-{}", std::process::id()));
@@ -103,6 +104,28 @@ fn demo_never_replaces_another_run() {
         String::from_utf8_lossy(&out.stderr)
     );
     let journal = std::fs::read(run_dir.join("journal.jsonl")).unwrap();
+    // Resuming a run that finished changes nothing and is not an error.
+    let out = Command::new(bin)
+        .args(["acquire", "resume"])
+        .arg(&run_dir)
+        .stdin(std::process::Stdio::null())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["state"], "done", "{v}");
+    assert!(
+        v["note"].as_str().unwrap().contains("already finished"),
+        "{v}"
+    );
+    assert_eq!(
+        std::fs::read(run_dir.join("journal.jsonl")).unwrap(),
+        journal
+    );
     let out = Command::new(bin)
         .args(["demo", "--out"])
         .arg(&run_dir)
