@@ -100,6 +100,15 @@ fn csv_field(s: &str) -> String {
     }
 }
 
+/// The name of `code` in `codes` ("unknown" for a code it does not list).
+fn code_name(codes: &[(u8, &str)], code: u8) -> String {
+    codes
+        .iter()
+        .find(|(c, _)| *c == code)
+        .map_or("unknown", |(_, n)| n)
+        .to_string()
+}
+
 fn csv_row(r: &FrameRecord, status: u8, file: &str) -> String {
     let opt_f = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
     [
@@ -115,18 +124,10 @@ fn csv_row(r: &FrameRecord, status: u8, file: &str) -> String {
         r.measured_angle_deg.to_string(),
         r.angle_start_deg.to_string(),
         r.angle_end_deg.to_string(),
-        crate::AngleSource::CODES
-            .iter()
-            .find(|(c, _)| *c == r.angle_source.code())
-            .map_or("unknown", |(_, n)| n)
-            .to_string(),
+        code_name(&crate::AngleSource::CODES, r.angle_source.code()),
         r.angle_sigma_deg.to_string(),
         (status == 0).to_string(),
-        crate::store::STATUS_CODES
-            .iter()
-            .find(|(c, _)| *c == status)
-            .map_or("unknown", |(_, n)| n)
-            .to_string(),
+        code_name(&crate::store::STATUS_CODES, status),
         r.exposure_us.to_string(),
         r.gain.to_string(),
         r.host_time_unix_ns.to_string(),

@@ -58,6 +58,22 @@ pub fn conventions() -> Value {
     })
 }
 
+/// The attributes of an array of codes: its `long_name` and the CF `flag_values` and
+/// `flag_meanings` that decode it.
+fn coded(long_name: &str, codes: &[(u8, &str)]) -> Map<String, Value> {
+    let mut m = Map::new();
+    m.insert("long_name".into(), json!(long_name));
+    m.insert(
+        "flag_values".into(),
+        json!(codes.iter().map(|k| k.0).collect::<Vec<_>>()),
+    );
+    m.insert(
+        "flag_meanings".into(),
+        json!(codes.iter().map(|k| k.1).collect::<Vec<_>>().join(" ")),
+    );
+    m
+}
+
 /// The attributes of the array at `node` (`units`, `long_name`, and what a reader needs to
 /// decode its values).
 pub fn attributes(node: &str) -> Map<String, Value> {
@@ -73,18 +89,7 @@ pub fn attributes(node: &str) -> Map<String, Value> {
     let product = node.starts_with("/products/");
     match name {
         "pixels" => a(Some("DN"), "raw frame as read from the camera"),
-        "kind" => {
-            let mut m = a(None, "frame kind");
-            m.insert(
-                "flag_values".into(),
-                json!(KIND_CODES.iter().map(|k| k.0).collect::<Vec<_>>()),
-            );
-            m.insert(
-                "flag_meanings".into(),
-                json!(KIND_CODES.iter().map(|k| k.1).collect::<Vec<_>>().join(" ")),
-            );
-            m
-        }
+        "kind" => coded("frame kind", &KIND_CODES),
         "step" => a(None, "plan step the frame fulfils"),
         "set" if product => a(None, "angle set of the slot (-1: slot not written)"),
         "set" => a(None, "angle set of the frame (-1: none)"),
@@ -102,22 +107,7 @@ pub fn attributes(node: &str) -> Map<String, Value> {
             "analyzer angle when the exposure ended, unwrapped from angle_start_deg \
              (end - start is the span swept, in [0, 180))",
         ),
-        "angle_source" => {
-            let mut m = a(None, "how the analyzer span was measured");
-            m.insert(
-                "flag_values".into(),
-                json!(AngleSource::CODES.iter().map(|k| k.0).collect::<Vec<_>>()),
-            );
-            m.insert(
-                "flag_meanings".into(),
-                json!(AngleSource::CODES
-                    .iter()
-                    .map(|k| k.1)
-                    .collect::<Vec<_>>()
-                    .join(" ")),
-            );
-            m
-        }
+        "angle_source" => coded("how the analyzer span was measured", &AngleSource::CODES),
         "angle_sigma_deg" => a(
             Some("degree"),
             "standard uncertainty of each end of the analyzer span (NaN: not estimated)",
@@ -147,22 +137,7 @@ pub fn attributes(node: &str) -> Map<String, Value> {
             "1: the frame counts (its set's products use it); 0: stored but superseded, \
              frames/status says why",
         ),
-        "status" => {
-            let mut m = a(None, "whether the frame counts, and why not");
-            m.insert(
-                "flag_values".into(),
-                json!(STATUS_CODES.iter().map(|k| k.0).collect::<Vec<_>>()),
-            );
-            m.insert(
-                "flag_meanings".into(),
-                json!(STATUS_CODES
-                    .iter()
-                    .map(|k| k.1)
-                    .collect::<Vec<_>>()
-                    .join(" ")),
-            );
-            m
-        }
+        "status" => coded("whether the frame counts, and why not", &STATUS_CODES),
         "hash" => {
             let mut m = a(None, "hash of the frame's pixels");
             m.insert("hash_algorithm".into(), json!(HASH_ALGORITHM));
