@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
-"""Check that the modules of the model crate (crates/model/src) form a DAG: no import cycle.
+"""Check that the modules of a crate form a DAG: no import cycle.
 
-Usage: python3 scripts/check_module_dag.py [--with-tests] [SRC_DIR]   (default: crates/model/src)
+Usage: python3 scripts/check_module_dag.py [--with-tests] [SRC_DIR | --workspace]
+       (default: crates/model/src; --workspace: every workspace crate's src/, as CI runs it)
 
 Each file is one module: `a.rs` and `a/mod.rs` are `a`, `a/b.rs` is `a::b`; the crate root
 (`lib.rs`) is not a node, it only declares the modules and re-exports (`crate::ModelError` counts
@@ -267,7 +268,7 @@ def main(argv):
 
     cycles = elementary_cycles(graph)
     if cycles:
-        print(f"model module graph has {len(cycles)}{'+' if len(cycles) >= MAX_CYCLES else ''} "
+        print(f"module graph has {len(cycles)}{'+' if len(cycles) >= MAX_CYCLES else ''} "
               f"import cycle(s):")
         for cyc in cycles:
             chain = cyc + [cyc[0]]
@@ -310,5 +311,35 @@ def elementary_cycles(graph):
     return cycles
 
 
+def crate_sources():
+    """Every workspace crate's `src` directory (a folder with a Cargo.toml and a src/)."""
+    root = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+    out = []
+    for base in ("crates", "."):
+        for name in sorted(os.listdir(os.path.join(root, base))):
+            crate = os.path.join(root, base, name)
+            if os.path.isdir(os.path.join(crate, "src")) and os.path.isfile(
+                os.path.join(crate, "Cargo.toml")
+            ):
+                out.append(os.path.normpath(os.path.join(crate, "src")))
+    return sorted(set(out))
+
+
+def workspace(argv):
+    """Checks every crate; exits 1 if any has a cycle."""
+    flags = [a for a in argv[1:] if a == "--with-tests"]
+    failed = []
+    for src in crate_sources():
+        print(f"{os.path.relpath(src)}: ", end="", flush=True)
+        if main([argv[0], *flags, src]) != 0:
+            failed.append(src)
+    if failed:
+        print(f"import cycles in {len(failed)} crate(s): {', '.join(map(os.path.relpath, failed))}")
+        return 1
+    return 0
+
+
 if __name__ == "__main__":
+    if "--workspace" in sys.argv:
+        sys.exit(workspace([a for a in sys.argv if a != "--workspace"]))
     sys.exit(main(sys.argv))

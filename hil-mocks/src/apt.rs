@@ -50,7 +50,7 @@
 
 use crate::faults::{Dice, DutyCycle, FaultProfile};
 use crate::motion::{output_from_motor, Profile};
-use crate::sim::{next_request, Scan, Simulator, Truth};
+use crate::simulator::{next_request, Scan, SimDialect, Simulator, Truth};
 use polar_drivers::apt::codec::{self as id, le_i32, le_u16, Message, HOST, USB};
 use std::f64::consts::TAU;
 
@@ -81,7 +81,7 @@ pub fn simulate(
     model: &str,
     faults: FaultProfile,
     seed: u64,
-) -> Option<Box<dyn crate::sim::Simulator>> {
+) -> Option<Box<dyn crate::simulator::Simulator>> {
     let model = AptSimModel::parse(model).ok()?;
     Some(Box::new(AptDevice::new(
         AptSimConfig::of(model),
@@ -98,7 +98,7 @@ pub fn simulate_at_speed(
     deg_s: f64,
     faults: FaultProfile,
     seed: u64,
-) -> Option<Box<dyn crate::sim::Simulator>> {
+) -> Option<Box<dyn crate::simulator::Simulator>> {
     let model = AptSimModel::parse(model).ok()?;
     let config = AptSimConfig::of(model);
     let deg_s = deg_s.min(config.max_protocol_velocity_deg_s());
@@ -1010,6 +1010,15 @@ impl Simulator for AptDevice {
         }
     }
 }
+
+/// The apt dialect's simulators (`polar_drivers::apt::DIALECT`'s models), for
+/// [`crate::sim::SIMULATORS`].
+pub const SIM: SimDialect = SimDialect {
+    dialect: polar_drivers::apt::DIALECT.name,
+    models: polar_drivers::apt::DIALECT.models,
+    build: simulate,
+    at_speed: Some(simulate_at_speed),
+};
 
 #[cfg(test)]
 #[path = "apt_tests.rs"]

@@ -30,7 +30,7 @@
 
 use crate::faults::Dice;
 use crate::serve::TruthHandle;
-use crate::sim::Truth;
+use crate::simulator::Truth;
 use nalgebra::{Matrix3, Vector3};
 use polar_hal::{
     BlockingCamera, CameraInfo, DeviceError, ErrorKind, ExposureEndHook, Frame, GainUnit, Grabbed,

@@ -70,7 +70,7 @@
 
 use crate::faults::{Dice, DutyCycle, FaultProfile};
 use crate::motion::{output_from_motor, Profile};
-use crate::sim::{next_request, Scan, Simulator, Truth};
+use crate::simulator::{next_request, Scan, SimDialect, Simulator, Truth};
 use std::f64::consts::TAU;
 
 /// A partial command idle this long (simulated seconds) is dropped and answered `GS01`.
@@ -800,6 +800,25 @@ impl Simulator for ElliptecDevice {
         }
     }
 }
+
+/// The elliptec dialect's simulators (`polar_drivers::elliptec::DIALECT`'s models), for
+/// [`crate::sim::SIMULATORS`].
+pub const SIM: SimDialect = SimDialect {
+    dialect: polar_drivers::elliptec::DIALECT.name,
+    models: polar_drivers::elliptec::DIALECT.models,
+    build: |model, faults, seed| {
+        let config = match model {
+            "ell14" => ElliptecConfig::ell14(),
+            "ell18" => ElliptecConfig::ell18(),
+            "ell6" => ElliptecConfig::ell6(),
+            "ell9" => ElliptecConfig::ell9(),
+            _ => return None,
+        };
+        Some(Box::new(ElliptecDevice::new(config, faults, seed)))
+    },
+    at_speed: None,
+};
+
 #[cfg(test)]
 mod tests {
     use super::*;

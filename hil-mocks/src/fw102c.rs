@@ -62,7 +62,7 @@ use std::collections::VecDeque;
 
 use crate::faults::{Dice, FaultProfile};
 use crate::motion::Profile;
-use crate::sim::{Simulator, Truth};
+use crate::simulator::{SimDialect, Simulator, Truth};
 
 /// The prompt that ends every reply.
 pub const PROMPT: &[u8] = b"> ";
@@ -520,6 +520,22 @@ impl Simulator for Fw102cDevice {
         }
     }
 }
+
+/// The fw102c dialect's simulators (`polar_drivers::fw102c::DIALECT`'s models), for
+/// [`crate::sim::SIMULATORS`].
+pub const SIM: SimDialect = SimDialect {
+    dialect: polar_drivers::fw102c::DIALECT.name,
+    models: polar_drivers::fw102c::DIALECT.models,
+    build: |model, faults, seed| {
+        let config = match model {
+            "fw102c" => Fw102cConfig::fw102c(),
+            "fw212c" => Fw102cConfig::fw212c(),
+            _ => return None,
+        };
+        Some(Box::new(Fw102cDevice::new(config, faults, seed)))
+    },
+    at_speed: None,
+};
 
 #[cfg(test)]
 mod tests {

@@ -1,11 +1,10 @@
 //! Simulated polarimeter devices: byte-level state machines with physical motion and seeded,
 //! reproducible faults (`ARCHITECTURE.md`, "Simulated devices").
 //!
-//! * [`native::NativeDevice`]: our own firmware's rotation stage or filter wheel
-//!   (`firmware-protocol/SPEC.md`).
-//! * [`elliptec::ElliptecDevice`]: Thorlabs Elliptec ELL14/ELL18 rotators, ELL6/ELL9 sliders.
-//! * [`fw102c::Fw102cDevice`]: a Thorlabs FW102C / FW212C filter wheel (ASCII, echo, `> `).
-//! * [`sim::Simulator`]: what every device simulator offers the transport and the tests.
+//! * One module per serial dialect, each declaring its simulators as `SIM` (a
+//!   [`simulator::SimDialect`] with the driver's dialect name and models);
+//!   [`sim::SIMULATORS`] lists them and [`sim::simulator`] finds one by dialect and model.
+//! * [`simulator::Simulator`]: what every device simulator offers the transport and the tests.
 //! * [`camera::SimCamera`]: a camera whose frames are rendered from the model through the
 //!   simulated stage's true analyzer angle ([`camera::SimScene`] is the ground truth).
 //! * [`serve::SimServer`]: serves a simulator over a real pseudo-terminal or in memory, with the
@@ -27,6 +26,7 @@ pub mod motion;
 pub mod native;
 pub mod serve;
 pub mod sim;
+pub mod simulator;
 
 /// Blocks the thread until `until`, to within a few microseconds: an OS sleep overshoots by
 /// its wake-up latency (up to a millisecond on an idle virtual machine), which would make a

@@ -4,7 +4,7 @@
 
 use crate::faults::{Dice, DutyCycle, FaultProfile};
 use crate::motion::{output_from_motor, Profile, Ramp};
-use crate::sim::{Simulator, Truth};
+use crate::simulator::{SimDialect, Simulator, Truth};
 use polar_firmware_protocol::{
     encode_vec, BootReason, Command, Decoder, DeviceKind, ErrorCode, Packet, Reply, StatusFlags,
     PROTOCOL_VERSION,
@@ -661,6 +661,33 @@ impl Simulator for NativeDevice {
         }
     }
 }
+
+/// The native dialect's simulators (`polar_drivers::native::DIALECT`'s models), for
+/// [`crate::sim::SIMULATORS`].
+pub const SIM: SimDialect = SimDialect {
+    dialect: polar_drivers::native::DIALECT.name,
+    models: polar_drivers::native::DIALECT.models,
+    build: |model, faults, seed| {
+        let config = match model {
+            "rotator" => NativeConfig::rotator(),
+            "wheel" => NativeConfig::wheel(),
+            _ => return None,
+        };
+        Some(Box::new(NativeDevice::new(config, faults, seed)))
+    },
+    // Cruise at the speed, accelerate to it in 1/8 s, home in 0.1 s.
+    at_speed: Some(|model, deg_s, faults, seed| {
+        if model != "rotator" {
+            return None;
+        }
+        let mut config = NativeConfig::rotator();
+        let v = (deg_s * f64::from(config.counts_per_turn) / 360.0).round();
+        config.velocity_counts_per_s = v.clamp(1.0, f64::from(u32::MAX)) as u32;
+        config.acceleration_counts_per_s2 = config.velocity_counts_per_s.saturating_mul(8);
+        config.homing_s = 0.1;
+        Some(Box::new(NativeDevice::new(config, faults, seed)))
+    }),
+};
 
 #[cfg(test)]
 mod tests {

@@ -9,7 +9,7 @@
 //! `/dev/serial/by-id/...`) that is re-pointed when the device comes back after an unplug.
 
 use crate::faults::{Dice, FaultProfile};
-use crate::sim::{Simulator, Truth};
+use crate::simulator::{Simulator, Truth};
 use std::io;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, MutexGuard};

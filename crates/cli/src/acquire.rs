@@ -9,10 +9,10 @@
 
 use crate::commands::CommandError;
 use crate::plan_load::{forecast_models, load_plan, load_plan_resolved};
-use polar_engine::plan::{Plan, PlanKind, SimStage};
+use polar_engine::plan::{Plan, SimStage};
 use polar_engine::run::{self, Control, Controller, Event, Outcome, Rig, RunState};
 use polar_engine::sim::SimRig;
-use polar_hal::{Analyzer, Camera};
+use polar_hal::{Camera, OnRotator, Rotator};
 use polar_rig::{Hardware, Rig as RigFile};
 use serde_json::{json, Value};
 use std::io::IsTerminal;
@@ -47,9 +47,9 @@ impl Ui {
 }
 
 /// Drives a run with the terminal: progress bar, Ctrl-C, pause prompts.
-async fn drive<A: Analyzer + 'static, C: Camera + 'static>(
+async fn drive<R: Rotator + 'static, C: Camera + 'static>(
     plan: &Plan,
-    rig: Rig<A, C>,
+    rig: Rig<OnRotator<R>, C>,
     run_dir: &Path,
     resume: bool,
     ui: Ui,
@@ -194,14 +194,7 @@ async fn run_simulated(
         SimRig::start_rig(plan, plan_dir, &link_dir, run::noise_stream(run_dir))
             .await
             .map_err(err)?;
-    let outcome = if plan.kind == PlanKind::Continuous {
-        drive_with(plan, ui, |link| {
-            run::run_continuous(plan, engine_rig, run_dir, resume, link)
-        })
-        .await?
-    } else {
-        drive(plan, engine_rig, run_dir, resume, ui).await?
-    };
+    let outcome = drive(plan, engine_rig, run_dir, resume, ui).await?;
     Ok((outcome, rig))
 }
 
@@ -217,14 +210,7 @@ async fn run_hardware(
         .await
         .map_err(err)?;
     let polar_rig::Connected { rig, simulator } = connected;
-    let outcome = if plan.kind == PlanKind::Continuous {
-        drive_with(plan, ui, |link| {
-            run::run_continuous(plan, rig, run_dir, resume, link)
-        })
-        .await
-    } else {
-        drive(plan, rig, run_dir, resume, ui).await
-    };
+    let outcome = drive(plan, rig, run_dir, resume, ui).await;
     if let Some(s) = simulator {
         s.shutdown().await;
     }
@@ -967,7 +953,7 @@ fn ideal_s(angles_deg: &[f64], exposure_us: f64, plan: &Plan) -> f64 {
         };
         let (p0, p1) = (
             plan_of(wrap(psi, TURN_RAD)),
-            plan_of(wrap(psi + PI_, TURN_RAD)),
+            plan_of(wrap(psi + std::f64::consts::PI, TURN_RAD)),
         );
         let (_, waypoints) = if p1.0 < p0.0 { p1 } else { p0 };
         for w in waypoints {
@@ -978,8 +964,6 @@ fn ideal_s(angles_deg: &[f64], exposure_us: f64, plan: &Plan) -> f64 {
     }
     total
 }
-
-const PI_: f64 = std::f64::consts::PI;
 
 /// `bench run`: a simulated capture's wall time against the device-bound ideal.
 pub fn bench_run(sets: u32, exposure_us: f64) -> Result<String, CommandError> {

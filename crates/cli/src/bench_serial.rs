@@ -1,25 +1,24 @@
 //! `bench serial`: what a command round trip costs through a real pseudo-terminal, against the
 //! same driver and simulator over an in-memory pipe and against the simulated device's own
-//! time (the bytes on the wire at its baud rate), for each dialect.
+//! time (the bytes on the wire at its baud rate), for each dialect in the registry (every
+//! simulator line of `polar_hil_mocks::sim::SIMULATORS`, its first model, driven through the
+//! driver registry's constructor).
 //!
-//! The query is each driver's position read (`GetStatus`, `gp`, `pos?`), which the simulated
-//! devices answer at once and send at their baud rate, so everything above the reply's wire
-//! time is overhead: the driver, tokio (whose timers round each wake up to the next
-//! millisecond, and the simulator's pacing uses them), the kernel's pty and the server. The pty
-//! row against the memory row isolates the pseudo-terminal's share.
+//! The query is a position read that always asks the device: a rotator's
+//! `spin_position_rad` where the driver has one (it never answers from a cache), else its
+//! `position_rad`; a wheel's `slot`. The simulated devices answer at once and send at their
+//! baud rate, so everything above the reply's wire time is overhead: the driver, tokio (whose
+//! timers round each wake up to the next millisecond, and the simulator's pacing uses them),
+//! the kernel's pty and the server. The pty row against the memory row isolates the
+//! pseudo-terminal's share.
 
 use crate::devices::DevicesError;
-use polar_drivers::elliptec::{self, ElliptecRotator};
-use polar_drivers::fw102c::{self, Fw102c};
 use polar_drivers::link::{BoxIo, Connector, FnConnector, SerialPath};
-use polar_drivers::native::{self, NativeRotator};
+use polar_drivers::registry::{self, Dialect};
 use polar_hal::{FilterWheel, Rotator};
-use polar_hil_mocks::elliptec::{ElliptecConfig, ElliptecDevice};
 use polar_hil_mocks::faults::FaultProfile;
-use polar_hil_mocks::fw102c::{Fw102cConfig, Fw102cDevice};
-use polar_hil_mocks::native::{NativeConfig, NativeDevice};
 use polar_hil_mocks::serve::SimServer;
-use polar_hil_mocks::sim::Simulator;
+use polar_hil_mocks::sim::{SimDialect, Simulator, SIMULATORS};
 use std::time::Instant;
 
 /// One measured row.
@@ -42,71 +41,50 @@ pub struct SerialRow {
     pub overhead_ms: f64,
 }
 
-#[derive(Clone, Copy)]
-enum Which {
-    Native,
-    Elliptec,
-    Fw102c,
+/// The simulator of a dialect's first model.
+fn sim(entry: &SimDialect) -> Result<Box<dyn Simulator>, DevicesError> {
+    let model = entry.models[0];
+    (entry.build)(model, FaultProfile::default(), 1)
+        .ok_or_else(|| DevicesError(format!("{}: no simulator of {model}", entry.dialect)))
 }
 
-fn sim(which: Which) -> Box<dyn Simulator> {
-    let f = FaultProfile::default();
-    match which {
-        Which::Native => Box::new(NativeDevice::new(NativeConfig::rotator(), f, 1)),
-        Which::Elliptec => Box::new(ElliptecDevice::new(ElliptecConfig::ell14(), f, 1)),
-        Which::Fw102c => Box::new(Fw102cDevice::new(Fw102cConfig::fw102c(), f, 1)),
-    }
-}
-
+/// Times `n` position queries through `connector` with the dialect's driver; returns the
+/// times and the reply bytes per query.
 async fn queries(
-    which: Which,
+    dialect: &Dialect,
     connector: Box<dyn Connector>,
     server: &SimServer,
     n: usize,
 ) -> Result<(Vec<f64>, f64), DevicesError> {
     let mut times = Vec::with_capacity(n);
+    let policy = (dialect.policy)();
     let bytes_before;
-    match which {
-        Which::Native => {
-            let mut r = NativeRotator::connect(connector, native::default_policy()).await?;
-            let s = server.stats();
-            bytes_before = s.bytes_out;
-            for _ in 0..n {
-                let t = Instant::now();
-                // The driver knows its position between moves: ask the controller.
-                r.read_position_rad().await?;
-                times.push(t.elapsed().as_secs_f64());
-            }
-        }
-        Which::Elliptec => {
-            let mut r = ElliptecRotator::connect(
-                connector,
-                0,
-                elliptec::default_policy(),
-                0.05f64.to_radians(),
-            )
-            .await?;
-            let s = server.stats();
-            bytes_before = s.bytes_out;
-            for _ in 0..n {
-                let t = Instant::now();
+    if let Some(connect) = dialect.rotator {
+        let mut r = connect(connector, 0, policy).await?;
+        // The read that never answers from a cache, where the driver has it.
+        let fresh = r.spin_position_rad().await.is_ok();
+        bytes_before = server.stats().bytes_out;
+        for _ in 0..n {
+            let t = Instant::now();
+            if fresh {
+                r.spin_position_rad().await?;
+            } else {
                 r.position_rad().await?;
-                times.push(t.elapsed().as_secs_f64());
             }
+            times.push(t.elapsed().as_secs_f64());
         }
-        Which::Fw102c => {
-            let mut w = Fw102c::connect(connector, fw102c::default_policy()).await?;
-            let s = server.stats();
-            bytes_before = s.bytes_out;
-            for _ in 0..n {
-                let t = Instant::now();
-                w.slot().await?;
-                times.push(t.elapsed().as_secs_f64());
-            }
+    } else if let Some(connect) = dialect.wheel {
+        let mut w = connect(connector, 0, policy).await?;
+        bytes_before = server.stats().bytes_out;
+        for _ in 0..n {
+            let t = Instant::now();
+            w.slot().await?;
+            times.push(t.elapsed().as_secs_f64());
         }
+    } else {
+        return Err(DevicesError(format!("{} has no device", dialect.name)));
     }
-    let s = server.stats();
-    let bytes_per_query = (s.bytes_out - bytes_before) as f64 / n as f64;
+    let bytes_per_query = (server.stats().bytes_out - bytes_before) as f64 / n as f64;
     Ok((times, bytes_per_query))
 }
 
@@ -143,25 +121,25 @@ pub fn serial(n: usize) -> Result<Vec<SerialRow>, DevicesError> {
         .map_err(|e| DevicesError(format!("cannot create {}: {e}", dir.display())))?;
     let result = rt.block_on(async {
         let mut rows = Vec::new();
-        for (which, name) in [
-            (Which::Native, "native rotator"),
-            (Which::Elliptec, "elliptec ELL14"),
-            (Which::Fw102c, "fw102c"),
-        ] {
-            let baud = sim(which).baud();
+        for entry in SIMULATORS {
+            let dialect = registry::find(entry.dialect).ok_or_else(|| {
+                DevicesError(format!("{}: no driver in the registry", entry.dialect))
+            })?;
+            let name = format!("{} {}", entry.dialect, entry.models[0]);
+            let baud = sim(entry)?.baud();
             // Through a pseudo-terminal.
             let link = dir.join(name.replace(' ', "-"));
-            let server = SimServer::pty(sim(which), FaultProfile::default(), 1, &link)
+            let server = SimServer::pty(sim(entry)?, FaultProfile::default(), 1, &link)
                 .map_err(|e| DevicesError(format!("cannot open a pseudo-terminal: {e}")))?;
             let connector = Box::new(SerialPath {
                 path: link.to_string_lossy().into_owned(),
                 baud,
             });
-            let (times, bytes) = queries(which, connector, &server, n).await?;
-            rows.push(row(name, "pty", baud, times, bytes));
+            let (times, bytes) = queries(dialect, connector, &server, n).await?;
+            rows.push(row(&name, "pty", baud, times, bytes));
             server.shutdown().await;
             // In memory.
-            let server = SimServer::memory(sim(which), FaultProfile::default(), 1);
+            let server = SimServer::memory(sim(entry)?, FaultProfile::default(), 1);
             let port = server
                 .memory_port()
                 .ok_or_else(|| DevicesError("no memory port".into()))?;
@@ -169,8 +147,8 @@ pub fn serial(n: usize) -> Result<Vec<SerialRow>, DevicesError> {
                 let port = port.clone();
                 async move { port.open().await.map(|io| Box::new(io) as BoxIo) }
             }));
-            let (times, bytes) = queries(which, connector, &server, n).await?;
-            rows.push(row(name, "memory", baud, times, bytes));
+            let (times, bytes) = queries(dialect, connector, &server, n).await?;
+            rows.push(row(&name, "memory", baud, times, bytes));
             server.shutdown().await;
         }
         Ok(rows)

@@ -16,6 +16,7 @@
 //! [`grid_markdown`]; with `--out`, [`write_grid_report`] writes docs/validation/dolp-aop-grid.md,
 //! see [`GRID_COMMAND`]).
 
+pub use crate::validation::GRID_COMMAND;
 use crate::validation::{ValidationError, CAMERAS};
 use polar_model::atmosphere::Band;
 use polar_model::polarization::Stokes;
@@ -627,11 +628,6 @@ fn angles_label(a: &[f64]) -> String {
         .collect::<Vec<_>>()
         .join("/")
 }
-
-/// The command that regenerates the accuracy-grid report, docs/validation/dolp-aop-grid.md
-/// (linked from docs/VALIDATION.md).
-pub const GRID_COMMAND: &str =
-    "polarimeter bench stats --grid --grid-samples 4000000 --seed 1 --out docs/validation/dolp-aop-grid.md";
 
 /// The accuracy grid as a stand-alone Markdown report: title, the `command` that generated it,
 /// what it checks, the grid, one row per state, then the worst cases. Every figure in the text

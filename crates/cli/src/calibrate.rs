@@ -33,13 +33,9 @@ use polar_model::sensor::Camera;
 use polar_model::ModelError;
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, HashSet};
-use std::io::{BufReader, BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
-use tiff::decoder::{Decoder, DecodingResult};
-use tiff::encoder::{colortype, TiffEncoder};
-use tiff::ColorType;
 
 /// The index file of a frames directory.
 pub const FRAMES_CSV: &str = "frames.csv";
@@ -111,61 +107,14 @@ pub fn load_camera(path: &Path) -> Result<Camera, CalibrateError> {
 // TIFF I/O
 // ---------------------------------------------------------------------------------------------
 
-fn describe_color(c: ColorType) -> String {
-    match c {
-        ColorType::Gray(b) => format!("{b}-bit grayscale"),
-        ColorType::RGB(b) => format!("{b}-bit RGB"),
-        ColorType::RGBA(b) => format!("{b}-bit RGBA"),
-        ColorType::GrayA(b) => format!("{b}-bit grayscale with alpha"),
-        ColorType::Palette(b) => format!("{b}-bit palette"),
-        other => format!("{other:?}"),
-    }
-}
-
-pub(crate) fn open_tiff(path: &Path) -> Result<Decoder<BufReader<std::fs::File>>, String> {
-    let f = std::fs::File::open(path).map_err(|e| format!("cannot open: {e}"))?;
-    Decoder::new(BufReader::new(f)).map_err(|e| format!("not a readable TIFF: {e}"))
-}
-
 /// Width and height of a 16-bit single-channel TIFF; otherwise what is wrong, in words.
 fn tiff_header(path: &Path) -> Result<(u32, u32), String> {
-    let mut dec = open_tiff(path)?;
-    let color = dec
-        .colortype()
-        .map_err(|e| format!("not a readable TIFF: {e}"))?;
-    if color != ColorType::Gray(16) {
-        return Err(format!(
-            "{}; allowed 16-bit single-channel (grayscale) TIFF",
-            describe_color(color)
-        ));
-    }
-    dec.dimensions()
-        .map_err(|e| format!("not a readable TIFF: {e}"))
+    polar_engine::tiff_io::gray16_dimensions(path)
 }
 
 /// The pixels of a 16-bit single-channel TIFF of the expected size.
 pub(crate) fn read_tiff(path: &Path, width: u32, height: u32) -> Result<Vec<u16>, CalibrateError> {
-    let mut dec = open_tiff(path).map_err(|m| file_err(path, m))?;
-    let dims = dec
-        .dimensions()
-        .map_err(|e| file_err(path, format!("not a readable TIFF: {e}")))?;
-    if dims != (width, height) {
-        return Err(file_err(
-            path,
-            format!(
-                "{}x{} pixels; allowed {width}x{height} like the other frames",
-                dims.0, dims.1
-            ),
-        ));
-    }
-    match dec.read_image() {
-        Ok(DecodingResult::U16(v)) if v.len() == width as usize * height as usize => Ok(v),
-        Ok(_) => Err(file_err(
-            path,
-            "not 16-bit single-channel pixel data; allowed 16-bit grayscale TIFF",
-        )),
-        Err(e) => Err(file_err(path, format!("cannot decode the pixels: {e}"))),
-    }
+    polar_engine::tiff_io::read_gray16(path, width, height).map_err(|m| file_err(path, m))
 }
 
 /// Writes `data` (row-major, `width x height`) as an uncompressed 16-bit grayscale TIFF; errors
@@ -176,21 +125,8 @@ pub fn write_tiff(
     height: u32,
     data: &[u16],
 ) -> Result<(), CalibrateError> {
-    let err = |e: &dyn std::fmt::Display| file_err(path, format!("cannot write: {e}"));
-    if data.len() as u64 != u64::from(width) * u64::from(height) {
-        return Err(err(&format!(
-            "{} pixels for a {width}x{height} frame",
-            data.len()
-        )));
-    }
-    let f = std::fs::File::create(path).map_err(|e| err(&e))?;
-    let mut w = BufWriter::new(f);
-    {
-        let mut enc = TiffEncoder::new(&mut w).map_err(|e| err(&e))?;
-        enc.write_image::<colortype::Gray16>(width, height, data)
-            .map_err(|e| err(&e))?;
-    }
-    w.flush().map_err(|e| err(&e))
+    polar_engine::tiff_io::write_gray16(path, width, height, data)
+        .map_err(|e| file_err(path, format!("cannot write: {e}")))
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -603,39 +539,6 @@ pub fn calibrate_noise(opts: &NoiseOptions) -> Result<NoiseReport, CalibrateErro
         camera,
         warnings,
     })
-}
-
-/// `calibrate noise [--rig RIG]`: [`calibrate_noise`]; with a rig, its camera file is the base
-/// camera (unless `--base-camera` names one), and the measured camera file is written beside
-/// it as a new revision the rig then points to (`rig_written` in the output).
-pub fn calibrate_noise_cmd(
-    mut opts: NoiseOptions,
-    rig: Option<&Path>,
-) -> Result<Value, crate::commands::CommandError> {
-    use crate::commands::CommandError;
-    let rig = rig.map(crate::rig::load).transpose()?;
-    if let Some(r) = &rig {
-        if opts.base_camera.is_none() {
-            opts.base_camera = Some(r.camera_file.clone().ok_or_else(|| {
-                CommandError(format!(
-                    "--rig {}: camera.file is missing: the noise calibration needs a base camera \
-                     (name it there, or give --base-camera)",
-                    r.path.display()
-                ))
-            })?);
-        }
-    }
-    let report = calibrate_noise(&opts).map_err(|e| CommandError(e.to_string()))?;
-    let mut v = report.to_json();
-    if let Some(r) = &rig {
-        let measured = opts
-            .out
-            .as_ref()
-            .unwrap_or(&opts.frames)
-            .join("camera.toml");
-        v["rig_written"] = crate::rig::record_camera_file(r, &measured)?;
-    }
-    Ok(v)
 }
 
 /// noise.toml: the measured detector fields under the camera file's names, with their standard

@@ -2,11 +2,13 @@
 //! commands in every dialect of the registry (`polar_drivers::registry`), and the simulators of the
 //! simulators' registry (`polar_hil_mocks::sim::SIMULATORS`) on pseudo-terminals.
 
+use crate::commands::CommandError;
 use polar_drivers::registry::{self, DeviceKind, Dialect, Identity, Position, DIALECTS};
 use polar_hal::{DeviceError, FilterWheel, Rotator};
 use polar_hil_mocks::faults::FaultProfile;
 use polar_hil_mocks::serve::SimServer;
 use polar_hil_mocks::sim::{Simulator, SIMULATORS};
+use polar_rig::file::{starting_rig, CameraEntry, StageEntry};
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 
@@ -579,8 +581,8 @@ pub fn list_cmd(
                 model: Some("rotator".into()),
             });
         }
-        out["rig_written"] = crate::rig::write_starting_rig(path, found, &out["cameras"])
-            .map_err(|e| DevicesError(e.0))?;
+        out["rig_written"] =
+            write_starting_rig(path, found, &out["cameras"]).map_err(|e| DevicesError(e.0))?;
     }
     Ok(out)
 }
@@ -638,6 +640,114 @@ pub fn text(v: &Value) -> String {
             .collect(),
         other => format!("{other}\n"),
     }
+}
+
+/// A starting rig's simulated camera made usable: it needs a camera file (the simulated rig's
+/// default camera, written beside the rig as `STEM.camera.toml`, never over an existing file)
+/// and a stage it can follow (it renders through the true angle of a stage simulator the rig
+/// starts itself, so a stage found on a running simulator's link is written as `port =
+/// "sim"`, the same dialect and model). Returns the entries and a comment saying what was done.
+fn simulated_bench(
+    rig_path: &Path,
+    stage: Option<StageEntry>,
+    camera: Option<CameraEntry>,
+) -> Result<(Option<StageEntry>, Option<CameraEntry>, String), CommandError> {
+    let camera = camera.unwrap_or(CameraEntry {
+        backend: "sim".into(),
+        id: None,
+        file: None,
+    });
+    if camera.backend != "sim" {
+        return Ok((stage, Some(camera), String::new()));
+    }
+    let mut note = String::new();
+    let stage = stage.map(|mut s| {
+        if !s.is_simulated() && is_simulator_link(&s.port) {
+            note.push_str(&format!(
+                "# The stage was found on a simulator's link ({}); the simulated camera follows\n\
+                 # only a stage the rig simulates itself, so the rig names port = \"sim\".\n",
+                s.port
+            ));
+            s.port = polar_rig::SIM_PORT.to_string();
+        }
+        s
+    });
+    let stem = rig_path
+        .file_stem()
+        .map_or_else(|| "rig".into(), |s| s.to_string_lossy().into_owned());
+    let name = format!("{stem}.camera.toml");
+    let camera_path = rig_path.parent().unwrap_or(Path::new(".")).join(&name);
+    polar_rig::file::write_new(&camera_path, polar_engine::sim::DEFAULT_CAMERA).map_err(|e| {
+        CommandError(format!(
+            "--write-rig {}: the camera file: {e}",
+            rig_path.display()
+        ))
+    })?;
+    note.push_str(&format!(
+        "# The simulated camera's noise model is {name} (the modern CMOS example); edit it or\n\
+         # point camera.file at a calibrated camera file.\n\n"
+    ));
+    Ok((
+        stage,
+        Some(CameraEntry {
+            file: Some(name.into()),
+            ..camera
+        }),
+        note,
+    ))
+}
+
+/// `devices list --write-rig FILE`: a starting rig file from what was found (the first stage
+/// that identified, the first camera listed), refusing to overwrite an existing file.
+pub fn write_starting_rig(
+    path: &Path,
+    stage: Option<StageEntry>,
+    cameras: &Value,
+) -> Result<Value, CommandError> {
+    let camera = cameras
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|c| c["camera"].as_str())
+        .map(|name| match name.split_once(':') {
+            Some((backend, id)) => CameraEntry {
+                backend: backend.to_string(),
+                id: Some(id.to_string()),
+                file: None,
+            },
+            None => CameraEntry {
+                backend: name.to_string(),
+                id: None,
+                file: None,
+            },
+        })
+        .next();
+    let (stage, camera, note) = simulated_bench(path, stage, camera)?;
+    let text = format!("{note}{}", starting_rig(stage.clone(), camera.clone()));
+    use std::io::Write;
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(path)
+        .map_err(|e| {
+            CommandError(format!(
+                "--write-rig {}: {}",
+                path.display(),
+                if e.kind() == std::io::ErrorKind::AlreadyExists {
+                    "the file exists: allowed a new file (a rig file is never overwritten)"
+                        .to_string()
+                } else {
+                    format!("cannot create: {e}")
+                }
+            ))
+        })?;
+    f.write_all(text.as_bytes())
+        .map_err(|e| CommandError(format!("--write-rig {}: cannot write: {e}", path.display())))?;
+    Ok(json!({
+        "written": path.display().to_string(),
+        "stage": stage.map(|s| json!({ "dialect": s.dialect, "port": s.port, "model": s.model })),
+        "camera": camera.map(|c| json!({ "backend": c.backend, "id": c.id })),
+    }))
 }
 
 #[cfg(test)]

@@ -937,8 +937,7 @@ pub fn aptd_offline(args: &PlanAptdArgs) -> Result<Value, CommandError> {
             stack.len()
         )));
     }
-    let (width, height) = crate::calibrate::open_tiff(&stack[0].1)
-        .and_then(|mut d| d.dimensions().map_err(|e| e.to_string()))
+    let (width, height) = polar_engine::tiff_io::dimensions(&stack[0].1)
         .map_err(|e| CommandError(format!("{}: {e}", stack[0].1.display())))?;
     let mut images = Vec::with_capacity(stack.len());
     for (angle, path) in &stack {

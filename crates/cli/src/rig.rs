@@ -1,10 +1,8 @@
 //! `--rig FILE` in the commands: the rig file's site for a plan, its camera file for a
-//! forecast, calibrations written back to it (`polar_rig::file`), and the starting rig file
-//! `devices list --write-rig` writes.
+//! forecast, and calibrations written back to it (`polar_rig::file`).
 
 use crate::commands::CommandError;
 use polar_engine::plan::{Plan, PlanKind};
-use polar_rig::file::{starting_rig, CameraEntry, StageEntry};
 use polar_rig::{Hardware, Rig};
 use serde_json::{json, Value};
 use std::path::Path;
@@ -224,114 +222,6 @@ pub fn record_camera_file(rig: &Rig, measured: &Path) -> Result<Value, CommandEr
     Ok(json!({
         "rig": rig.path.display().to_string(),
         "camera_file": path.display().to_string(),
-    }))
-}
-
-/// A starting rig's simulated camera made usable: it needs a camera file (the simulated rig's
-/// default camera, written beside the rig as `STEM.camera.toml`, never over an existing file)
-/// and a stage it can follow (it renders through the true angle of a stage simulator the rig
-/// starts itself, so a stage found on a running simulator's link is written as `port =
-/// "sim"`, the same dialect and model). Returns the entries and a comment saying what was done.
-fn simulated_bench(
-    rig_path: &Path,
-    stage: Option<StageEntry>,
-    camera: Option<CameraEntry>,
-) -> Result<(Option<StageEntry>, Option<CameraEntry>, String), CommandError> {
-    let camera = camera.unwrap_or(CameraEntry {
-        backend: "sim".into(),
-        id: None,
-        file: None,
-    });
-    if camera.backend != "sim" {
-        return Ok((stage, Some(camera), String::new()));
-    }
-    let mut note = String::new();
-    let stage = stage.map(|mut s| {
-        if !s.is_simulated() && crate::devices::is_simulator_link(&s.port) {
-            note.push_str(&format!(
-                "# The stage was found on a simulator's link ({}); the simulated camera follows\n\
-                 # only a stage the rig simulates itself, so the rig names port = \"sim\".\n",
-                s.port
-            ));
-            s.port = polar_rig::SIM_PORT.to_string();
-        }
-        s
-    });
-    let stem = rig_path
-        .file_stem()
-        .map_or_else(|| "rig".into(), |s| s.to_string_lossy().into_owned());
-    let name = format!("{stem}.camera.toml");
-    let camera_path = rig_path.parent().unwrap_or(Path::new(".")).join(&name);
-    polar_rig::file::write_new(&camera_path, polar_engine::sim::DEFAULT_CAMERA).map_err(|e| {
-        CommandError(format!(
-            "--write-rig {}: the camera file: {e}",
-            rig_path.display()
-        ))
-    })?;
-    note.push_str(&format!(
-        "# The simulated camera's noise model is {name} (the modern CMOS example); edit it or\n\
-         # point camera.file at a calibrated camera file.\n\n"
-    ));
-    Ok((
-        stage,
-        Some(CameraEntry {
-            file: Some(name.into()),
-            ..camera
-        }),
-        note,
-    ))
-}
-
-/// `devices list --write-rig FILE`: a starting rig file from what was found (the first stage
-/// that identified, the first camera listed), refusing to overwrite an existing file.
-pub fn write_starting_rig(
-    path: &Path,
-    stage: Option<StageEntry>,
-    cameras: &Value,
-) -> Result<Value, CommandError> {
-    let camera = cameras
-        .as_array()
-        .into_iter()
-        .flatten()
-        .filter_map(|c| c["camera"].as_str())
-        .map(|name| match name.split_once(':') {
-            Some((backend, id)) => CameraEntry {
-                backend: backend.to_string(),
-                id: Some(id.to_string()),
-                file: None,
-            },
-            None => CameraEntry {
-                backend: name.to_string(),
-                id: None,
-                file: None,
-            },
-        })
-        .next();
-    let (stage, camera, note) = simulated_bench(path, stage, camera)?;
-    let text = format!("{note}{}", starting_rig(stage.clone(), camera.clone()));
-    use std::io::Write;
-    let mut f = std::fs::OpenOptions::new()
-        .write(true)
-        .create_new(true)
-        .open(path)
-        .map_err(|e| {
-            CommandError(format!(
-                "--write-rig {}: {}",
-                path.display(),
-                if e.kind() == std::io::ErrorKind::AlreadyExists {
-                    "the file exists: allowed a new file (a rig file is never overwritten)"
-                        .to_string()
-                } else {
-                    format!("cannot create: {e}")
-                }
-            ))
-        })?;
-    f.write_all(text.as_bytes())
-        .map_err(|e| CommandError(format!("--write-rig {}: cannot write: {e}", path.display())))?;
-    Ok(json!({
-        "written": path.display().to_string(),
-        "stage": stage.map(|s| json!({ "dialect": s.dialect, "port": s.port, "model": s.model })),
-        "camera": camera.map(|c| json!({ "backend": c.backend, "id": c.id })),
     }))
 }
 

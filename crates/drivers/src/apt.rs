@@ -37,10 +37,10 @@
 pub mod codec;
 
 use crate::any::AnyRotator;
-use crate::link::{retryable, BoxIo, Connector, Link, OpenFuture, Policy};
-use crate::registry::{
+use crate::dialect::{
     DeviceKind, Dialect, FlowControl, Identity, LineSettings, Position, LINE_8N1,
 };
+use crate::link::{retryable, BoxIo, Connector, Link, OpenFuture, Policy};
 use codec::{status, Decoded, HwInfo, Message, VelParams};
 use polar_hal::{
     signed_difference, wrap, ContinuousSupport, DeviceError, ErrorKind, Rotator, RotatorInfo,

@@ -19,6 +19,8 @@
 //!   it did not command means the datum is lost, and it homes again. It also homes after every
 //!   reopen of the port.
 
+use crate::any::{AnyRotator, AnyWheel};
+use crate::dialect::{DeviceKind, Dialect, Identity, Position, LINE_8N1};
 use crate::link::{retryable, Connector, Link, Policy};
 use polar_hal::{
     angle_from_counts, counts_toward, DeviceError, ErrorKind, FilterWheel, Rotator, RotatorInfo,
@@ -741,6 +743,63 @@ impl FilterWheel for ElliptecSlider {
         Ok(self.slot_of(p))
     }
 }
+
+/// The readback tolerance the registry gives Elliptec rotators, degrees.
+pub const ELLIPTEC_TOLERANCE_DEG: f64 = 0.05;
+
+/// Thorlabs Elliptec (ASCII bus, addresses 0..=F).
+pub const DIALECT: Dialect = Dialect {
+    name: "elliptec",
+    description: "Thorlabs Elliptec: ELL14/ELL18 rotation mounts, ELL6/ELL9 sliders",
+    kinds: &[DeviceKind::Rotator, DeviceKind::Wheel],
+    models: &["ell14", "ell18", "ell6", "ell9"],
+    baud: 9600,
+    line: LINE_8N1,
+    addressed: true,
+    policy: default_policy,
+    identify: |c, address, policy| {
+        Box::pin(async move {
+            let (info, counts) = probe(c, address, policy).await?;
+            let slider = slider_positions(info.model_code);
+            let (kind, position) = match slider {
+                None => (
+                    DeviceKind::Rotator,
+                    Position::Angle {
+                        deg: angle_from_counts(i64::from(counts), info.pulses).to_degrees(),
+                    },
+                ),
+                Some(s) => (
+                    DeviceKind::Wheel,
+                    Position::Slot(s.iter().position(|&p| (p - counts).abs() <= 5)),
+                ),
+            };
+            Ok(Identity {
+                kind,
+                model: info.model(),
+                serial: info.serial.clone(),
+                firmware: info.firmware.to_string(),
+                counts_per_turn: is_rotator(info.model_code).then_some(info.pulses),
+                slots: slider.map(<[i32]>::len),
+                homed: None,
+                position,
+            })
+        })
+    },
+    rotator: Some(|c, address, policy| {
+        Box::pin(async move {
+            let tolerance_rad = ELLIPTEC_TOLERANCE_DEG.to_radians();
+            let r = ElliptecRotator::connect(c, address, policy, tolerance_rad).await?;
+            Ok(AnyRotator::new(r))
+        })
+    }),
+    wheel: Some(|c, address, policy| {
+        Box::pin(async move {
+            Ok(AnyWheel::new(
+                ElliptecSlider::connect(c, address, policy).await?,
+            ))
+        })
+    }),
+};
 
 #[cfg(test)]
 mod tests {

@@ -13,6 +13,8 @@
 //! * `respect_bound` (pylablib, Pazdzior) splits a move of half the wheel or more into two, so
 //!   the wheel never jumps straight across the first/last boundary; off by default.
 
+use crate::any::AnyWheel;
+use crate::dialect::{wheel_identity, DeviceKind, Dialect, LINE_8N1};
 use crate::link::{Connector, Link, Policy};
 use polar_hal::{DeviceError, ErrorKind, FilterWheel};
 use std::time::Duration;
@@ -275,3 +277,26 @@ impl FilterWheel for Fw102c {
         self.position().await.map(Some)
     }
 }
+
+/// Thorlabs FW102C/FW212C filter wheels.
+pub const DIALECT: Dialect = Dialect {
+    name: "fw102c",
+    description: "Thorlabs FW102C/FW212C filter wheels (ASCII, echo and prompt)",
+    kinds: &[DeviceKind::Wheel],
+    models: &["fw102c", "fw212c"],
+    baud: 115_200,
+    line: LINE_8N1,
+    addressed: false,
+    policy: default_policy,
+    identify: |c, _, policy| {
+        Box::pin(async move {
+            let w = Fw102c::connect(c, policy).await?;
+            let model = w.identity().to_string();
+            wheel_identity(w, model).await
+        })
+    },
+    rotator: None,
+    wheel: Some(|c, _, policy| {
+        Box::pin(async move { Ok(AnyWheel::new(Fw102c::connect(c, policy).await?)) })
+    }),
+};

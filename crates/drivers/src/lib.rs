@@ -1,14 +1,9 @@
 //! Serial drivers for the polarimeter's rotation stages and filter wheels, on tokio
 //! (`ARCHITECTURE.md`, `docs/DEVICES.md`).
 //!
-//! | dialect | module | devices |
-//! |---|---|---|
-//! | our firmware (`firmware-protocol/SPEC.md`) | [`native`] | [`native::NativeRotator`], [`native::NativeWheel`] |
-//! | Thorlabs Elliptec | [`elliptec`] | [`elliptec::ElliptecRotator`], [`elliptec::ElliptecSlider`] |
-//! | Thorlabs FW102C/FW212C | [`fw102c`] | [`fw102c::Fw102c`] |
-//!
-//! [`registry`] declares each dialect once (name, baud and line settings, policy, identify,
-//! constructors); [`any`] holds a stage or wheel of any dialect.
+//! Each dialect is a module (its driver types and its [`dialect::Dialect`] descriptor, `DIALECT`),
+//! and [`registry::DIALECTS`] lists them: the list is the one place to read which dialects
+//! exist (`polarimeter devices list` prints it). [`any`] holds a stage or wheel of any dialect.
 //!
 //! Every driver owns its port ([`link::Link`]) and is owned by one task; every operation ends
 //! within its [`link::Policy`]'s deadlines; idempotent requests are retried with backoff;
@@ -21,6 +16,7 @@
 
 pub mod any;
 pub mod apt;
+pub mod dialect;
 pub mod elliptec;
 pub mod fw102c;
 pub mod link;

@@ -8,6 +8,8 @@
 //!   never sent. A move whose acknowledgement or completion is lost is judged by the position
 //!   read back, never by the absence of an error.
 
+use crate::any::{AnyRotator, AnyWheel};
+use crate::dialect::{self, Dialect, Position, LINE_8N1};
 use crate::link::{retryable, Connector, Initialise, Link, Policy};
 use polar_firmware_protocol::{
     encode_vec, next_seq, Command, Decoder, DeviceKind, ErrorCode, Packet, Reply, StatusFlags,
@@ -1031,3 +1033,49 @@ impl FilterWheel for NativeWheel {
         Ok((s.slot != 0xff && !s.flags.has(StatusFlags::MOVING)).then_some(s.slot as usize))
     }
 }
+
+/// Our firmware (`firmware-protocol/SPEC.md`).
+pub const DIALECT: Dialect = Dialect {
+    name: "native",
+    description: "our firmware (firmware-protocol/SPEC.md): rotation stage or six-slot wheel",
+    kinds: &[dialect::DeviceKind::Rotator, dialect::DeviceKind::Wheel],
+    models: &["rotator", "wheel"],
+    baud: 115_200,
+    line: LINE_8N1,
+    addressed: false,
+    policy: default_policy,
+    identify: |c, _, policy| {
+        Box::pin(async move {
+            let p = probe(c, policy).await?;
+            let id = p.identity;
+            let rotator = id.device == DeviceKind::Rotator;
+            Ok(dialect::Identity {
+                kind: if rotator {
+                    dialect::DeviceKind::Rotator
+                } else {
+                    dialect::DeviceKind::Wheel
+                },
+                model: format!("{:?}", id.device),
+                serial: format!("{:08x}", id.serial),
+                firmware: format!("{}.{}.{}", id.firmware[0], id.firmware[1], id.firmware[2]),
+                counts_per_turn: rotator.then_some(id.counts_per_turn),
+                slots: (!rotator).then_some(usize::from(id.slots)),
+                homed: Some(p.homed),
+                position: if rotator {
+                    let a = angle_from_counts(i64::from(p.position_counts), id.counts_per_turn);
+                    Position::Angle {
+                        deg: a.to_degrees(),
+                    }
+                } else {
+                    Position::Slot(p.slot.map(usize::from))
+                },
+            })
+        })
+    },
+    rotator: Some(|c, _, policy| {
+        Box::pin(async move { Ok(AnyRotator::new(NativeRotator::connect(c, policy).await?)) })
+    }),
+    wheel: Some(|c, _, policy| {
+        Box::pin(async move { Ok(AnyWheel::new(NativeWheel::connect(c, policy, None).await?)) })
+    }),
+};

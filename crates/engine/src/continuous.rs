@@ -41,7 +41,7 @@
 //! span centres instead ([`SpanEstimator::point_rows`]) the polarised components come out
 //! scaled by `sinc D`: the bias the span rows remove.
 
-use crate::plan::PlanError;
+use crate::plan_error::PlanError;
 use nalgebra::{Matrix3, Vector3};
 use polar_model::sensor::SensorModel;
 use polar_model::span::{span_signal, SpanExposure, SpanSignal};

@@ -28,7 +28,7 @@
 //! position-compare trigger (a continuous run refuses them), so their limits must be given.
 
 use crate::continuous::{Continuous, ContinuousFromPlanner, FromPlannerObjective, TriggerSource};
-use crate::forecast::{camera_at_gain, ForecastError, SCENE_TOL};
+use crate::forecast_basis::{camera_at_gain, ForecastError, SCENE_TOL};
 use crate::plan::{Plan, PlanError, PlanKind, Simulation};
 use polar_model::scene_file::Scene;
 use polar_model::sensor::{Camera, SensorModel};

@@ -20,7 +20,6 @@ use std::collections::BTreeSet;
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
-use tiff::encoder::{colortype, TiffEncoder};
 
 /// What [`export_tiff`] wrote.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -67,23 +66,11 @@ fn write_err<E: std::fmt::Display>(path: &Path) -> impl FnOnce(E) -> ExportError
 }
 
 fn write_tiff_u16(path: &Path, width: u32, height: u32, data: &[u16]) -> Result<(), ExportError> {
-    let file = File::create(path).map_err(write_err(path))?;
-    let mut w = BufWriter::new(file);
-    TiffEncoder::new(&mut w)
-        .map_err(write_err(path))?
-        .write_image::<colortype::Gray16>(width, height, data)
-        .map_err(write_err(path))?;
-    w.flush().map_err(write_err(path))
+    crate::tiff_io::write_gray16(path, width, height, data).map_err(write_err(path))
 }
 
 fn write_tiff_f32(path: &Path, width: u32, height: u32, data: &[f32]) -> Result<(), ExportError> {
-    let file = File::create(path).map_err(write_err(path))?;
-    let mut w = BufWriter::new(file);
-    TiffEncoder::new(&mut w)
-        .map_err(write_err(path))?
-        .write_image::<colortype::Gray32Float>(width, height, data)
-        .map_err(write_err(path))?;
-    w.flush().map_err(write_err(path))
+    crate::tiff_io::write_gray32f(path, width, height, data).map_err(write_err(path))
 }
 
 /// The `frames.csv` header.

@@ -37,9 +37,8 @@ use polar_planner::{conventional, optimise, Constraints, Contrast};
 use serde::Serialize;
 use serde_json::{json, Value};
 
-/// Relative tolerance of the scene evaluation (of each material's mean `S0`), as `plan
-/// --scene` uses.
-pub const SCENE_TOL: f64 = 1e-3;
+use crate::forecast_basis::{camera_at_gain, model_err};
+pub use crate::forecast_basis::{ForecastError, SCENE_TOL};
 
 /// The planner's angle tolerance, degrees.
 const PLANNER_TOL_DEG: f64 = 0.01;
@@ -140,57 +139,6 @@ pub struct ClassForecast {
     /// over the class's pixels (sensor noise and the scene's texture); negative: some pixels
     /// saturate.
     pub saturation_margin: f64,
-}
-
-/// Why a forecast could not be made; every variant names the field.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum ForecastError {
-    /// The plan (unresolved angles, a missing section).
-    #[error("{0}")]
-    Plan(#[from] PlanError),
-    /// A material the plan names is not in the scene.
-    #[error("{field} = {name:?} is not a material of the scene: allowed {allowed}")]
-    UnknownMaterial {
-        /// The plan's field.
-        field: String,
-        /// The name it gives.
-        name: String,
-        /// The scene's materials, comma-separated.
-        allowed: String,
-    },
-    /// A value the forecast cannot use.
-    #[error("{field} = {value} is invalid: allowed {allowed}")]
-    Invalid {
-        /// The field.
-        field: String,
-        /// The value.
-        value: String,
-        /// What is allowed.
-        allowed: String,
-    },
-    /// The model failed for a material, the camera or the planner.
-    #[error("{field}: {message}")]
-    Model {
-        /// What was being computed (e.g. `material panel`, `simulation.camera`).
-        field: String,
-        /// The model's error.
-        message: String,
-    },
-}
-
-fn model_err(field: impl Into<String>) -> impl FnOnce(polar_model::ModelError) -> ForecastError {
-    let field = field.into();
-    move |e| ForecastError::Model {
-        field,
-        message: e.to_string(),
-    }
-}
-
-/// The camera at an analog gain: `K` scaled by `10^(gain_db / 20)` (as the cameras apply it).
-pub(crate) fn camera_at_gain(camera: &Camera, gain_db: f64) -> Camera {
-    let mut c = camera.clone();
-    c.gain_dn_per_e *= 10f64.powf(gain_db / 20.0);
-    c
 }
 
 /// The short way between two analyzer angles, degrees in `[0, 90]`.
@@ -543,26 +491,21 @@ fn saturation_margin(s: &polar_model::sensor::SensorSignal) -> f64 {
     (s.saturation_dn - top) / s.saturation_dn
 }
 
-/// The forecast of `plan` (module docs) with the model of `scene` and `camera` and the rig's
-/// `timing`. A capture whose angles come `from_planner` is resolved here with
-/// [`planner_angles`] at its first exposure, a continuous plan's `from_planner` with
-/// [`crate::continuous_planner::resolve`] (each says so in `notes`).
-///
-/// Errors: the plan's (a missing section); `timing` values not finite or negative (the speed
-/// must be `> 0`); a planner target or background not in the scene (the message lists the
-/// scene's materials); the model's, naming the material or the camera.
-pub fn forecast(
-    plan: &Plan,
+/// What point-row classes are computed at: the angles (degrees), the exposures (us; the first
+/// is the classes', the rest are checked for saturation) and the gain (dB).
+type ClassSettings = (Vec<f64>, Vec<f64>, f64);
+
+/// The angles, exposures and gain a plan's classes are computed at (`None`: the kind has no
+/// point-row classes: a continuous plan's come from its span rows, the calibrations use a
+/// uniform source). A capture's or a continuous plan's `from_planner` is resolved in `plan`,
+/// and said in `notes`.
+fn class_settings(
+    plan: &mut Plan,
     scene: &Scene,
     camera: &Camera,
-    timing: &Timing,
-) -> Result<Forecast, ForecastError> {
-    timing.validate()?;
-    let mut plan = plan.clone();
-    let mut notes: Vec<String> = Vec::new();
-    let names: Vec<&str> = scene.materials.iter().map(|m| m.name.as_str()).collect();
-    // What the classes are computed at: angles, exposures (first and the rest), gain.
-    let at: Option<(Vec<f64>, Vec<f64>, f64)> = match plan.kind {
+    notes: &mut Vec<String>,
+) -> Result<Option<ClassSettings>, ForecastError> {
+    Ok(match plan.kind {
         PlanKind::Capture => {
             let c = plan.capture.clone().ok_or_else(|| PlanError::Invalid {
                 field: "capture".into(),
@@ -612,7 +555,7 @@ pub fn forecast(
             .map(|a| (a.initial_angles_deg.clone(), vec![a.exposure_us], a.gain_db)),
         // Span rows, not point rows: classes below from `continuous_classes`.
         PlanKind::Continuous => {
-            if let Some(choice) = crate::continuous_planner::resolve(&mut plan, scene, camera)? {
+            if let Some(choice) = crate::continuous_planner::resolve(plan, scene, camera)? {
                 notes.push(crate::continuous_planner::describe(&choice));
             }
             None
@@ -639,7 +582,82 @@ pub fn forecast(
             }
             None
         }
-    };
+    })
+}
+
+/// Each material's class forecast with point rows at `angles` (degrees), the first of
+/// `exposures` (us) and `gain_db`; the longer exposures are checked for saturation, in `notes`.
+fn point_classes(
+    scene: &Scene,
+    camera: &Camera,
+    names: &[&str],
+    (angles, exposures, gain_db): (&[f64], &[f64], f64),
+    notes: &mut Vec<String>,
+) -> Result<Vec<ClassForecast>, ForecastError> {
+    let mut classes = Vec::new();
+    let camera = camera_at_gain(camera, gain_db);
+    let sensor = SensorModel::new(&camera, &scene.spec.band).map_err(model_err("camera"))?;
+    notes.extend(sensor.warnings().iter().cloned());
+    let results = evaluate_materials(scene, names)?;
+    let t0 = exposures[0] * 1e-6;
+    for r in &results {
+        classes.push(class_forecast(&sensor, r, angles, t0, notes)?);
+    }
+    if exposures.len() > 1 {
+        notes.push(format!(
+            "classes at the first of {} exposures ({} us); sigmas are per set (one frame \
+             per angle)",
+            exposures.len(),
+            exposures[0]
+        ));
+        // The longer exposures can saturate where the first does not.
+        let radians: Vec<f64> = angles.iter().map(|a| a.to_radians()).collect();
+        for &e in &exposures[1..] {
+            for r in &results {
+                let mut x = Exposure::new(e * 1e-6, r.mean);
+                x.radiance_cov_w2_m4_sr2 = 0.5 * (r.cov + r.cov.transpose());
+                let s = sensor
+                    .signal(&radians, &x)
+                    .map_err(model_err(format!("material {}", r.name)))?;
+                if saturation_margin(&s) < 0.0 {
+                    notes.push(format!(
+                        "{}: mean + 3 sigma exceeds saturation ({} DN) at {e} us",
+                        r.name, s.saturation_dn
+                    ));
+                }
+            }
+        }
+    } else {
+        notes.push("sigmas are per set (one frame per angle), sensor noise only".into());
+    }
+    if gain_db != 0.0 {
+        notes.push(format!(
+            "analog gain {gain_db} dB: K = {} DN/e-",
+            camera.gain_dn_per_e
+        ));
+    }
+    Ok(classes)
+}
+
+/// The forecast of `plan` (module docs) with the model of `scene` and `camera` and the rig's
+/// `timing`. A capture whose angles come `from_planner` is resolved here with
+/// [`planner_angles`] at its first exposure, a continuous plan's `from_planner` with
+/// [`crate::continuous_planner::resolve`] (each says so in `notes`).
+///
+/// Errors: the plan's (a missing section); `timing` values not finite or negative (the speed
+/// must be `> 0`); a planner target or background not in the scene (the message lists the
+/// scene's materials); the model's, naming the material or the camera.
+pub fn forecast(
+    plan: &Plan,
+    scene: &Scene,
+    camera: &Camera,
+    timing: &Timing,
+) -> Result<Forecast, ForecastError> {
+    timing.validate()?;
+    let mut plan = plan.clone();
+    let mut notes: Vec<String> = Vec::new();
+    let names: Vec<&str> = scene.materials.iter().map(|m| m.name.as_str()).collect();
+    let at = class_settings(&mut plan, scene, camera, &mut notes)?;
 
     let steps = plan.steps()?;
     let darks = steps.iter().filter(|s| s.kind == FrameKind::Dark).count() as u64;
@@ -682,47 +700,13 @@ pub fn forecast(
     }
     let angles_deg = at.as_ref().map(|(a, _, _)| a.clone());
     if let Some((angles, exposures, gain_db)) = at {
-        let camera = camera_at_gain(camera, gain_db);
-        let sensor = SensorModel::new(&camera, &scene.spec.band).map_err(model_err("camera"))?;
-        notes.extend(sensor.warnings().iter().cloned());
-        let results = evaluate_materials(scene, &names)?;
-        let t0 = exposures[0] * 1e-6;
-        for r in &results {
-            classes.push(class_forecast(&sensor, r, &angles, t0, &mut notes)?);
-        }
-        if exposures.len() > 1 {
-            notes.push(format!(
-                "classes at the first of {} exposures ({} us); sigmas are per set (one frame \
-                 per angle)",
-                exposures.len(),
-                exposures[0]
-            ));
-            // The longer exposures can saturate where the first does not.
-            let radians: Vec<f64> = angles.iter().map(|a| a.to_radians()).collect();
-            for &e in &exposures[1..] {
-                for r in &results {
-                    let mut x = Exposure::new(e * 1e-6, r.mean);
-                    x.radiance_cov_w2_m4_sr2 = 0.5 * (r.cov + r.cov.transpose());
-                    let s = sensor
-                        .signal(&radians, &x)
-                        .map_err(model_err(format!("material {}", r.name)))?;
-                    if saturation_margin(&s) < 0.0 {
-                        notes.push(format!(
-                            "{}: mean + 3 sigma exceeds saturation ({} DN) at {e} us",
-                            r.name, s.saturation_dn
-                        ));
-                    }
-                }
-            }
-        } else {
-            notes.push("sigmas are per set (one frame per angle), sensor noise only".into());
-        }
-        if gain_db != 0.0 {
-            notes.push(format!(
-                "analog gain {gain_db} dB: K = {} DN/e-",
-                camera.gain_dn_per_e
-            ));
-        }
+        classes = point_classes(
+            scene,
+            camera,
+            &names,
+            (&angles, &exposures, gain_db),
+            &mut notes,
+        )?;
     }
     Ok(Forecast {
         kind: plan.kind.name().to_string(),

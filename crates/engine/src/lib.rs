@@ -24,12 +24,15 @@ pub mod continuous_planner;
 pub mod export;
 pub mod flags;
 pub mod forecast;
+mod forecast_basis;
 pub mod journal;
 pub mod plan;
+mod plan_error;
 pub mod products;
 pub mod run;
 pub mod sim;
 pub mod store;
+pub mod tiff_io;
 
 use serde::{Deserialize, Serialize};
 

@@ -27,36 +27,7 @@ use crate::FrameKind;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-/// A bad plan: the field (dotted path), the value and what is allowed.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum PlanError {
-    /// The text does not parse, or a field has the wrong type.
-    #[error("plan {path}: {message}")]
-    Parse {
-        /// The field's dotted path (or the line and column).
-        path: String,
-        /// What the parser said.
-        message: String,
-    },
-    /// A field's value is outside its allowed range.
-    #[error("plan field {field} = {value} is out of range: allowed {allowed}")]
-    Invalid {
-        /// The field's dotted path.
-        field: String,
-        /// The value, as written.
-        value: String,
-        /// What is allowed.
-        allowed: String,
-    },
-    /// The file cannot be read.
-    #[error("plan file {path}: {message}")]
-    Io {
-        /// The file.
-        path: String,
-        /// Why.
-        message: String,
-    },
-}
+pub use crate::plan_error::PlanError;
 
 fn invalid(field: &str, value: impl std::fmt::Display, allowed: impl Into<String>) -> PlanError {
     PlanError::Invalid {
@@ -108,23 +79,27 @@ pub struct FromPlanner {
     /// Background material.
     pub background: String,
     /// Channels per set, 3..=6.
-    #[serde(default = "three")]
+    #[serde(default = "default_channels")]
     pub channels: usize,
     /// Smallest separation between two angles, degrees, [0, 90).
-    #[serde(default = "thirty")]
+    #[serde(default = "default_min_separation_deg")]
     pub min_separation_deg: f64,
 }
 
-fn three() -> usize {
+/// Channels per set when a plan does not say: the fewest that form a Stokes vector.
+fn default_channels() -> usize {
     3
 }
-fn thirty() -> f64 {
+/// The planner's smallest angle separation when a plan does not say, degrees.
+fn default_min_separation_deg() -> f64 {
     30.0
 }
-fn one() -> u32 {
+/// A count (repeats, pairs) a plan leaves out: once.
+fn once() -> u32 {
     1
 }
-fn two() -> u32 {
+/// The calibrate-analyzer darks when a plan does not say.
+fn default_analyzer_darks() -> u32 {
     2
 }
 
@@ -141,7 +116,7 @@ pub struct Capture {
     /// Exposures, microseconds: every repeat is taken at each.
     pub exposure_us: Vec<f64>,
     /// Sets per exposure, 1..=100000.
-    #[serde(default = "one")]
+    #[serde(default = "once")]
     pub repeats: u32,
     /// Dark frames before the sets, 0..=1000.
     #[serde(default)]
@@ -164,7 +139,7 @@ pub struct CalibrateNoise {
     #[serde(default)]
     pub angle_deg: f64,
     /// Frame pairs per exposure (dark and light each), 1..=16.
-    #[serde(default = "one")]
+    #[serde(default = "once")]
     pub pairs: u32,
     /// Analog gain, dB, [0, 48].
     #[serde(default)]
@@ -181,12 +156,12 @@ pub struct CalibrateAnalyzer {
     /// Analyzer angles, evenly over [0, 180), 8..=720.
     pub steps: u32,
     /// Frames per angle, 1..=100.
-    #[serde(default = "one")]
+    #[serde(default = "once")]
     pub repeats: u32,
     /// Exposure, microseconds.
     pub exposure_us: f64,
     /// Dark frames before the sweep (subtracted; the extinction ratio needs them), 1..=1000.
-    #[serde(default = "two")]
+    #[serde(default = "default_analyzer_darks")]
     pub darks: u32,
     /// Analog gain, dB, [0, 48].
     #[serde(default)]
@@ -248,7 +223,7 @@ pub struct Adaptive {
     /// The first set, degrees (a conventional set).
     pub initial_angles_deg: Vec<f64>,
     /// Channels of the sets the planner picks, 3..=6.
-    #[serde(default = "three")]
+    #[serde(default = "default_channels")]
     pub channels: usize,
     /// Exposure, microseconds.
     pub exposure_us: f64,
@@ -264,7 +239,7 @@ pub struct Adaptive {
     pub scr_rel_tol: f64,
     /// Smallest separation between two angles of a set, degrees, [5, 60] (each set must
     /// form Stokes images on its own).
-    #[serde(default = "thirty")]
+    #[serde(default = "default_min_separation_deg")]
     pub min_separation_deg: f64,
     /// Dark frames before the loop, 0..=1000.
     #[serde(default)]
@@ -609,6 +584,372 @@ fn distinct_angles(angles: &[f64]) -> usize {
     seen.len()
 }
 
+/// A dark frame's step (the lens capped) at `angle_deg`.
+fn dark_step(label: String, exposure_us: f64, gain_db: f64, angle_deg: f64) -> StepSpec {
+    StepSpec {
+        kind: FrameKind::Dark,
+        set: None,
+        angle_deg,
+        exposure_us,
+        gain_db,
+        label,
+        not_before_s: None,
+    }
+}
+
+/// A light frame's step at `angle_deg`, in `set` if any.
+fn light_step(
+    set: Option<u64>,
+    label: String,
+    angle_deg: f64,
+    exposure_us: f64,
+    gain_db: f64,
+) -> StepSpec {
+    StepSpec {
+        kind: FrameKind::Light,
+        set,
+        angle_deg,
+        exposure_us,
+        gain_db,
+        label,
+        not_before_s: None,
+    }
+}
+
+impl Capture {
+    /// The darks before, the sets (every exposure, `repeats` times, each angle) and the darks after.
+    fn steps(&self) -> Result<Vec<StepSpec>, PlanError> {
+        let c = self;
+        let mut steps = Vec::new();
+        let angles = c.angles_deg.as_ref().ok_or_else(|| {
+            invalid(
+                "capture.from_planner",
+                "(unresolved)",
+                "angles resolved by the planner before the run",
+            )
+        })?;
+        let first = c.exposure_us[0];
+        let last = c.exposure_us[c.exposure_us.len() - 1];
+        for i in 0..c.darks_before {
+            steps.push(dark_step(
+                format!("dark before {i}"),
+                first,
+                c.gain_db,
+                angles[0],
+            ));
+        }
+        let mut set = 0u64;
+        for &e in &c.exposure_us {
+            for _ in 0..c.repeats {
+                for &a in angles {
+                    steps.push(light_step(
+                        Some(set),
+                        format!("set {set} {e} us {a} deg"),
+                        a,
+                        e,
+                        c.gain_db,
+                    ));
+                }
+                set += 1;
+            }
+        }
+        for i in 0..c.darks_after {
+            steps.push(dark_step(
+                format!("dark after {i}"),
+                last,
+                c.gain_db,
+                angles[0],
+            ));
+        }
+        Ok(steps)
+    }
+}
+
+impl CalibrateNoise {
+    /// Per exposure, `2 pairs` darks then `2 pairs` lights at the angle.
+    fn steps(&self) -> Vec<StepSpec> {
+        let c = self;
+        let mut steps = Vec::new();
+        for &e in &c.exposure_us {
+            for p in 0..2 * c.pairs {
+                steps.push(dark_step(
+                    format!("ptc dark {e} us {p}"),
+                    e,
+                    c.gain_db,
+                    c.angle_deg,
+                ));
+            }
+            for p in 0..2 * c.pairs {
+                steps.push(light_step(
+                    None,
+                    format!("ptc light {e} us {p}"),
+                    c.angle_deg,
+                    e,
+                    c.gain_db,
+                ));
+            }
+        }
+        steps
+    }
+}
+
+impl CalibrateAnalyzer {
+    /// The darks, then the sweep over half a turn (`repeats` frames per angle).
+    fn steps(&self) -> Vec<StepSpec> {
+        let c = self;
+        let mut steps = Vec::new();
+        for i in 0..c.darks {
+            steps.push(dark_step(
+                format!("dark {i}"),
+                c.exposure_us,
+                c.gain_db,
+                0.0,
+            ));
+        }
+        for k in 0..c.steps {
+            let a = 180.0 * f64::from(k) / f64::from(c.steps);
+            for r in 0..c.repeats {
+                steps.push(light_step(
+                    None,
+                    format!("sweep {a:.3} deg {r}"),
+                    a,
+                    c.exposure_us,
+                    c.gain_db,
+                ));
+            }
+        }
+        steps
+    }
+}
+
+impl TimeLapse {
+    /// `count` sets, each due `interval_s` after the last.
+    fn steps(&self) -> Vec<StepSpec> {
+        let t = self;
+        let mut steps = Vec::new();
+        for set in 0..u64::from(t.count) {
+            for (i, &a) in t.angles_deg.iter().enumerate() {
+                let mut s = light_step(
+                    Some(set),
+                    format!("set {set} {a} deg"),
+                    a,
+                    t.exposure_us,
+                    t.gain_db,
+                );
+                if i == 0 {
+                    s.not_before_s = Some(set as f64 * t.interval_s);
+                }
+                steps.push(s);
+            }
+        }
+        steps
+    }
+}
+
+impl Adaptive {
+    /// The darks and the first round (the planner chooses the rest as the run goes).
+    fn steps(&self) -> Vec<StepSpec> {
+        let a = self;
+        let mut steps = Vec::new();
+        for i in 0..a.darks {
+            steps.push(dark_step(
+                format!("dark {i}"),
+                a.exposure_us,
+                a.gain_db,
+                a.initial_angles_deg[0],
+            ));
+        }
+        for &deg in &a.initial_angles_deg {
+            steps.push(light_step(
+                Some(0),
+                format!("round 1 {deg} deg"),
+                deg,
+                a.exposure_us,
+                a.gain_db,
+            ));
+        }
+        steps
+    }
+}
+
+/// An analog gain, dB: 0 to 48.
+fn check_gain(field: &str, g: f64) -> Result<(), PlanError> {
+    check(field, g, 0.0, 48.0, false)
+}
+
+impl Capture {
+    /// Checks the `[capture]` section's ranges.
+    fn validate(&self) -> Result<(), PlanError> {
+        let c = self;
+        match (&c.angles_deg, &c.from_planner) {
+            (Some(a), None) => {
+                check_angles("capture.angles_deg", a, 3, 16)?;
+                if distinct_angles(a) < 3 {
+                    return Err(invalid(
+                        "capture.angles_deg",
+                        format!("{a:?}"),
+                        "at least 3 distinct angles (modulo 180 degrees) to form Stokes images",
+                    ));
+                }
+            }
+            (None, Some(fp)) => {
+                check_count("capture.from_planner.channels", fp.channels as u64, 3, 6)?;
+                check(
+                    "capture.from_planner.min_separation_deg",
+                    fp.min_separation_deg,
+                    0.0,
+                    60.0,
+                    false,
+                )?;
+            }
+            _ => {
+                return Err(invalid(
+                    "capture.angles_deg",
+                    "(both or neither)",
+                    "exactly one of capture.angles_deg and capture.from_planner",
+                ))
+            }
+        }
+        check_exposures("capture.exposure_us", &c.exposure_us)?;
+        check_count("capture.repeats", u64::from(c.repeats), 1, 100_000)?;
+        check_count("capture.darks_before", u64::from(c.darks_before), 0, 1000)?;
+        check_count("capture.darks_after", u64::from(c.darks_after), 0, 1000)?;
+        check_gain("capture.gain_db", c.gain_db)?;
+        Ok(())
+    }
+}
+
+impl CalibrateNoise {
+    /// Checks the `[calibrate-noise]` section's ranges.
+    fn validate(&self) -> Result<(), PlanError> {
+        let c = self;
+        if !(5..=200).contains(&c.exposure_us.len()) {
+            return Err(invalid(
+                "calibrate-noise.exposure_us",
+                format!("{} exposures", c.exposure_us.len()),
+                "5..=200 exposures (the photon transfer fit needs 3 in the linear range, \
+                 the saturation point and one beyond it)",
+            ));
+        }
+        check_exposures("calibrate-noise.exposure_us", &c.exposure_us)?;
+        if c.exposure_us.windows(2).any(|w| w[1] <= w[0]) {
+            return Err(invalid(
+                "calibrate-noise.exposure_us",
+                format!("{:?}", c.exposure_us),
+                "strictly increasing exposures",
+            ));
+        }
+        check_angles("calibrate-noise.angle_deg", &[c.angle_deg], 1, 1)?;
+        check_count("calibrate-noise.pairs", u64::from(c.pairs), 1, 16)?;
+        check_gain("calibrate-noise.gain_db", c.gain_db)?;
+        Ok(())
+    }
+}
+
+impl CalibrateAnalyzer {
+    /// Checks the `[calibrate-analyzer]` section's ranges.
+    fn validate(&self) -> Result<(), PlanError> {
+        let c = self;
+        check_angles(
+            "calibrate-analyzer.reference_angle_deg",
+            &[c.reference_angle_deg],
+            1,
+            1,
+        )?;
+        check_count("calibrate-analyzer.steps", u64::from(c.steps), 8, 720)?;
+        check_count("calibrate-analyzer.repeats", u64::from(c.repeats), 1, 100)?;
+        check_exposures("calibrate-analyzer.exposure_us", &[c.exposure_us])?;
+        check_count("calibrate-analyzer.darks", u64::from(c.darks), 1, 1000)?;
+        check_gain("calibrate-analyzer.gain_db", c.gain_db)?;
+        Ok(())
+    }
+}
+
+impl TimeLapse {
+    /// Checks the `[time-lapse]` section's ranges.
+    fn validate(&self) -> Result<(), PlanError> {
+        let t = self;
+        check_angles("time-lapse.angles_deg", &t.angles_deg, 3, 16)?;
+        if distinct_angles(&t.angles_deg) < 3 {
+            return Err(invalid(
+                "time-lapse.angles_deg",
+                format!("{:?}", t.angles_deg),
+                "at least 3 distinct angles (modulo 180 degrees)",
+            ));
+        }
+        check_exposures("time-lapse.exposure_us", &[t.exposure_us])?;
+        check("time-lapse.interval_s", t.interval_s, 0.0, 86_400.0, true)?;
+        check_count("time-lapse.count", u64::from(t.count), 1, 100_000)?;
+        check_gain("time-lapse.gain_db", t.gain_db)?;
+        Ok(())
+    }
+}
+
+impl Adaptive {
+    /// Checks the `[adaptive]` section's ranges and its one target.
+    fn validate(&self) -> Result<(), PlanError> {
+        let a = self;
+        check_angles("adaptive.initial_angles_deg", &a.initial_angles_deg, 3, 6)?;
+        if distinct_angles(&a.initial_angles_deg) < 3 {
+            return Err(invalid(
+                "adaptive.initial_angles_deg",
+                format!("{:?}", a.initial_angles_deg),
+                "at least 3 distinct angles (modulo 180 degrees)",
+            ));
+        }
+        check_count("adaptive.channels", a.channels as u64, 3, 6)?;
+        check_exposures("adaptive.exposure_us", &[a.exposure_us])?;
+        let first = a.initial_angles_deg.len() as u64;
+        check_count(
+            "adaptive.frame_budget",
+            a.frame_budget as u64,
+            first,
+            100_000,
+        )?;
+        check("adaptive.angle_tol_deg", a.angle_tol_deg, 0.0, 90.0, true)?;
+        check("adaptive.scr_rel_tol", a.scr_rel_tol, 0.0, 1.0, true)?;
+        // Each set must form Stokes images on its own (products and the suspender).
+        check(
+            "adaptive.min_separation_deg",
+            a.min_separation_deg,
+            5.0,
+            60.0,
+            false,
+        )?;
+        check_count("adaptive.darks", u64::from(a.darks), 0, 1000)?;
+        check_gain("adaptive.gain_db", a.gain_db)?;
+        let t = &a.target;
+        let given = [
+            t.material.is_some(),
+            t.rect.is_some(),
+            t.anomalies.is_some(),
+        ];
+        if given.iter().filter(|g| **g).count() != 1 {
+            return Err(invalid(
+                "adaptive.target",
+                "(none or several)",
+                "exactly one of material, rect, anomalies",
+            ));
+        }
+        if let Some(f) = t.anomalies {
+            check("adaptive.target.anomalies", f, 0.0, 0.5, true)?;
+            if f >= 0.5 {
+                return Err(invalid("adaptive.target.anomalies", f, "(0, 0.5)"));
+            }
+        }
+        if let Some([x0, y0, x1, y1]) = t.rect {
+            if x1 <= x0 || y1 <= y0 {
+                return Err(invalid(
+                    "adaptive.target.rect",
+                    format!("[{x0}, {y0}, {x1}, {y1}]"),
+                    "x0 < x1 and y0 < y1",
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 impl Plan {
     /// Parses TOML text; errors name the field.
     pub fn from_toml_str(text: &str) -> Result<Plan, PlanError> {
@@ -662,6 +1003,32 @@ impl Plan {
 
     /// Checks every field's range and that the section of `kind` (and no other) is present.
     pub fn validate(&self) -> Result<(), PlanError> {
+        self.check_sections()?;
+        self.check_common()?;
+        if let Some(c) = &self.continuous {
+            // An unresolved `from_planner` is checked as written here; the run refuses it.
+            c.validate_as_written()?;
+        }
+        if let Some(c) = &self.capture {
+            c.validate()?;
+        }
+        if let Some(c) = &self.calibrate_noise {
+            c.validate()?;
+        }
+        if let Some(c) = &self.calibrate_analyzer {
+            c.validate()?;
+        }
+        if let Some(t) = &self.time_lapse {
+            t.validate()?;
+        }
+        if let Some(a) = &self.adaptive {
+            a.validate()?;
+        }
+        Ok(())
+    }
+
+    /// The section of `kind` is present, and no other kind's.
+    fn check_sections(&self) -> Result<(), PlanError> {
         let sections = [
             (PlanKind::Capture, self.capture.is_some()),
             (PlanKind::CalibrateNoise, self.calibrate_noise.is_some()),
@@ -693,6 +1060,11 @@ impl Plan {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// The sections every kind has: policy, suspender, site and simulation.
+    fn check_common(&self) -> Result<(), PlanError> {
         let p = &self.policy;
         check("policy.move_timeout_s", p.move_timeout_s, 0.0, 600.0, true)?;
         check("policy.grab_timeout_s", p.grab_timeout_s, 0.0, 600.0, true)?;
@@ -755,154 +1127,6 @@ impl Plan {
         if sim.cloud_depth >= 1.0 {
             return Err(invalid("simulation.cloud_depth", sim.cloud_depth, "(0, 1)"));
         }
-        let gain = |field: &str, g: f64| check(field, g, 0.0, 48.0, false);
-        if let Some(c) = &self.continuous {
-            // An unresolved `from_planner` is checked as written here; the run refuses it.
-            c.validate_as_written()?;
-        }
-        if let Some(c) = &self.capture {
-            match (&c.angles_deg, &c.from_planner) {
-                (Some(a), None) => {
-                    check_angles("capture.angles_deg", a, 3, 16)?;
-                    if distinct_angles(a) < 3 {
-                        return Err(invalid(
-                            "capture.angles_deg",
-                            format!("{a:?}"),
-                            "at least 3 distinct angles (modulo 180 degrees) to form Stokes images",
-                        ));
-                    }
-                }
-                (None, Some(fp)) => {
-                    check_count("capture.from_planner.channels", fp.channels as u64, 3, 6)?;
-                    check(
-                        "capture.from_planner.min_separation_deg",
-                        fp.min_separation_deg,
-                        0.0,
-                        60.0,
-                        false,
-                    )?;
-                }
-                _ => {
-                    return Err(invalid(
-                        "capture.angles_deg",
-                        "(both or neither)",
-                        "exactly one of capture.angles_deg and capture.from_planner",
-                    ))
-                }
-            }
-            check_exposures("capture.exposure_us", &c.exposure_us)?;
-            check_count("capture.repeats", u64::from(c.repeats), 1, 100_000)?;
-            check_count("capture.darks_before", u64::from(c.darks_before), 0, 1000)?;
-            check_count("capture.darks_after", u64::from(c.darks_after), 0, 1000)?;
-            gain("capture.gain_db", c.gain_db)?;
-        }
-        if let Some(c) = &self.calibrate_noise {
-            if !(5..=200).contains(&c.exposure_us.len()) {
-                return Err(invalid(
-                    "calibrate-noise.exposure_us",
-                    format!("{} exposures", c.exposure_us.len()),
-                    "5..=200 exposures (the photon transfer fit needs 3 in the linear range, \
-                     the saturation point and one beyond it)",
-                ));
-            }
-            check_exposures("calibrate-noise.exposure_us", &c.exposure_us)?;
-            if c.exposure_us.windows(2).any(|w| w[1] <= w[0]) {
-                return Err(invalid(
-                    "calibrate-noise.exposure_us",
-                    format!("{:?}", c.exposure_us),
-                    "strictly increasing exposures",
-                ));
-            }
-            check_angles("calibrate-noise.angle_deg", &[c.angle_deg], 1, 1)?;
-            check_count("calibrate-noise.pairs", u64::from(c.pairs), 1, 16)?;
-            gain("calibrate-noise.gain_db", c.gain_db)?;
-        }
-        if let Some(c) = &self.calibrate_analyzer {
-            check_angles(
-                "calibrate-analyzer.reference_angle_deg",
-                &[c.reference_angle_deg],
-                1,
-                1,
-            )?;
-            check_count("calibrate-analyzer.steps", u64::from(c.steps), 8, 720)?;
-            check_count("calibrate-analyzer.repeats", u64::from(c.repeats), 1, 100)?;
-            check_exposures("calibrate-analyzer.exposure_us", &[c.exposure_us])?;
-            check_count("calibrate-analyzer.darks", u64::from(c.darks), 1, 1000)?;
-            gain("calibrate-analyzer.gain_db", c.gain_db)?;
-        }
-        if let Some(t) = &self.time_lapse {
-            check_angles("time-lapse.angles_deg", &t.angles_deg, 3, 16)?;
-            if distinct_angles(&t.angles_deg) < 3 {
-                return Err(invalid(
-                    "time-lapse.angles_deg",
-                    format!("{:?}", t.angles_deg),
-                    "at least 3 distinct angles (modulo 180 degrees)",
-                ));
-            }
-            check_exposures("time-lapse.exposure_us", &[t.exposure_us])?;
-            check("time-lapse.interval_s", t.interval_s, 0.0, 86_400.0, true)?;
-            check_count("time-lapse.count", u64::from(t.count), 1, 100_000)?;
-            gain("time-lapse.gain_db", t.gain_db)?;
-        }
-        if let Some(a) = &self.adaptive {
-            check_angles("adaptive.initial_angles_deg", &a.initial_angles_deg, 3, 6)?;
-            if distinct_angles(&a.initial_angles_deg) < 3 {
-                return Err(invalid(
-                    "adaptive.initial_angles_deg",
-                    format!("{:?}", a.initial_angles_deg),
-                    "at least 3 distinct angles (modulo 180 degrees)",
-                ));
-            }
-            check_count("adaptive.channels", a.channels as u64, 3, 6)?;
-            check_exposures("adaptive.exposure_us", &[a.exposure_us])?;
-            let first = a.initial_angles_deg.len() as u64;
-            check_count(
-                "adaptive.frame_budget",
-                a.frame_budget as u64,
-                first,
-                100_000,
-            )?;
-            check("adaptive.angle_tol_deg", a.angle_tol_deg, 0.0, 90.0, true)?;
-            check("adaptive.scr_rel_tol", a.scr_rel_tol, 0.0, 1.0, true)?;
-            // Each set must form Stokes images on its own (products and the suspender).
-            check(
-                "adaptive.min_separation_deg",
-                a.min_separation_deg,
-                5.0,
-                60.0,
-                false,
-            )?;
-            check_count("adaptive.darks", u64::from(a.darks), 0, 1000)?;
-            gain("adaptive.gain_db", a.gain_db)?;
-            let t = &a.target;
-            let given = [
-                t.material.is_some(),
-                t.rect.is_some(),
-                t.anomalies.is_some(),
-            ];
-            if given.iter().filter(|g| **g).count() != 1 {
-                return Err(invalid(
-                    "adaptive.target",
-                    "(none or several)",
-                    "exactly one of material, rect, anomalies",
-                ));
-            }
-            if let Some(f) = t.anomalies {
-                check("adaptive.target.anomalies", f, 0.0, 0.5, true)?;
-                if f >= 0.5 {
-                    return Err(invalid("adaptive.target.anomalies", f, "(0, 0.5)"));
-                }
-            }
-            if let Some([x0, y0, x1, y1]) = t.rect {
-                if x1 <= x0 || y1 <= y0 {
-                    return Err(invalid(
-                        "adaptive.target.rect",
-                        format!("[{x0}, {y0}, {x1}, {y1}]"),
-                        "x0 < x1 and y0 < y1",
-                    ));
-                }
-            }
-        }
         Ok(())
     }
 
@@ -937,174 +1161,55 @@ impl Plan {
     /// The steps of the run, in order. An adaptive plan gives its darks and its first set;
     /// the loop adds the rest. A capture must have its angles resolved.
     pub fn steps(&self) -> Result<Vec<StepSpec>, PlanError> {
-        let mut steps = Vec::new();
-        let dark = |label: String, exposure_us: f64, gain_db: f64, angle_deg: f64| StepSpec {
-            kind: FrameKind::Dark,
-            set: None,
-            angle_deg,
-            exposure_us,
-            gain_db,
-            label,
-            not_before_s: None,
-        };
-        let light =
-            |set: Option<u64>, label: String, angle_deg: f64, exposure_us: f64, gain_db| StepSpec {
-                kind: FrameKind::Light,
-                set,
-                angle_deg,
-                exposure_us,
-                gain_db,
-                label,
-                not_before_s: None,
-            };
-        match self.kind {
-            PlanKind::Capture => {
-                let c = self
-                    .capture
-                    .as_ref()
-                    .ok_or_else(|| invalid("capture", "(missing)", "a [capture] section"))?;
-                let angles = c.angles_deg.as_ref().ok_or_else(|| {
-                    invalid(
-                        "capture.from_planner",
-                        "(unresolved)",
-                        "angles resolved by the planner before the run",
-                    )
-                })?;
-                let first = c.exposure_us[0];
-                let last = c.exposure_us[c.exposure_us.len() - 1];
-                for i in 0..c.darks_before {
-                    steps.push(dark(
-                        format!("dark before {i}"),
-                        first,
-                        c.gain_db,
-                        angles[0],
-                    ));
-                }
-                let mut set = 0u64;
-                for &e in &c.exposure_us {
-                    for _ in 0..c.repeats {
-                        for &a in angles {
-                            steps.push(light(
-                                Some(set),
-                                format!("set {set} {e} us {a} deg"),
-                                a,
-                                e,
-                                c.gain_db,
-                            ));
-                        }
-                        set += 1;
-                    }
-                }
-                for i in 0..c.darks_after {
-                    steps.push(dark(format!("dark after {i}"), last, c.gain_db, angles[0]));
-                }
-            }
-            PlanKind::CalibrateNoise => {
-                let c = self.calibrate_noise.as_ref().ok_or_else(|| {
+        Ok(match self.kind {
+            PlanKind::Capture => self
+                .capture
+                .as_ref()
+                .ok_or_else(|| invalid("capture", "(missing)", "a [capture] section"))?
+                .steps()?,
+            PlanKind::CalibrateNoise => self
+                .calibrate_noise
+                .as_ref()
+                .ok_or_else(|| {
                     invalid(
                         "calibrate-noise",
                         "(missing)",
                         "a [calibrate-noise] section",
                     )
-                })?;
-                for &e in &c.exposure_us {
-                    for p in 0..2 * c.pairs {
-                        steps.push(dark(
-                            format!("ptc dark {e} us {p}"),
-                            e,
-                            c.gain_db,
-                            c.angle_deg,
-                        ));
-                    }
-                    for p in 0..2 * c.pairs {
-                        steps.push(light(
-                            None,
-                            format!("ptc light {e} us {p}"),
-                            c.angle_deg,
-                            e,
-                            c.gain_db,
-                        ));
-                    }
-                }
-            }
-            PlanKind::CalibrateAnalyzer => {
-                let c = self.calibrate_analyzer.as_ref().ok_or_else(|| {
+                })?
+                .steps(),
+            PlanKind::CalibrateAnalyzer => self
+                .calibrate_analyzer
+                .as_ref()
+                .ok_or_else(|| {
                     invalid(
                         "calibrate-analyzer",
                         "(missing)",
                         "a [calibrate-analyzer] section",
                     )
-                })?;
-                for i in 0..c.darks {
-                    steps.push(dark(format!("dark {i}"), c.exposure_us, c.gain_db, 0.0));
-                }
-                for k in 0..c.steps {
-                    let a = 180.0 * f64::from(k) / f64::from(c.steps);
-                    for r in 0..c.repeats {
-                        steps.push(light(
-                            None,
-                            format!("sweep {a:.3} deg {r}"),
-                            a,
-                            c.exposure_us,
-                            c.gain_db,
-                        ));
-                    }
-                }
-            }
-            PlanKind::TimeLapse => {
-                let t = self
-                    .time_lapse
-                    .as_ref()
-                    .ok_or_else(|| invalid("time-lapse", "(missing)", "a [time-lapse] section"))?;
-                for set in 0..u64::from(t.count) {
-                    for (i, &a) in t.angles_deg.iter().enumerate() {
-                        let mut s = light(
-                            Some(set),
-                            format!("set {set} {a} deg"),
-                            a,
-                            t.exposure_us,
-                            t.gain_db,
-                        );
-                        if i == 0 {
-                            s.not_before_s = Some(set as f64 * t.interval_s);
-                        }
-                        steps.push(s);
-                    }
-                }
-            }
-            PlanKind::Adaptive => {
-                let a = self
-                    .adaptive
-                    .as_ref()
-                    .ok_or_else(|| invalid("adaptive", "(missing)", "an [adaptive] section"))?;
-                for i in 0..a.darks {
-                    steps.push(dark(
-                        format!("dark {i}"),
-                        a.exposure_us,
-                        a.gain_db,
-                        a.initial_angles_deg[0],
-                    ));
-                }
-                for &deg in &a.initial_angles_deg {
-                    steps.push(light(
-                        Some(0),
-                        format!("round 1 {deg} deg"),
-                        deg,
-                        a.exposure_us,
-                        a.gain_db,
-                    ));
-                }
-            }
+                })?
+                .steps(),
+            PlanKind::TimeLapse => self
+                .time_lapse
+                .as_ref()
+                .ok_or_else(|| invalid("time-lapse", "(missing)", "a [time-lapse] section"))?
+                .steps(),
+            PlanKind::Adaptive => self
+                .adaptive
+                .as_ref()
+                .ok_or_else(|| invalid("adaptive", "(missing)", "an [adaptive] section"))?
+                .steps(),
             PlanKind::Continuous => {
                 // One set per half turn; each step a frame triggered at its angle.
                 let c = self
                     .continuous
                     .as_ref()
                     .ok_or_else(|| invalid("continuous", "(missing)", "a [continuous] section"))?;
+                let mut steps = Vec::new();
                 let angles = c.trigger_angles_deg();
                 for h in 0..u64::from(c.half_turns) {
                     for (k, &a) in angles.iter().enumerate() {
-                        steps.push(light(
+                        steps.push(light_step(
                             Some(h),
                             format!("half turn {h} frame {k} {a} deg"),
                             a,
@@ -1113,9 +1218,9 @@ impl Plan {
                         ));
                     }
                 }
+                steps
             }
-        }
-        Ok(steps)
+        })
     }
 
     /// The most frames the run can take (an adaptive plan's budget plus its darks; others:

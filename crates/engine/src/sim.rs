@@ -276,7 +276,9 @@ pub fn compare_line(truth: polar_hil_mocks::serve::TruthHandle, interval_rad: f6
 pub const LINE_GAP: std::time::Duration = std::time::Duration::from_millis(20);
 
 /// The run's handle on the simulated scene's light (lens cap and clouds).
-pub fn scene_light(illumination: &polar_hil_mocks::camera::Illumination) -> crate::run::SceneLight {
+pub fn scene_light(
+    illumination: &polar_hil_mocks::camera::Illumination,
+) -> crate::run::rig::SceneLight {
     let light = illumination.clone();
     Arc::new(move |factor| light.set(factor))
 }
@@ -473,7 +475,7 @@ impl SimRig {
     ) -> Result<
         (
             SimRig,
-            crate::run::Rig<OnRotator<AnyRotator>, ThreadedCamera>,
+            crate::run::rig::Rig<OnRotator<AnyRotator>, ThreadedCamera>,
         ),
         SimError,
     > {
@@ -519,7 +521,7 @@ impl SimRig {
             },
             "scene_materials": rig.scene.materials,
         });
-        let engine_rig = crate::run::Rig {
+        let engine_rig = crate::run::rig::Rig {
             analyzer: OnRotator {
                 rotator: stage,
                 zero_offset_rad: 0.0,

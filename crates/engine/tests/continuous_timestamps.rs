@@ -93,7 +93,7 @@ fn run_with_truth(plan: &Plan, dir: &Path) -> (Result<Outcome, run::RunError>, T
                 }
             }
         });
-        let outcome = run::run_continuous(plan, engine_rig, dir, false, link).await;
+        let outcome = run::run(plan, engine_rig, dir, false, link).await;
         let _ = watcher.await;
         stop.store(true, Ordering::Relaxed);
         let trace = sampler.join().unwrap();

@@ -1,7 +1,7 @@
 //! The device panel: connect, home, move, exposure and gain, a snapshot, and the live modes
 //! ([`crate::live`]).
 
-use crate::engine::Command;
+use crate::messages::Command;
 use crate::{colour, fit_texture, live, App, ShownSnapshot};
 use eframe::egui;
 

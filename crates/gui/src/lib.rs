@@ -14,10 +14,13 @@
 #![warn(missing_docs)]
 
 pub mod colour;
+mod connection;
 mod device_panel;
 pub mod engine;
+mod forecast;
 pub mod live;
 mod live_worker;
+pub mod messages;
 pub mod planner_panel;
 pub mod rooftop;
 pub mod view;

@@ -16,7 +16,7 @@
 //! The device I/O of both modes runs on the engine's worker (module `live_worker`); this
 //! module holds what the UI keeps of it ([`LivePanel`]) and draws it, never waiting.
 
-use crate::engine::{Command, LiveProducts};
+use crate::messages::{Command, LiveProducts};
 use crate::{colour, fit_texture, render, rooftop, Rendered, View};
 use eframe::egui;
 use polar_engine::products::{self, Dark, NoiseModel, Products, SetGeometry};
@@ -29,110 +29,10 @@ pub const LIVE_HIST_BINS: usize = 64;
 /// Frames the frame-rate meter averages over.
 pub const RATE_WINDOW: usize = 16;
 
-/// Allowed spin speeds, degrees per second (the simulated native stage's limit is 2 turns/s).
-pub const SPEED_RANGE_DEG_PER_S: (f64, f64) = (1.0, 720.0);
-
-/// Allowed frames per half turn (3 are the fewest that determine S0, S1, S2).
-pub const FRAMES_RANGE: (u32, u32) = (3, 180);
-
-/// Which live mode runs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum LiveMode {
-    /// The camera streams; the analyzer stays still.
-    Camera,
-    /// The analyzer spins; Stokes estimates every half turn.
-    Polarimetry,
-}
-
-impl LiveMode {
-    /// The mode's name in the panel.
-    pub fn label(self) -> &'static str {
-        match self {
-            LiveMode::Camera => "Live",
-            LiveMode::Polarimetry => "Live polarimetry",
-        }
-    }
-}
-
-/// How live polarimetry spins and exposes.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SpinSettings {
-    /// The analyzer's speed, degrees per second.
-    pub speed_deg_per_s: f64,
-    /// Exposures per half turn.
-    pub frames_per_half_turn: u32,
-    /// The camera's trigger input is wired to the stage's position-compare output (the
-    /// camera then exposes on the pulse itself; otherwise each exposure is triggered in
-    /// software and placed in time by its exposure-end event).
-    pub hardware_trigger: bool,
-}
-
-impl Default for SpinSettings {
-    fn default() -> Self {
-        SpinSettings {
-            speed_deg_per_s: 180.0,
-            frames_per_half_turn: 8,
-            hardware_trigger: false,
-        }
-    }
-}
-
-impl SpinSettings {
-    /// The time between two exposures, seconds.
-    pub fn frame_interval_s(&self) -> f64 {
-        180.0 / (f64::from(self.frames_per_half_turn) * self.speed_deg_per_s)
-    }
-
-    /// Checks the settings for an exposure of `exposure_us`: errors name the field, its
-    /// value and the allowed range.
-    pub fn check(&self, exposure_us: f64) -> Result<(), String> {
-        let (lo, hi) = SPEED_RANGE_DEG_PER_S;
-        if !(self.speed_deg_per_s.is_finite()
-            && self.speed_deg_per_s >= lo
-            && self.speed_deg_per_s <= hi)
-        {
-            return Err(format!(
-                "speed_deg_per_s = {}: allowed [{lo}, {hi}] deg/s",
-                self.speed_deg_per_s
-            ));
-        }
-        let (flo, fhi) = FRAMES_RANGE;
-        if !(flo..=fhi).contains(&self.frames_per_half_turn) {
-            return Err(format!(
-                "frames_per_half_turn = {}: allowed [{flo}, {fhi}]",
-                self.frames_per_half_turn
-            ));
-        }
-        // Half the interval is left for the readout and the next trigger.
-        let max_us = 0.5 * self.frame_interval_s() * 1e6;
-        if !(exposure_us.is_finite() && exposure_us > 0.0 && exposure_us <= max_us) {
-            return Err(format!(
-                "exposure_us = {exposure_us}: allowed (0, {max_us:.0}] us at {} deg/s and {} \
-                 frames per half turn (half the time between frames)",
-                self.speed_deg_per_s, self.frames_per_half_turn
-            ));
-        }
-        Ok(())
-    }
-}
-
-/// A frame's histogram and saturation.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FrameStats {
-    /// Counts over `[0, full_scale_dn]` in [`LIVE_HIST_BINS`] equal bins: bin of value `v` is
-    /// `v * bins / (full_scale_dn + 1)`.
-    pub histogram: Vec<u32>,
-    /// The camera's largest value, DN.
-    pub full_scale_dn: u16,
-    /// Values at or above this are saturated, DN (the products' threshold).
-    pub saturation_dn: u16,
-    /// Pixels at or above `saturation_dn`.
-    pub saturated: usize,
-    /// Smallest and largest value, DN.
-    pub min_max_dn: (u16, u16),
-    /// Mean, DN.
-    pub mean_dn: f64,
-}
+pub use crate::messages::{
+    FrameStats, HalfTurn, LiveFrame, LiveMode, LiveUpdate, SpinSettings, FRAMES_RANGE,
+    SPEED_RANGE_DEG_PER_S,
+};
 
 /// The histogram and saturation count of `pixels` (`bins >= 1`).
 pub fn frame_stats(
@@ -186,69 +86,6 @@ impl RateMeter {
         let span = last - first;
         (self.times_s.len() >= 2 && span > 0.0).then(|| (self.times_s.len() - 1) as f64 / span)
     }
-}
-
-/// One frame of the live camera stream.
-#[derive(Debug, Clone, PartialEq)]
-pub struct LiveFrame {
-    /// Width, pixels.
-    pub width: u32,
-    /// Height, pixels.
-    pub height: u32,
-    /// Pixels, DN, row-major.
-    pub pixels: Vec<u16>,
-    /// The camera's frame id.
-    pub frame_id: u64,
-    /// The exposure, microseconds.
-    pub exposure_us: f64,
-    /// Histogram and saturation.
-    pub stats: FrameStats,
-    /// The camera's frame rate (every frame counted, also those not shown), Hz.
-    pub rate_hz: Option<f64>,
-    /// Frames received since the stream started.
-    pub frames: u64,
-}
-
-/// The Stokes estimate of one half turn of the spinning analyzer.
-#[derive(Debug, Clone, PartialEq)]
-pub struct HalfTurn {
-    /// The half turn's number since live polarimetry started, from 0.
-    pub index: u64,
-    /// S0, S1, S2, DoLP, AoP and their predicted sigma.
-    pub products: Products,
-    /// Each frame's analyzer span, degrees (start, end; unwrapped).
-    pub spans_deg: Vec<(f64, f64)>,
-    /// The speed measured from the stage's pulses (or commanded), degrees per second.
-    pub speed_deg_per_s: f64,
-    /// Half turns estimated per second, over the last ones.
-    pub rate_hz: Option<f64>,
-    /// How the spans were measured.
-    pub timing: String,
-    /// The last frame of the half turn, DN.
-    pub last_frame: Vec<u16>,
-}
-
-/// What the live worker tells the UI.
-#[derive(Debug, Clone, PartialEq)]
-pub enum LiveUpdate {
-    /// A mode started.
-    Started {
-        /// The mode.
-        mode: LiveMode,
-        /// What it does (trigger, timing).
-        note: String,
-    },
-    /// A camera frame (live mode; at most about 25 per second are sent).
-    Frame(Box<LiveFrame>),
-    /// A half turn's estimate (live polarimetry).
-    HalfTurn(Box<HalfTurn>),
-    /// The mode ended, with the error that ended it, if any.
-    Stopped {
-        /// The mode.
-        mode: LiveMode,
-        /// Why it ended, if not by Stop.
-        error: Option<String>,
-    },
 }
 
 /// The measurement rows (sensor model: real analyzer, fore-optics) of exposures whose analyzer

@@ -19,11 +19,13 @@
 //!   frames is estimated ([`crate::live::estimate_half_turn`]); one missing a frame is
 //!   dropped.
 
-use crate::engine::{compute_forecast, Command, Connected, DeviceStatus, Out, Reply};
+use crate::connection::{Connected, Out};
+use crate::forecast::compute_forecast;
 use crate::live::{
     estimate_half_turn, frame_stats, noise_and_dark, HalfTurn, LiveFrame, LiveMode, LiveUpdate,
     RateMeter, SpinSettings, LIVE_HIST_BINS,
 };
+use crate::messages::{Command, DeviceStatus, Reply};
 use polar_hal::camera::{Camera, TriggerMode};
 use polar_hal::{ErrorKind, Rotator};
 use std::collections::VecDeque;

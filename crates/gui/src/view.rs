@@ -1,7 +1,7 @@
 //! The live view of a run's products: the views (raw frame, Stokes, DoLP, AoP and their
 //! sigma), their false-colour rendering with its scale and histogram, and the pixel probe.
 
-use crate::engine::LiveProducts;
+use crate::messages::LiveProducts;
 use crate::{colour, rooftop};
 use eframe::egui;
 

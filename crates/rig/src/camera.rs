@@ -1,11 +1,11 @@
 //! The registry of camera backends: each backend is declared once, as a [`CameraBackend`]
 //! (name, description, the cargo feature that compiles it in, open by ID, list), and
-//! [`CAMERA_BACKENDS`] lists them. A camera is named `BACKEND:ID` (`genicam:ID`, `v4l:NAME`),
-//! or `sim` for the simulated camera, which renders a scene file through an analyzer at a fixed
+//! [`CAMERA_BACKENDS`] lists them. A camera is named `BACKEND:ID` (`genicam:ID`, `v4l:NAME`,
+//! `uvc:BUS_OR_NAME`), or `sim` for the simulated camera, which renders a scene file through an analyzer at a fixed
 //! angle with a camera file's sensor model.
 //!
-//! The GenICam and V4L2 backends are cargo features of this crate (`genicam`, `v4l`), which the
-//! CLI and the GUI forward: the default build needs no system library. A backend not compiled
+//! The GenICam, V4L2 and UVC backends are cargo features of this crate (`genicam`, `v4l`,
+//! `uvc`), which the CLI and the GUI forward: the default build needs no system library. A backend not compiled
 //! in is still listed, and opening it says which feature to build with.
 
 use polar_hal::camera_thread::{ThreadPolicy, ThreadedCamera};

@@ -1,8 +1,9 @@
 //! The polarimeter's rig: what devices a run uses and how they are found, named and
 //! connected (`ARCHITECTURE.md`, `docs/DEVICES.md`).
 //!
-//! * [`camera`]: the registry of camera backends (`sim`, `genicam`, `v4l`; the last two behind
-//!   this crate's cargo features of the same names) and the simulated camera.
+//! * [`camera`]: the registry of camera backends ([`camera::CAMERA_BACKENDS`] lists them; all
+//!   but the simulated camera behind this crate's cargo features of the same names) and the
+//!   simulated camera.
 //! * [`hardware`]: the hardware rig `run`, `resume` and the GUI connect, through the serial
 //!   dialects' registry (`polar_drivers::registry`) and the camera backends' registry.
 //! * [`follow`]: a simulated camera behind a stage the rig does not simulate, rendering through

@@ -2,7 +2,7 @@
 //! BRDF (`model pbrdf`), the Stokes estimate from analyzer intensities (`model stokes`) and an
 //! analyzer set's conditioning (`model polarimeter`).
 
-use super::{compact, deg_to_rad, echo, required, CommandError};
+use super::args::{compact, deg_to_rad, echo, required, CommandError};
 use clap::Args;
 use polar_model::analyzer::{AnalyzerModel, AnalyzerSet};
 use polar_model::fresnel::{amplitudes, RefractiveIndex};

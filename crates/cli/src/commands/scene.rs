@@ -1,7 +1,7 @@
 //! The scene: the sun (`model sun`), the sky (`model sky`, `model sky-table`), the sensor's
 //! ground geometry (`model geometry`) and a scene file's class radiances (`model scene`).
 
-use super::{echo, required, CommandError};
+use super::args::{echo, required, CommandError};
 use clap::Args;
 use polar_model::ModelError;
 use serde::Deserialize;

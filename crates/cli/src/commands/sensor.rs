@@ -1,8 +1,8 @@
 //! The sensor and detection: the frames' mean and covariance (`model sensor`), the DoLP and AoP
 //! statistics of a Stokes estimate (`model dolp-stats`) and a detector's ROC (`model roc`).
 
+use super::args::{compact, echo, CommandError};
 use super::optics::analyzer_set;
-use super::{compact, echo, CommandError};
 use clap::Args;
 use polar_model::analyzer::AnalyzerModel;
 use serde::Deserialize;

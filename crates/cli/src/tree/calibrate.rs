@@ -3,7 +3,7 @@
 use super::output::print_json;
 use clap::{Args, Subcommand};
 use polar_cli::calibrate;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 /// `calibrate`: its subcommands.
@@ -51,7 +51,7 @@ struct NoiseArgs {
 
 impl NoiseArgs {
     fn run(self) -> ExitCode {
-        print_json(calibrate::calibrate_noise_cmd(
+        print_json(calibrate_noise_cmd(
             calibrate::NoiseOptions {
                 frames: self.frames,
                 out: self.out,
@@ -60,4 +60,37 @@ impl NoiseArgs {
             self.rig.as_deref(),
         ))
     }
+}
+
+/// `calibrate noise [--rig RIG]`: [`calibrate::calibrate_noise`]; with a rig, its camera file is the base
+/// camera (unless `--base-camera` names one), and the measured camera file is written beside
+/// it as a new revision the rig then points to (`rig_written` in the output).
+fn calibrate_noise_cmd(
+    mut opts: calibrate::NoiseOptions,
+    rig: Option<&Path>,
+) -> Result<serde_json::Value, polar_cli::commands::CommandError> {
+    use polar_cli::commands::CommandError;
+    let rig = rig.map(polar_cli::rig::load).transpose()?;
+    if let Some(r) = &rig {
+        if opts.base_camera.is_none() {
+            opts.base_camera = Some(r.camera_file.clone().ok_or_else(|| {
+                CommandError(format!(
+                    "--rig {}: camera.file is missing: the noise calibration needs a base camera \
+                     (name it there, or give --base-camera)",
+                    r.path.display()
+                ))
+            })?);
+        }
+    }
+    let report = calibrate::calibrate_noise(&opts).map_err(|e| CommandError(e.to_string()))?;
+    let mut v = report.to_json();
+    if let Some(r) = &rig {
+        let measured = opts
+            .out
+            .as_ref()
+            .unwrap_or(&opts.frames)
+            .join("camera.toml");
+        v["rig_written"] = polar_cli::rig::record_camera_file(r, &measured)?;
+    }
+    Ok(v)
 }

@@ -1,7 +1,7 @@
 //! The fast f32 arctangent of the products: the minimax polynomial, `fast_atan2` and the
 //! half-angle AoP, with their measured error bounds.
 
-use super::*;
+use std::f32::consts::{FRAC_PI_2 as FRAC_PI_2_F32, PI as PI_F32};
 
 /// The maximum absolute error of [`fast_atan2`] against f64 `atan2` of the same f32 inputs,
 /// in radians, including the f32 rounding of the result. Measured by the unit test

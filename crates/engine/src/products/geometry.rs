@@ -2,7 +2,16 @@
 //! `P = A^+` (the model's, [`polar_model::analyzer::stokes_from_intensities`]) that turns
 //! frames into Stokes images.
 
-use super::*;
+use super::error::ProductsError;
+use nalgebra::DMatrix;
+
+/// Smallest reciprocal condition number of `A^T A` ([`SetGeometry`]) accepted:
+/// `lambda_min / lambda_max = (s_min / s_max)^2` of the rows matrix `A`.
+pub const MIN_RCOND: f64 = 1e-10;
+
+/// Allowed range of the largest absolute entry of the analyzer rows (DN per Stokes unit;
+/// an ideal polarizer's rows have 0.5). Outside it the f32 products could lose range.
+pub const ROW_SCALE_RANGE: (f64, f64) = (1e-3, 1e3);
 
 /// The analyzer rows of one angle set and their pseudo-inverse, computed once per set.
 #[derive(Debug, Clone, PartialEq)]

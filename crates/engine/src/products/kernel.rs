@@ -1,7 +1,12 @@
 //! The per-pixel kernel: chunks of 512 pixels accumulated into an L1-resident block and
 //! finished into the ten output images; bands of rows on scoped threads.
 
-use super::*;
+use super::error::ProductsError;
+use super::fast_math::fast_aop;
+use super::geometry::SetGeometry;
+use super::noise::NoiseModel;
+use super::planes::Products;
+use std::sync::Mutex;
 
 /// The weights of one frame in the hot loop: column `p` of `P`, and `kq`, the gain `K` times
 /// the products `[p0 p0, 2 p0 p1, 2 p0 p2, p1 p1, 2 p1 p2, p2 p2]` (the factor 2 is the one

@@ -1,7 +1,11 @@
 //! The plain single-threaded f64 reference of the products, against which the fast path is
 //! tested and benchmarked.
 
-use super::*;
+use super::error::ProductsError;
+use super::geometry::SetGeometry;
+use super::inputs::validate;
+use super::noise::{Dark, NoiseModel};
+use super::planes::Products;
 
 /// The reference implementation: single-threaded, f64 throughout, `f64::atan2` and
 /// `f64::sqrt`, the textbook formulas of the module doc (`var AoP` with `L^4`), the same

@@ -1,7 +1,11 @@
 //! The device actors: the analyzer and the camera, each owned by one local task that takes
 //! commands from a bounded channel.
 
-use super::*;
+use polar_hal::{Analyzer, Camera, DeviceError, Frame, TriggerMode};
+use std::time::Duration;
+use tokio::sync::{mpsc, oneshot};
+use tracing::Instrument;
+use tracing::{info_span, warn};
 
 pub(super) enum StageCmd {
     SetAngle {

@@ -1,7 +1,17 @@
 //! The adaptive plan kind: the APTD state machine's sets, replayed from the stored frames
 //! on resume.
 
-use super::*;
+use super::outcome::RunError;
+use crate::plan::{Plan, StepSpec};
+use crate::store::RunStore;
+use crate::{FrameKind, FrameRecord};
+use polar_model::sensor::Camera as CameraModel;
+use polar_planner::aptd::{Aptd, AptdFrame, TargetSpec};
+use polar_planner::aptd::{AptdConfig, Step as AptdStep};
+use polar_planner::Constraints;
+use serde_json::{json, Value};
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
 
 /// The steps of adaptive set `set` at `angles_rad`, numbered from `first_step`.
 pub(super) fn adaptive_set(

@@ -1,6 +1,11 @@
 //! The calibrations a plan computes from its frames at the end of the run.
 
-use super::*;
+use super::outcome::RunError;
+use crate::plan::{Plan, PlanKind};
+use crate::store::RunStore;
+use crate::{FrameKind, FrameRecord};
+use serde_json::Value;
+use std::collections::BTreeMap;
 
 /// The calibration a plan computes from its frames: the EMVA 1288 photon transfer
 /// (calibrate-noise) or the analyzer's Malus fit (calibrate-analyzer).

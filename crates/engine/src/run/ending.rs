@@ -1,7 +1,12 @@
 //! How both run loops end: an abort journaled, or the storage thread's final checks passed and
 //! the run done. A pause ends a loop too, with nothing more to journal ([`super::pause`]).
 
-use super::*;
+use super::link::{RunLink, RunState};
+use super::outcome::{Outcome, RunError};
+use super::pause::send_store;
+use super::writer::{FinishChecks, ToStore};
+use crate::journal::Entry;
+use serde_json::Value;
 
 /// Journals the abort (`reason`) and shows the aborting and aborted states.
 pub(super) fn end_aborted(

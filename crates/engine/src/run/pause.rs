@@ -2,7 +2,19 @@
 //! from, the run waits for its controller, and a resume is journaled before the loop goes on.
 //! Each loop first brings its devices to their safe state and drains its storage thread.
 
-use super::*;
+use super::clock::now_unix_ns;
+use super::link::{Control, RunLink, RunState};
+use super::outcome::{Outcome, RunError};
+use super::writer::ToStore;
+use crate::journal::Entry;
+use std::time::SystemTime;
+use tracing::info;
+
+/// The pause before dark frames on hardware (no simulated lens cap): the operator caps the
+/// lens and resumes the run.
+pub const CAP_LENS: &str = "cap the lens for the dark frames, then resume";
+/// The pause after dark frames on hardware: the operator uncaps the lens and resumes.
+pub const UNCAP_LENS: &str = "uncap the lens, then resume";
 
 /// Outcome of waiting at a pause.
 pub(super) enum AfterPause {
@@ -11,11 +23,14 @@ pub(super) enum AfterPause {
     Detach(String),
 }
 
-impl RunLink {
-    /// Publishes the run's state, on the state watch and as an event.
-    pub(super) fn set_state(&self, s: RunState) {
-        let _ = self.state.send(s.clone());
-        let _ = self.events.try_send(Event::State(s));
+impl AfterPause {
+    /// The outcome that ends the run (`None`: the run goes on).
+    pub(super) fn ending(self) -> Option<Outcome> {
+        match self {
+            AfterPause::Resume => None,
+            AfterPause::Abort(r) => Some(Outcome::Aborted(r)),
+            AfterPause::Detach(r) => Some(Outcome::Paused(r)),
+        }
     }
 }
 

@@ -2,7 +2,10 @@
 //! metadata, where the analyzer was during the exposure (a settled angle or a span), and the
 //! sun's position at the frame's time when the plan names a site.
 
-use super::*;
+use super::clock::now_unix_ns;
+use crate::plan::StepSpec;
+use crate::{pixel_hash, FrameRecord};
+use polar_hal::Frame;
 
 /// Where the analyzer was during a frame's exposure (the store's span columns).
 pub(super) struct FrameSpan {

@@ -1,7 +1,20 @@
 //! The run directory: opening a new or resumed run (refusing to overwrite one), damage
 //! found on resume, and what a directory says about its run.
 
-use super::*;
+use super::clock::now_unix_ns;
+use super::outcome::RunError;
+use crate::journal::{Entry, Journal};
+use crate::plan::Plan;
+use crate::store::RunStore;
+use crate::store::STORE_DIR;
+use crate::FrameRecord;
+use serde_json::json;
+use serde_json::Value;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
+use std::path::PathBuf;
+use std::time::{SystemTime, UNIX_EPOCH};
+use tracing::warn;
 
 /// Opens (or creates) the run directory and its journal and store; replays a journal.
 pub(super) struct Opened {

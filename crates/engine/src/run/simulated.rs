@@ -1,8 +1,13 @@
 //! A run of any plan on the simulated rig ([`crate::sim::SimRig`]): the library entry point of
 //! the demo's and the benchmarks' simulated runs.
 
-use super::*;
+use super::link::RunLink;
+use super::outcome::{Outcome, RunError};
+use super::run_dir::noise_stream;
+use super::start::run;
+use crate::plan::Plan;
 use crate::sim::{SimError, SimRig};
+use std::path::Path;
 
 /// Why a simulated run could not go on.
 #[derive(Debug, thiserror::Error)]
@@ -17,7 +22,7 @@ pub enum SimRunError {
 
 /// Starts the simulated rig for `plan` (files relative to `plan_dir`; the stage's
 /// pseudo-terminal in `run_dir/.sim`), runs (or, with `resume`, continues) the plan into
-/// `run_dir` through [`run`], or [`run_continuous`] for `kind = "continuous"`, and stops the
+/// `run_dir` through [`run`], and stops the
 /// rig. A finished run's [`Summary`] has its timings (`elapsed_s`, `device_s`). Call it inside
 /// a [`tokio::task::LocalSet`].
 pub async fn run_simulated(
@@ -30,11 +35,7 @@ pub async fn run_simulated(
     let link_dir = run_dir.join(".sim");
     let (rig, engine_rig) =
         SimRig::start_rig(plan, plan_dir, &link_dir, noise_stream(run_dir)).await?;
-    let outcome = if plan.kind == PlanKind::Continuous {
-        run_continuous(plan, engine_rig, run_dir, resume, link).await
-    } else {
-        run(plan, engine_rig, run_dir, resume, link).await
-    };
+    let outcome = run(plan, engine_rig, run_dir, resume, link).await;
     rig.shutdown().await;
     Ok(outcome?)
 }

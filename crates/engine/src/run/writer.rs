@@ -1,7 +1,21 @@
 //! The storage thread: it owns the journal and the store, writes frames, computes each
 //! set's products and the suspender's verdict, and finishes the run.
 
-use super::*;
+use super::outcome::{RunError, Verdict};
+use crate::journal::{Entry, Journal};
+use crate::products;
+use crate::products::{Dark, NoiseModel, Products, SetGeometry};
+use crate::store::RunStore;
+use crate::{FrameKind, FrameRecord};
+use polar_model::sensor::Camera as CameraModel;
+use polar_model::sensor::SensorModel;
+use serde_json::json;
+use serde_json::Value;
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::path::Path;
+use std::time::{Duration, Instant};
+use tokio::sync::mpsc;
+use tracing::{info_span, warn};
 
 // ---------------------------------------------------------------------------------------
 // The storage thread.

@@ -1,6 +1,36 @@
 //! The durable filesystem store: every write to a temporary file, synced, renamed and the directory synced.
 
-use super::*;
+use super::error::StoreError;
+use std::collections::BTreeSet;
+use std::fs::File;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Mutex, MutexGuard};
+use zarrs::filesystem::FilesystemStore;
+use zarrs::storage::byte_range::ByteRangeIterator;
+use zarrs::storage::{
+    store_set_partial_many, Bytes, ListableStorageTraits, MaybeBytes, MaybeBytesIterator,
+    OffsetBytesIterator, ReadableStorageTraits, StorageError, StoreKey, StoreKeys,
+    StoreKeysPrefixes, StorePrefix, WritableStorageTraits,
+};
+
+/// A filesystem store whose writes are atomic and durable: write a temporary file, sync it,
+/// rename it over the target, sync the directory. Reads, listing and erasing are zarrs'
+/// [`FilesystemStore`].
+#[derive(Debug)]
+pub(super) struct DurableStore {
+    pub(super) inner: FilesystemStore,
+    root: PathBuf,
+    /// Writes of one thread held back for [`DurableStore::commit_batch`] (synced temporary
+    /// files and their targets, in write order).
+    batch: Mutex<Option<Batch>>,
+}
+
+/// Locks `m`; a panic while holding the lock leaves the data as consistent as the files: keep going.
+pub(super) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
 
 impl DurableStore {
     pub(super) fn new(root: &Path) -> Result<DurableStore, StoreError> {

@@ -61,6 +61,29 @@ fn unravel(mut flat: u64, shape: &[u64]) -> Vec<u64> {
     index
 }
 
+/// The per-frame arrays of the store, one value per frame ([`RunStore::frame_columns`]).
+#[derive(Default)]
+struct FrameColumns {
+    kind: Vec<u8>,
+    step: Vec<u64>,
+    set: Vec<i64>,
+    commanded: Vec<f64>,
+    measured: Vec<f64>,
+    start: Vec<f64>,
+    end: Vec<f64>,
+    source: Vec<u8>,
+    angle_sigma: Vec<f64>,
+    exposure: Vec<f64>,
+    gain: Vec<f64>,
+    host_time: Vec<i64>,
+    device_time: Vec<i64>,
+    frame_id: Vec<u64>,
+    zenith: Vec<f64>,
+    azimuth: Vec<f64>,
+    hash: Vec<u64>,
+    labels: Vec<Value>,
+}
+
 impl RunStore {
     /// Rewrites the per-frame metadata arrays (and the `labels` attribute of `frames/`) from
     /// `records`, which must be sorted by index and cover `0..N` without gaps, and resizes
@@ -86,30 +109,11 @@ impl RunStore {
         written
     }
 
-    fn write_frame_metadata_files(
-        &self,
-        records: &[FrameRecord],
-        status: &std::collections::BTreeMap<u64, u8>,
-    ) -> Result<(), StoreError> {
+    /// The per-frame arrays' values of `records` (sorted by index, without gaps, of the
+    /// store's frame size).
+    fn frame_columns(&self, records: &[FrameRecord]) -> Result<FrameColumns, StoreError> {
         let n = records.len();
-        let mut kind = Vec::with_capacity(n);
-        let mut step = Vec::with_capacity(n);
-        let mut set = Vec::with_capacity(n);
-        let mut commanded = Vec::with_capacity(n);
-        let mut measured = Vec::with_capacity(n);
-        let mut start = Vec::with_capacity(n);
-        let mut end = Vec::with_capacity(n);
-        let mut source = Vec::with_capacity(n);
-        let mut angle_sigma = Vec::with_capacity(n);
-        let mut exposure = Vec::with_capacity(n);
-        let mut gain = Vec::with_capacity(n);
-        let mut host_time = Vec::with_capacity(n);
-        let mut device_time = Vec::with_capacity(n);
-        let mut frame_id = Vec::with_capacity(n);
-        let mut zenith = Vec::with_capacity(n);
-        let mut azimuth = Vec::with_capacity(n);
-        let mut hash = Vec::with_capacity(n);
-        let mut labels = Vec::with_capacity(n);
+        let mut c = FrameColumns::default();
         for (i, r) in records.iter().enumerate() {
             let bad = |field: &str, value: String, message: String| StoreError::Metadata {
                 field: format!("records[{i}].{field}"),
@@ -142,31 +146,41 @@ impl RunStore {
                     )
                 })
             };
-            kind.push(r.kind.code());
-            step.push(r.step);
-            set.push(match r.set {
+            c.kind.push(r.kind.code());
+            c.step.push(r.step);
+            c.set.push(match r.set {
                 Some(s) => to_i64("set", s)?,
                 None => -1,
             });
-            commanded.push(r.commanded_angle_deg);
-            measured.push(r.measured_angle_deg);
-            start.push(r.angle_start_deg);
-            end.push(r.angle_end_deg);
-            source.push(r.angle_source.code());
-            angle_sigma.push(r.angle_sigma_deg);
-            exposure.push(r.exposure_us);
-            gain.push(r.gain);
-            host_time.push(r.host_time_unix_ns);
-            device_time.push(match r.device_timestamp_ns {
+            c.commanded.push(r.commanded_angle_deg);
+            c.measured.push(r.measured_angle_deg);
+            c.start.push(r.angle_start_deg);
+            c.end.push(r.angle_end_deg);
+            c.source.push(r.angle_source.code());
+            c.angle_sigma.push(r.angle_sigma_deg);
+            c.exposure.push(r.exposure_us);
+            c.gain.push(r.gain);
+            c.host_time.push(r.host_time_unix_ns);
+            c.device_time.push(match r.device_timestamp_ns {
                 Some(t) => to_i64("device_timestamp_ns", t)?,
                 None => -1,
             });
-            frame_id.push(r.frame_id);
-            zenith.push(r.sun_zenith_deg.unwrap_or(f64::NAN));
-            azimuth.push(r.sun_azimuth_deg.unwrap_or(f64::NAN));
-            hash.push(r.hash);
-            labels.push(Value::String(r.label.clone()));
+            c.frame_id.push(r.frame_id);
+            c.zenith.push(r.sun_zenith_deg.unwrap_or(f64::NAN));
+            c.azimuth.push(r.sun_azimuth_deg.unwrap_or(f64::NAN));
+            c.hash.push(r.hash);
+            c.labels.push(Value::String(r.label.clone()));
         }
+        Ok(c)
+    }
+
+    fn write_frame_metadata_files(
+        &self,
+        records: &[FrameRecord],
+        status: &std::collections::BTreeMap<u64, u8>,
+    ) -> Result<(), StoreError> {
+        let c = self.frame_columns(records)?;
+        let n = records.len();
         let n = n as u64;
         let dims = ["frame"];
         self.write_whole(
@@ -176,7 +190,7 @@ impl RunStore {
             &dims,
             data_type::uint8(),
             0u8,
-            &kind,
+            &c.kind,
         )?;
         self.write_whole(
             "/frames/step",
@@ -185,7 +199,7 @@ impl RunStore {
             &dims,
             data_type::uint64(),
             0u64,
-            &step,
+            &c.step,
         )?;
         self.write_whole(
             "/frames/set",
@@ -194,18 +208,18 @@ impl RunStore {
             &dims,
             data_type::int64(),
             -1i64,
-            &set,
+            &c.set,
         )?;
         for (name, values) in [
-            ("commanded_angle_deg", &commanded),
-            ("measured_angle_deg", &measured),
-            ("angle_start_deg", &start),
-            ("angle_end_deg", &end),
-            ("angle_sigma_deg", &angle_sigma),
-            ("exposure_us", &exposure),
-            ("gain", &gain),
-            ("sun_zenith_deg", &zenith),
-            ("sun_azimuth_deg", &azimuth),
+            ("commanded_angle_deg", &c.commanded),
+            ("measured_angle_deg", &c.measured),
+            ("angle_start_deg", &c.start),
+            ("angle_end_deg", &c.end),
+            ("angle_sigma_deg", &c.angle_sigma),
+            ("exposure_us", &c.exposure),
+            ("gain", &c.gain),
+            ("sun_zenith_deg", &c.zenith),
+            ("sun_azimuth_deg", &c.azimuth),
         ] {
             self.write_whole(
                 &format!("{FRAMES}/{name}"),
@@ -224,7 +238,7 @@ impl RunStore {
             &dims,
             data_type::uint8(),
             0u8,
-            &source,
+            &c.source,
         )?;
         self.write_whole(
             "/frames/host_time_unix_ns",
@@ -233,7 +247,7 @@ impl RunStore {
             &dims,
             data_type::int64(),
             0i64,
-            &host_time,
+            &c.host_time,
         )?;
         self.write_whole(
             "/frames/device_timestamp_ns",
@@ -242,7 +256,7 @@ impl RunStore {
             &dims,
             data_type::int64(),
             -1i64,
-            &device_time,
+            &c.device_time,
         )?;
         self.write_whole(
             "/frames/frame_id",
@@ -251,7 +265,7 @@ impl RunStore {
             &dims,
             data_type::uint64(),
             0u64,
-            &frame_id,
+            &c.frame_id,
         )?;
         self.write_whole(
             "/frames/hash",
@@ -260,7 +274,7 @@ impl RunStore {
             &dims,
             data_type::uint64(),
             0u64,
-            &hash,
+            &c.hash,
         )?;
         let codes: Vec<u8> = (0..n)
             .map(|i| status.get(&i).copied().unwrap_or(0))
@@ -277,7 +291,7 @@ impl RunStore {
                 values,
             )?;
         }
-        self.update_group_attribute(FRAMES, "labels", Value::Array(labels))?;
+        self.update_group_attribute(FRAMES, "labels", Value::Array(c.labels))?;
 
         // frames/pixels last: its shape on disk is what readers take as the frame count.
         let mut array = lock(&self.pixels);

@@ -88,9 +88,12 @@
 //! see frames written after they opened the store).
 
 mod durable;
+mod error;
 mod metadata;
 mod products;
 mod schema;
+use durable::{lock, DurableStore};
+pub use error::StoreError;
 pub use schema::STATUS_CODES;
 
 pub use schema::{conventions, HASH_ALGORITHM, KIND_CODES};
@@ -100,22 +103,14 @@ use serde::{Deserialize, Serialize};
 use serde_json::{json, Map, Value};
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::fs::File;
-use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use zarrs::array::builder::ArrayBuilderFillValue;
 use zarrs::array::{
     data_type, Array, CodecOptions, DataType, Element, ElementOwned, ZARR_NAN_F32, ZARR_NAN_F64,
 };
-use zarrs::filesystem::FilesystemStore;
 use zarrs::group::{Group, GroupBuilder};
-use zarrs::storage::byte_range::ByteRangeIterator;
-use zarrs::storage::{
-    store_set_partial_many, Bytes, ListableStorageTraits, MaybeBytes, MaybeBytesIterator,
-    OffsetBytesIterator, ReadableStorageTraits, StorageError, StoreKey, StoreKeys,
-    StoreKeysPrefixes, StorePrefix, WritableStorageTraits,
-};
 
 /// The store's directory name inside a run directory.
 pub const STORE_DIR: &str = "run.zarr";
@@ -132,107 +127,6 @@ const PRODUCT_ANGLES: &str = "/products/angles_deg";
 const DARK_MEAN: &str = "/darks/mean";
 /// Names of `products/` members that are not product images.
 const PRODUCT_RESERVED: [&str; 2] = ["set", "angles_deg"];
-
-/// What can go wrong with a run's store. Every error names the path, field or value.
-#[derive(Debug, thiserror::Error)]
-pub enum StoreError {
-    /// [`RunStore::create`] found a store already there.
-    #[error("{path}: a store already exists")]
-    Exists {
-        /// The store directory.
-        path: PathBuf,
-    },
-    /// [`RunStore::open`] found no store.
-    #[error("{path}: no store (is this a run directory?)")]
-    NotFound {
-        /// The store directory.
-        path: PathBuf,
-    },
-    /// A file operation failed.
-    #[error("{path}: {action}: {source}")]
-    Io {
-        /// The file or directory.
-        path: PathBuf,
-        /// What was being done.
-        action: &'static str,
-        /// The I/O error.
-        source: std::io::Error,
-    },
-    /// zarrs failed on a node (array or group) of the store.
-    #[error("{path}: {action}: {message}")]
-    Zarr {
-        /// The node path (e.g. `run.zarr/frames/pixels`) or chunk file.
-        path: String,
-        /// What was being done.
-        action: &'static str,
-        /// zarrs' message.
-        message: String,
-    },
-    /// The store's structure is not what this version writes.
-    #[error("{path}: {message}")]
-    Layout {
-        /// The node.
-        path: String,
-        /// What is wrong.
-        message: String,
-    },
-    /// A frame size of zero.
-    #[error("frame size {width}x{height}: both must be at least 1")]
-    FrameSize {
-        /// Width, pixels.
-        width: u32,
-        /// Height, pixels.
-        height: u32,
-    },
-    /// An image of the wrong number of pixels.
-    #[error("{what}: {got} values, expected {expected} ({width}x{height})")]
-    ImageSize {
-        /// Which image (e.g. `frame 3`, `product dolp`).
-        what: String,
-        /// Values given.
-        got: usize,
-        /// Values expected.
-        expected: usize,
-        /// Store width.
-        width: u32,
-        /// Store height.
-        height: u32,
-    },
-    /// A frame index past the stored frames.
-    #[error("frame {index}: not stored (the store holds {count} frames)")]
-    FrameOutOfRange {
-        /// The index asked for.
-        index: u64,
-        /// Frames in `frames/pixels`.
-        count: u64,
-    },
-    /// A chunk that is inside the array but was never written (or was deleted).
-    #[error("{path}: missing chunk ({what})")]
-    MissingChunk {
-        /// The chunk file.
-        path: PathBuf,
-        /// What it holds (e.g. `frame 3`).
-        what: String,
-    },
-    /// Frame records that cannot be stored (or stored metadata that cannot be read back).
-    #[error("frame metadata: {field} = {value}: {message}")]
-    Metadata {
-        /// The field (e.g. `records[3].index`, `frames/kind[2]`).
-        field: String,
-        /// Its value.
-        value: String,
-        /// What is wrong.
-        message: String,
-    },
-    /// A product that cannot be stored or read.
-    #[error("product {name:?}: {message}")]
-    Product {
-        /// The product's name.
-        name: String,
-        /// What is wrong.
-        message: String,
-    },
-}
 
 fn zarr_err<E: std::fmt::Display>(
     path: impl Into<String>,
@@ -324,11 +218,6 @@ struct ProductsState {
     angles: Vec<Vec<f64>>,
     arrays: HashMap<String, Array<DurableStore>>,
     names: Vec<String>,
-}
-
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    // A panic while holding the lock leaves the data as consistent as the files: keep going.
-    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// Store every chunk, even one that equals the fill value (zarrs skips those by default; a
@@ -828,16 +717,4 @@ enum FrameRead {
     OutOfRange(u64),
     Missing(PathBuf),
     Unreadable(PathBuf, String),
-}
-
-/// A filesystem store whose writes are atomic and durable: write a temporary file, sync it,
-/// rename it over the target, sync the directory. Reads, listing and erasing are zarrs'
-/// [`FilesystemStore`].
-#[derive(Debug)]
-struct DurableStore {
-    inner: FilesystemStore,
-    root: PathBuf,
-    /// Writes of one thread held back for [`DurableStore::commit_batch`] (synced temporary
-    /// files and their targets, in write order).
-    batch: Mutex<Option<durable::Batch>>,
 }

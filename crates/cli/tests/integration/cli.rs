@@ -601,7 +601,7 @@ fn bad_scene_names_file_and_field() {
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("bad.toml");
     let text =
-        include_str!("../../../examples/bench.toml").replace("altitude_m = 2", "altitude_m = 0");
+        include_str!("../../../../examples/bench.toml").replace("altitude_m = 2", "altitude_m = 0");
     std::fs::write(&path, text).unwrap();
     let out = polarimeter(&["model", "scene", "--scene", path.to_str().unwrap()]);
     assert_eq!(out.status.code(), Some(2));

@@ -3,9 +3,12 @@
 //! [`crate::run::timestamps`] through the stage's position reads puts the analyzer at its
 //! grid angle, and its span from the exposure's end on the host clock.
 
-use super::*;
+use super::{SpinLine, SpinLoop, RUN_UP_S};
 use crate::run::timestamps::{ClockMap, FitError, PositionSample, SpinFit, SpinTrack};
 use polar_hal::TURN_RAD;
+use polar_hal::{Camera, DeviceError, ErrorKind, Rotator, TriggerMode};
+use std::f64::consts::PI;
+use std::time::{Duration, Instant};
 
 /// Position reads that decide the stage is at speed, and the spacing between them.
 const RUN_UP_SAMPLES: usize = 8;
@@ -23,22 +26,6 @@ const WINDOW: usize = 32;
 const READ_GAP_S: f64 = 0.1;
 /// Frames whose (device timestamp, exposure-end event) pairs map the camera's clock.
 const CLOCK_PAIRS: usize = 16;
-
-/// The state of a timestamps segment: the loop's clock, the line and the next half turn.
-pub(super) struct Free {
-    /// The host clock every sample and frame time is measured on.
-    clock: Instant,
-    /// The stage's reads and the line through them.
-    track: SpinTrack,
-    /// The camera's clock on the host's (frames with a device timestamp and an event).
-    clocks: ClockMap,
-    /// How long after the time a trigger is aimed at its exposure starts, smoothed over the
-    /// frames, s: triggers are aimed this much before the line's time of the grid angle.
-    trigger_latency_s: f64,
-    /// The stage angle (unwrapped) of the next half turn's frame 0: a whole half turn of the
-    /// analyzer from its zero.
-    next_half_rad: f64,
-}
 
 fn fit_err(e: FitError) -> DeviceError {
     DeviceError::new(ErrorKind::Protocol, "continuous", e.to_string())
@@ -68,7 +55,7 @@ fn lead_s(fit: &SpinFit) -> f64 {
     3.0 * fit.mean_round_trip_s + 0.01
 }
 
-impl<R: Rotator, C: Camera> Cont<'_, R, C> {
+impl<R: Rotator, C: Camera> SpinLoop<'_, R, C> {
     /// Configures and starts the camera in software-trigger mode, spins, waits [`RUN_UP_S`],
     /// then reads the position until the line through the last reads turns at the commanded
     /// speed (within 2 %), and aims the first half turn at the next whole half turn.
@@ -82,7 +69,7 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
         cam.start().await?;
         // From here a failure stops the camera and the spin (stop_segment).
         self.spinning = true;
-        self.free = None;
+        self.line = None;
         let omega = c.speed_deg_per_s.to_radians();
         let rotator = &mut self.rig.analyzer.rotator;
         rotator.spin(omega).await?;
@@ -135,25 +122,25 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             ms = t0.elapsed().as_secs_f64() * 1e3,
             "spinning; camera on software trigger, angles from timestamps"
         );
-        self.free = Some(Free {
+        self.line = Some(SpinLine {
             clock,
             track,
             clocks: ClockMap::new(CLOCK_PAIRS).map_err(fit_err)?,
             trigger_latency_s: 0.0,
             next_half_rad,
         });
-        self.device_s += t0.elapsed().as_secs_f64();
+        self.core.device_s += t0.elapsed().as_secs_f64();
         Ok(())
     }
 
     /// Reads the position into the segment's line and returns the line.
     async fn sample_position(&mut self, clock: Instant) -> Result<SpinFit, DeviceError> {
         let sample = read(&mut self.rig.analyzer.rotator, clock).await?;
-        let free = self.free.as_mut().ok_or_else(|| {
+        let line = self.line.as_mut().ok_or_else(|| {
             DeviceError::new(ErrorKind::Protocol, "continuous", "no timestamps segment")
         })?;
-        free.track.push(sample).map_err(fit_err)?;
-        free.track
+        line.track.push(sample).map_err(fit_err)?;
+        line.track
             .fit()
             .copied()
             .ok_or_else(|| fit_err(FitError::TooFew("no line".into())))
@@ -181,17 +168,17 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             )
         };
         let (clock, base) = {
-            let free = self.free.as_ref().ok_or_else(no_line)?;
-            let fit = free.track.fit().ok_or_else(no_line)?;
-            let now_s = free.clock.elapsed().as_secs_f64();
+            let line = self.line.as_ref().ok_or_else(no_line)?;
+            let fit = line.track.fit().ok_or_else(no_line)?;
+            let now_s = line.clock.elapsed().as_secs_f64();
             let ahead = fit.angle_at(now_s + lead_s(fit));
             // Behind the planned half turn (a slow store, a retake): the next whole one.
-            let base = if free.next_half_rad >= ahead {
-                free.next_half_rad
+            let base = if line.next_half_rad >= ahead {
+                line.next_half_rad
             } else {
                 whole_half_at_or_after(ahead, zero)
             };
-            (free.clock, base)
+            (line.clock, base)
         };
         let bad = |m: String| DeviceError::new(ErrorKind::Protocol, "continuous", m);
         let mut frames = Vec::with_capacity(n as usize);
@@ -202,11 +189,11 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             let target_rad = base + k as f64 * interval;
             // Wait for the frame's grid angle, reading the position every READ_GAP_S on the
             // way so the line is never extrapolated far.
-            let latency_s = self.free.as_ref().map_or(0.0, |f| f.trigger_latency_s);
+            let latency_s = self.line.as_ref().map_or(0.0, |f| f.trigger_latency_s);
             let mut aim_s;
             loop {
                 let fit = *self
-                    .free
+                    .line
                     .as_ref()
                     .and_then(|f| f.track.fit())
                     .ok_or_else(no_line)?;
@@ -234,7 +221,7 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             let arrived_s = clock.elapsed().as_secs_f64();
             // A read after the frame: its span is interpolated between reads.
             let fit = self.sample_position(clock).await?;
-            self.device_s += t0.elapsed().as_secs_f64();
+            self.core.device_s += t0.elapsed().as_secs_f64();
             let exposure_s = frame.exposure_us * 1e-6;
             // The exposure starts after its trigger, so it ends after trigger + exposure.
             let earliest_end_s = triggered_s + exposure_s;
@@ -252,9 +239,9 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
                     let end_s = match frame.device_timestamp_ns {
                         Some(ns) => {
                             let device_s = ns as f64 * 1e-9;
-                            let free = self.free.as_mut().ok_or_else(no_line)?;
-                            free.clocks.push(device_s, event_s).map_err(fit_err)?;
-                            free.clocks.host_s(device_s).unwrap_or(event_s)
+                            let line = self.line.as_mut().ok_or_else(no_line)?;
+                            line.clocks.push(device_s, event_s).map_err(fit_err)?;
+                            line.clocks.host_s(device_s).unwrap_or(event_s)
                         }
                         None => event_s,
                     };
@@ -293,9 +280,9 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             }
             // The delay from the time aimed at to the exposure's start (the timer's wake-up
             // and the trigger's latency), smoothed: the next trigger is aimed that much early.
-            if let Some(free) = self.free.as_mut() {
+            if let Some(line) = self.line.as_mut() {
                 let latency = (end_s - exposure_s - aim_s).clamp(0.0, 0.25 * interval_s);
-                free.trigger_latency_s = 0.7 * free.trigger_latency_s + 0.3 * latency;
+                line.trigger_latency_s = 0.7 * line.trigger_latency_s + 0.3 * latency;
             }
             let start_deg = (span.start_rad - zero).to_degrees().rem_euclid(180.0);
             let end_deg = start_deg + (span.end_rad - span.start_rad).to_degrees();
@@ -312,8 +299,8 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             frames.push(index);
             spans_rad.push((start_deg.to_radians(), end_deg.to_radians()));
         }
-        if let Some(free) = self.free.as_mut() {
-            free.next_half_rad = base + PI;
+        if let Some(line) = self.line.as_mut() {
+            line.next_half_rad = base + PI;
         }
         self.send_set(h, frames, &spans_rad, sigma_rad).await
     }

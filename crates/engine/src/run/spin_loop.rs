@@ -1,4 +1,4 @@
-//! The run loop of `kind = "continuous"` ([`run_continuous`]): the analyzer spins at
+//! The spin loop, the strategy of `kind = "continuous"`: the analyzer spins at
 //! `speed_deg_per_s` and the camera takes `frames_per_half_turn` frames per half turn, frame
 //! `k` from the analyzer's grid angle `k * 180 / N`; a half turn is one set.
 //!
@@ -51,17 +51,33 @@
 //! spin (Elliptec, filter wheels), `encoder` on a stage without a position-compare output or a
 //! camera without a hardware trigger, `timestamps` with a camera without a software trigger.
 
-use super::*;
+use super::core::{drive, Checked, Core, Opening, Strategy};
+use super::link::{Control, Event, RunLink, RunState};
+use super::outcome::{Outcome, RunError};
+use super::record::{frame_record, FrameSpan};
+use super::rig::Rig;
+use super::writer::{FromStore, SetJob, ToStore};
 use crate::continuous::{Continuous, SpanEstimator, TriggerSource};
-use crate::plan::PlanError;
-use polar_hal::{OnRotator, Rotator, TriggerPulse};
+use crate::journal::Entry;
+use crate::plan::{Plan, PlanError, StepSpec, SuspendAction};
+use crate::run::timestamps::{ClockMap, SpinTrack};
+use polar_hal::TriggerPulse;
+use polar_hal::{Camera, DeviceError, ErrorKind, Frame, OnRotator, Rotator, TriggerMode};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::f64::consts::PI;
+use std::path::Path;
+use std::time::{Duration, Instant};
+use tracing::{info, warn};
 
 mod timestamped;
 
 /// How far the stage turns at speed before the first armed position, seconds of its speed
 /// (its ramp to speed is shorter).
 pub const RUN_UP_S: f64 = 0.5;
+
+/// What the products use the camera model for, with a spinning analyzer.
+const USED_FOR: &str = "the analyzer span rows (transmittance, extinction ratio, angle \
+                        offset), the noise and the scalar dark level of the products";
 
 /// The last frame of a segment and its pulse: the pulse's controller time, us, and the
 /// frame's camera timestamp, ns (the pairing check, module docs).
@@ -71,39 +87,41 @@ struct Mark {
     frame_ns: Option<u64>,
 }
 
-struct Cont<'a, R: Rotator, C: Camera> {
-    plan: &'a Plan,
+/// The state of a timestamps segment: the loop's clock, the line and the next half turn.
+struct SpinLine {
+    /// The host clock every sample and frame time is measured on.
+    clock: Instant,
+    /// The stage's reads and the line through them.
+    track: SpinTrack,
+    /// The camera's clock on the host's (frames with a device timestamp and an event).
+    clocks: ClockMap,
+    /// How long after the time a trigger is aimed at its exposure starts, smoothed over the
+    /// frames, s: triggers are aimed this much before the line's time of the grid angle.
+    trigger_latency_s: f64,
+    /// The stage angle (unwrapped) of the next half turn's frame 0: a whole half turn of the
+    /// analyzer from its zero.
+    next_half_rad: f64,
+}
+
+/// The spin loop's state beside the [`Core`].
+struct SpinLoop<'a, R: Rotator, C: Camera> {
+    core: Core<'a>,
     c: &'a Continuous,
     rig: Rig<OnRotator<R>, C>,
-    link: RunLink,
-    to_store: std::sync::mpsc::SyncSender<ToStore>,
-    from_store: mpsc::UnboundedReceiver<FromStore>,
     steps: Vec<StepSpec>,
-    records: BTreeMap<u64, FrameRecord>,
-    accepted: BTreeMap<u64, u64>,
-    next_index: u64,
-    in_flight: BTreeSet<u64>,
-    done_frames: u64,
-    planned_frames: u64,
-    sets_accepted: u64,
-    sets_rejected: u64,
-    rejections: HashMap<u64, u32>,
+    /// The half turns still to take, in order.
+    todo: VecDeque<u64>,
     /// Sets sent for checking, by set: their frames.
     checking: BTreeMap<u64, Vec<u64>>,
     /// Sets to take again (rejected by the suspender).
     retake: VecDeque<u64>,
-    pauses: u64,
-    device_s: f64,
     spinning: bool,
     last: Option<Mark>,
     /// The line of a `trigger = "timestamps"` segment (module docs).
-    free: Option<timestamped::Free>,
+    line: Option<SpinLine>,
     /// Half turns taken again after a device error (a missed trigger, a late frame), by half
     /// turn: at most `policy.attempts` tries each before the run pauses.
     attempts: HashMap<u64, u32>,
-    retries: u64,
-    /// Frames found damaged and kept aside (recorded, neither counted nor verified).
-    damaged: BTreeSet<u64>,
     /// Frames whose half turn is settled: done, rejected, superseded, or damaged. A recorded
     /// frame outside it belongs to a half turn that did not finish.
     settled: BTreeSet<u64>,
@@ -118,10 +136,9 @@ fn plan_err(field: &str, value: impl Into<String>, allowed: impl Into<String>) -
 }
 
 /// Runs (or, with `resume`, continues) a `kind = "continuous"` plan into `run_dir` on `rig`
-/// (a rotator that spins and fires position-compare pulses, a camera whose trigger line is
-/// wired to them), reporting through `link` (module docs). Call it inside a
-/// [`tokio::task::LocalSet`], as [`run`].
-pub async fn run_continuous<R, C>(
+/// (a rotator that spins, and for `trigger = "encoder"` fires position-compare pulses into the
+/// camera's trigger line), reporting through `link` (module docs).
+pub(super) async fn run<R, C>(
     plan: &Plan,
     rig: Rig<OnRotator<R>, C>,
     run_dir: &Path,
@@ -132,23 +149,73 @@ where
     R: Rotator,
     C: Camera,
 {
-    let started = Instant::now();
-    let c = match (&plan.kind, &plan.continuous) {
-        (PlanKind::Continuous, Some(c)) => c,
-        _ => {
-            return Err(plan_err(
-                "kind",
-                plan.kind.name(),
-                "continuous (with a [continuous] section) for run_continuous",
-            ))
-        }
+    let Some(c) = plan.continuous.as_ref() else {
+        return Err(plan_err(
+            "continuous",
+            "missing",
+            "a [continuous] section for a continuous plan",
+        ));
     };
     c.validate()?;
     let info = rig.camera.info().clone();
     let (width, height) = (info.sensor_width, info.sensor_height);
     plan.check_frame(width, height)?;
+    check_trigger(c, &rig)?;
+    let steps = plan.steps()?;
+    let opening = Opening {
+        width,
+        height,
+        devices: &rig.devices,
+        sensor: &rig.sensor,
+        camera_model: &rig.camera_model,
+        used_for: USED_FOR,
+    };
+    let (mut core, replay) = Core::open(plan, run_dir, resume, link, opening)?;
+    // A half turn counts once its SetDone is journaled, and stops counting when one of its
+    // frames is found damaged (then it is taken again).
+    let mut accepted = BTreeMap::new();
+    for i in replay.sets_done.values().flatten() {
+        if let Some(r) = core.records.get(i) {
+            accepted.insert(r.step, r.index);
+        }
+    }
+    core.count_accepted(accepted, steps.len() as u64);
+    let settled = replay
+        .rejected
+        .iter()
+        .chain(&core.damaged)
+        .chain(replay.sets_done.values().flatten())
+        .copied()
+        .collect();
+    let todo = (0..u64::from(c.half_turns))
+        .filter(|h| !replay.sets_done.contains_key(h))
+        .collect();
+    let spin_loop = SpinLoop {
+        core,
+        c,
+        rig,
+        steps,
+        todo,
+        checking: BTreeMap::new(),
+        retake: VecDeque::new(),
+        spinning: false,
+        last: None,
+        line: None,
+        attempts: HashMap::new(),
+        settled,
+    };
+    spin_loop.core.set_state(RunState::Running);
+    drive(spin_loop).await
+}
+
+/// Refuses a trigger the rig cannot give (module docs), naming `continuous.trigger`.
+fn check_trigger<R: Rotator, C: Camera>(
+    c: &Continuous,
+    rig: &Rig<OnRotator<R>, C>,
+) -> Result<(), RunError> {
     let support = rig.analyzer.rotator.continuous_support();
     let model = rig.analyzer.rotator.info().model.clone();
+    let camera_id = rig.camera.info().id.clone();
     let trigger = match c.trigger {
         TriggerSource::Encoder => "encoder",
         TriggerSource::Timestamps => "timestamps",
@@ -165,337 +232,74 @@ where
             ),
         ));
     }
+    let refuse = |device: String, message: String| {
+        Err(RunError::Device(DeviceError::new(
+            ErrorKind::OutOfRange,
+            device,
+            message,
+        )))
+    };
     match c.trigger {
-        TriggerSource::Encoder => {
-            if !support.can_trigger() {
-                return Err(RunError::Device(DeviceError::new(
-                    ErrorKind::OutOfRange,
-                    model.clone(),
-                    format!(
-                        "continuous.trigger = \"encoder\" needs a stage with velocity mode and \
-                         a position-compare trigger output: stage {model} offers \"{support}\"; \
-                         allowed on this stage: \"timestamps\""
-                    ),
-                )));
-            }
-            if !rig.camera.supports_hardware_trigger() {
-                return Err(RunError::Device(DeviceError::new(
-                    ErrorKind::OutOfRange,
-                    info.id.clone(),
-                    "continuous.trigger = \"encoder\" needs the camera's hardware trigger wired \
-                     to the stage's trigger output: this camera has no hardware trigger; \
-                     allowed with it: \"timestamps\"",
-                )));
-            }
-        }
-        TriggerSource::Timestamps => {
-            if !rig.camera.supports_software_trigger() {
-                return Err(RunError::Device(DeviceError::new(
-                    ErrorKind::OutOfRange,
-                    info.id.clone(),
-                    "continuous.trigger = \"timestamps\" needs a camera with a software \
-                     trigger: this camera has none",
-                )));
-            }
-        }
+        TriggerSource::Encoder if !support.can_trigger() => refuse(
+            model.clone(),
+            format!(
+                "continuous.trigger = \"encoder\" needs a stage with velocity mode and a \
+                 position-compare trigger output: stage {model} offers \"{support}\"; allowed \
+                 on this stage: \"timestamps\""
+            ),
+        ),
+        TriggerSource::Encoder if !rig.camera.supports_hardware_trigger() => refuse(
+            camera_id,
+            "continuous.trigger = \"encoder\" needs the camera's hardware trigger wired to \
+             the stage's trigger output: this camera has no hardware trigger; allowed with \
+             it: \"timestamps\""
+                .into(),
+        ),
+        TriggerSource::Timestamps if !rig.camera.supports_software_trigger() => refuse(
+            camera_id,
+            "continuous.trigger = \"timestamps\" needs a camera with a software trigger: \
+             this camera has none"
+                .into(),
+        ),
+        _ => Ok(()),
     }
-    let steps = plan.steps()?;
-    let opened = open_run(plan, run_dir, resume, width, height, &rig.devices)?;
-    let mut opened = opened;
-    let entries = std::mem::take(&mut opened.entries);
-    opened.store.set_attribute(
-        "products_camera",
-        json!({
-            "model": rig.camera_model,
-            "source": format!("{} devices", rig.devices["kind"].as_str().unwrap_or("unknown")),
-            "used_for": "the analyzer span rows (transmittance, extinction ratio, angle \
-                         offset), the noise and the scalar dark level of the products",
-        }),
-    )?;
-    // Replay: a half turn counts once its SetDone is journaled, and stops counting when one
-    // of its frames is found damaged (then it is taken again).
-    let mut records: BTreeMap<u64, FrameRecord> = BTreeMap::new();
-    let mut sets_done: BTreeMap<u64, Vec<u64>> = BTreeMap::new();
-    let mut rejections: HashMap<u64, u32> = HashMap::new();
-    let mut rejected: BTreeSet<u64> = BTreeSet::new();
-    let mut damaged: BTreeSet<u64> = BTreeSet::new();
-    for e in &entries {
-        match e {
-            Entry::Frame(r) => {
-                records.insert(r.index, r.clone());
-            }
-            Entry::SetDone { set, frames, .. } => {
-                sets_done.insert(*set, frames.clone());
-            }
-            Entry::SetRejected { set, frames, .. } => {
-                rejected.extend(frames.iter().copied());
-                *rejections.entry(*set).or_default() += 1;
-            }
-            Entry::FramesSuperseded { frames, .. } => rejected.extend(frames.iter().copied()),
-            Entry::FrameDamaged { index, .. } => {
-                damaged.insert(*index);
-                sets_done.retain(|_, frames| !frames.contains(index));
-            }
-            _ => {}
-        }
-    }
-    if resume {
-        // Every frame still on record is checked against its hash before the run goes on
-        // (as step-and-shoot's resume does): a damaged chunk is kept aside and its half turn
-        // taken again.
-        rejected.extend(damaged.iter().copied());
-        for index in set_aside_damaged(&mut opened, run_dir, &records, &rejected)? {
-            damaged.insert(index);
-            sets_done.retain(|_, frames| !frames.contains(&index));
-        }
-    }
-    let mut accepted = BTreeMap::new();
-    for frames in sets_done.values() {
-        for i in frames {
-            if let Some(r) = records.get(i) {
-                accepted.insert(r.step, r.index);
-            }
-        }
-    }
-    let next_index = records.keys().next_back().map_or(0, |i| i + 1);
-    let writer = Writer::new(
-        opened.store,
-        opened.journal,
-        plan,
-        &rig.sensor,
-        &rig.camera_model,
-        records.clone(),
-        HashMap::new(),
-    )?;
-    let (to_store, from_store, writer_thread) = spawn_writer(writer)?;
-    if resume {
-        to_store
-            .send(ToStore::Entry(Entry::Resumed {
-                process_id: std::process::id(),
-                at_unix_ns: now_unix_ns(SystemTime::now()),
-            }))
-            .map_err(|_| RunError::Storage("the storage thread stopped".into()))?;
-    }
-    let mut lp = Cont {
-        plan,
-        c,
-        rig,
-        link,
-        to_store,
-        from_store,
-        planned_frames: steps.len() as u64,
-        steps,
-        done_frames: accepted.len() as u64,
-        records,
-        accepted,
-        next_index,
-        in_flight: BTreeSet::new(),
-        sets_accepted: sets_done.len() as u64,
-        sets_rejected: rejections.values().map(|n| u64::from(*n)).sum(),
-        rejections,
-        checking: BTreeMap::new(),
-        retake: VecDeque::new(),
-        pauses: 0,
-        device_s: 0.0,
-        spinning: false,
-        last: None,
-        free: None,
-        attempts: HashMap::new(),
-        retries: 0,
-        settled: rejected
-            .iter()
-            .chain(&damaged)
-            .chain(sets_done.values().flatten())
-            .copied()
-            .collect(),
-        damaged,
-    };
-    lp.set_state(RunState::Running);
-    let mut todo: VecDeque<u64> = (0..u64::from(c.half_turns))
-        .filter(|h| !sets_done.contains_key(h))
-        .collect();
-    let outcome = lp.main(&mut todo).await;
-    lp.stop_segment().await;
-    let outcome = match outcome {
-        Ok(o) => o,
-        Err(e) => {
-            drop(lp);
-            let _ = tokio::task::spawn_blocking(move || writer_thread.join()).await;
-            return Err(e);
-        }
-    };
-    lp.drain().await.map_err(RunError::Storage)?;
-    let summary = Summary {
-        frames_stored: lp.next_index,
-        frames_accepted: lp.accepted.len() as u64,
-        sets_accepted: lp.sets_accepted,
-        sets_rejected: lp.sets_rejected,
-        retries: lp.retries,
-        pauses: lp.pauses,
-        elapsed_s: started.elapsed().as_secs_f64(),
-        device_s: lp.device_s,
-        final_angles_deg: None,
-        saturation: Saturation::of(
-            &RunStore::open(run_dir)?,
-            plan.suspender.max_saturated_fraction,
-        )?,
-    };
-    let result = match outcome {
-        Some(Outcome::Aborted(reason)) => end_aborted(&lp.link, &lp.to_store, reason),
-        Some(other) => Ok(other),
-        None => {
-            let summary_json =
-                json!({ "run": serde_json::to_value(&summary).unwrap_or(Value::Null) });
-            let checks = FinishChecks {
-                planned_steps: (0..lp.steps.len() as u64).collect(),
-                accepted: lp.accepted.clone(),
-                damaged: lp.damaged.clone(),
-            };
-            end_done(&lp.link, &lp.to_store, summary_json, checks).await?;
-            Ok(Outcome::Done(summary))
-        }
-    };
-    drop(lp);
-    let _ = tokio::task::spawn_blocking(move || writer_thread.join()).await;
-    result
 }
 
-/// What to do after a pause.
-enum After {
-    Resume,
-    End(Outcome),
-}
-
-impl<R: Rotator, C: Camera> Cont<'_, R, C> {
-    fn set_state(&self, s: RunState) {
-        self.link.set_state(s);
+impl<'a, R: Rotator, C: Camera> Strategy<'a> for SpinLoop<'a, R, C> {
+    fn core(&mut self) -> &mut Core<'a> {
+        &mut self.core
     }
 
-    /// Sends without blocking the loop's thread (the channel holds two messages).
-    async fn send_store_async(&self, msg: ToStore) -> Result<(), RunError> {
-        let tx = self.to_store.clone();
-        let sent = tokio::task::spawn_blocking(move || tx.send(msg).is_ok())
-            .await
-            .unwrap_or(false);
-        if sent {
-            Ok(())
-        } else {
-            Err(RunError::Storage("the storage thread stopped".into()))
-        }
-    }
-
-    fn on_store(&mut self, msg: FromStore) -> Result<(), RunError> {
-        match msg {
-            FromStore::Durable { index, label } => {
-                self.in_flight.remove(&index);
-                self.done_frames += 1;
-                let _ = self.link.events.try_send(Event::Progress {
-                    done: self.done_frames,
-                    planned: self.planned_frames,
-                    label,
-                });
-            }
-            FromStore::SetChecked {
-                set,
-                verdict,
-                mean_dolp,
-            } => {
-                let frames = self.checking.remove(&set).unwrap_or_default();
-                self.settled.extend(frames.iter().copied());
-                let _ = self.link.events.try_send(Event::Set {
-                    set,
-                    verdict: verdict.clone(),
-                    mean_s0: verdict.mean_s0_dn,
-                    mean_dolp,
-                });
-                if verdict.accepted {
-                    self.sets_accepted += 1;
-                } else {
-                    self.sets_rejected += 1;
-                    warn!(set, reason = %verdict.reason, "half turn rejected");
-                    for i in &frames {
-                        if let Some(r) = self.records.get(i) {
-                            if self.accepted.get(&r.step) == Some(i) {
-                                self.accepted.remove(&r.step);
-                            }
-                        }
-                    }
-                    *self.rejections.entry(set).or_default() += 1;
-                    self.retake.push_back(set);
-                }
-            }
-            FromStore::Failed(e) => return Err(RunError::Storage(e)),
-        }
-        Ok(())
-    }
-
-    async fn drain(&mut self) -> Result<(), String> {
-        while !self.in_flight.is_empty() || !self.checking.is_empty() {
-            match self.from_store.recv().await {
-                Some(msg) => self.on_store(msg).map_err(|e| e.to_string())?,
-                None => return Err("the storage thread stopped".into()),
-            }
-        }
-        Ok(())
-    }
-
-    /// The half turns until the end, a pause that ends the run, or an abort.
-    async fn main(&mut self, todo: &mut VecDeque<u64>) -> Result<Option<Outcome>, RunError> {
+    async fn acquire(&mut self) -> Result<Option<Outcome>, RunError> {
         loop {
-            while let Ok(msg) = self.from_store.try_recv() {
-                self.on_store(msg)?;
+            while let Ok(msg) = self.core.from_store.try_recv() {
+                self.on_store(msg).map_err(RunError::Storage)?;
             }
-            while let Some(set) = self.retake.pop_front() {
-                let tries = self.rejections.get(&set).copied().unwrap_or(0);
-                let cfg = &self.plan.suspender;
-                if cfg.action == SuspendAction::Pause || tries > cfg.max_reacquire {
-                    todo.push_front(set);
-                    let reason = format!("half turn {set} rejected {tries} times");
-                    match self.pause(reason, set).await? {
-                        After::Resume => {}
-                        After::End(o) => return Ok(Some(o)),
-                    }
-                } else {
-                    todo.push_back(set);
-                }
+            if let Some(o) = self.plan_retakes().await? {
+                return Ok(Some(o));
             }
-            let Some(&h) = todo.front() else {
+            let Some(&h) = self.todo.front() else {
                 // No half turn left to take (unless a check rejects one): stop spinning.
                 self.stop_segment().await;
-                if self.checking.is_empty() && self.in_flight.is_empty() {
+                if self.checking.is_empty() && self.core.in_flight.is_empty() {
                     return Ok(None);
                 }
-                match self.from_store.recv().await {
-                    Some(msg) => self.on_store(msg)?,
+                match self.core.from_store.recv().await {
+                    Some(msg) => self.on_store(msg).map_err(RunError::Storage)?,
                     None => return Err(RunError::Storage("the storage thread stopped".into())),
                 }
                 continue;
             };
-            // The safe point: between half turns.
-            let mut asked = None;
-            while let Ok(c) = self.link.control.try_recv() {
-                asked = Some(c);
-            }
-            match asked {
-                Some(Control::Pause | Control::PauseNow) => {
-                    self.set_state(RunState::Pausing);
-                    match self.pause("paused by the user".into(), h).await? {
-                        After::Resume => continue,
-                        After::End(o) => return Ok(Some(o)),
-                    }
+            if let Some(ending) = self.safe_point(h).await? {
+                match ending {
+                    Some(o) => return Ok(Some(o)),
+                    None => continue,
                 }
-                Some(Control::Abort) => {
-                    return Ok(Some(Outcome::Aborted("aborted by the user".into())))
-                }
-                Some(Control::Detach) => {
-                    return Ok(Some(Outcome::Paused("detached by the user".into())))
-                }
-                Some(Control::Resume) | None => {}
             }
             self.supersede_unfinished(h).await?;
             let taken = async {
                 if !self.spinning {
-                    let half_turns = todo.len() as u64;
+                    let half_turns = self.todo.len() as u64;
                     self.start_segment(half_turns).await?;
                 }
                 self.half_turn(h).await
@@ -503,34 +307,130 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             .await;
             match taken {
                 Ok(()) => {
-                    todo.pop_front();
+                    self.todo.pop_front();
                 }
                 Err(e) => {
-                    let reason = format!("half turn {h}: {e}");
-                    let tries = self.attempts.entry(h).or_insert(0);
-                    *tries += 1;
-                    let retry = matches!(e.kind(), ErrorKind::Protocol | ErrorKind::Timeout)
-                        && *tries < self.plan.policy.attempts;
-                    if retry {
-                        // A trigger the camera missed (or a frame it took late) spoils only
-                        // this half turn: stop, spin up again and take it again.
-                        warn!("{reason}; taking the half turn again (try {})", *tries + 1);
-                        self.retries += 1;
-                        let _ = self.link.events.try_send(Event::Retry(reason.clone()));
-                        self.stop_segment().await;
-                        if let Err(e) = self.drain().await {
-                            warn!("while stopping: {e}");
-                        }
-                        continue;
-                    }
-                    warn!("{reason}");
-                    match self.pause(reason, h).await? {
-                        After::Resume => {}
-                        After::End(o) => return Ok(Some(o)),
+                    if let Some(o) = self.after_error(h, e).await? {
+                        return Ok(Some(o));
                     }
                 }
             }
         }
+    }
+
+    async fn rest(&mut self) {
+        self.stop_segment().await;
+    }
+
+    async fn drain(&mut self) -> Result<(), String> {
+        while !self.core.in_flight.is_empty() || !self.checking.is_empty() {
+            match self.core.from_store.recv().await {
+                Some(msg) => self.on_store(msg)?,
+                None => return Err("the storage thread stopped".into()),
+            }
+        }
+        Ok(())
+    }
+
+    fn planned_steps(&self) -> BTreeSet<u64> {
+        (0..self.steps.len() as u64).collect()
+    }
+}
+
+impl<R: Rotator, C: Camera> SpinLoop<'_, R, C> {
+    /// Takes a message of the storage thread; a checked half turn is settled, counted, and
+    /// when rejected queued to be taken again.
+    fn on_store(&mut self, msg: FromStore) -> Result<(), String> {
+        if let Some(checked) = self.core.on_store(msg)? {
+            self.on_checked(checked);
+        }
+        Ok(())
+    }
+
+    fn on_checked(&mut self, (set, verdict, mean_dolp): Checked) {
+        let frames = self.checking.remove(&set).unwrap_or_default();
+        self.settled.extend(frames.iter().copied());
+        self.core.event(Event::Set {
+            set,
+            verdict: verdict.clone(),
+            mean_s0: verdict.mean_s0_dn,
+            mean_dolp,
+        });
+        if verdict.accepted {
+            self.core.sets_accepted += 1;
+            return;
+        }
+        self.core.sets_rejected += 1;
+        warn!(set, reason = %verdict.reason, "half turn rejected");
+        for i in &frames {
+            if let Some(r) = self.core.records.get(i) {
+                if self.core.accepted.get(&r.step) == Some(i) {
+                    self.core.accepted.remove(&r.step);
+                }
+            }
+        }
+        *self.core.rejections.entry(set).or_default() += 1;
+        self.retake.push_back(set);
+    }
+
+    /// Queues the rejected half turns again, or pauses when the plan says so (or a half turn
+    /// was rejected too often).
+    async fn plan_retakes(&mut self) -> Result<Option<Outcome>, RunError> {
+        while let Some(set) = self.retake.pop_front() {
+            let tries = self.core.rejections.get(&set).copied().unwrap_or(0);
+            let cfg = &self.core.plan.suspender;
+            if cfg.action == SuspendAction::Pause || tries > cfg.max_reacquire {
+                self.todo.push_front(set);
+                let reason = format!("half turn {set} rejected {tries} times");
+                if let Some(o) = self.pause(reason, set).await? {
+                    return Ok(Some(o));
+                }
+            } else {
+                self.todo.push_back(set);
+            }
+        }
+        Ok(None)
+    }
+
+    /// The safe point before half turn `h`: what the controller asked meanwhile. `None`: go
+    /// on; `Some(None)`: paused and resumed (look again); `Some(Some(o))`: the run ends.
+    async fn safe_point(&mut self, h: u64) -> Result<Option<Option<Outcome>>, RunError> {
+        let mut asked = None;
+        while let Ok(c) = self.core.link.control.try_recv() {
+            asked = Some(c);
+        }
+        Ok(match asked {
+            Some(Control::Pause | Control::PauseNow) => {
+                self.core.set_state(RunState::Pausing);
+                Some(self.pause("paused by the user".into(), h).await?)
+            }
+            Some(Control::Abort) => Some(Some(Outcome::Aborted("aborted by the user".into()))),
+            Some(Control::Detach) => Some(Some(Outcome::Paused("detached by the user".into()))),
+            Some(Control::Resume) | None => None,
+        })
+    }
+
+    /// After a device error in half turn `h`: a trigger the camera missed (or a frame it took
+    /// late) spoils only this half turn, taken again up to the plan's attempts; anything else
+    /// pauses the run.
+    async fn after_error(&mut self, h: u64, e: DeviceError) -> Result<Option<Outcome>, RunError> {
+        let reason = format!("half turn {h}: {e}");
+        let tries = self.attempts.entry(h).or_insert(0);
+        *tries += 1;
+        let retry = matches!(e.kind(), ErrorKind::Protocol | ErrorKind::Timeout)
+            && *tries < self.core.plan.policy.attempts;
+        if retry {
+            warn!("{reason}; taking the half turn again (try {})", *tries + 1);
+            self.core.retries += 1;
+            self.core.event(Event::Retry(reason.clone()));
+            self.stop_segment().await;
+            if let Err(e) = Strategy::drain(self).await {
+                warn!("while stopping: {e}");
+            }
+            return Ok(None);
+        }
+        warn!("{reason}");
+        self.pause(reason, h).await
     }
 
     /// Names the frames half turn `h` already has outside a settled set (an earlier try cut
@@ -538,6 +438,7 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
     /// half turn is taken again whole.
     async fn supersede_unfinished(&mut self, h: u64) -> Result<(), RunError> {
         let stale: Vec<u64> = self
+            .core
             .records
             .values()
             .filter(|r| r.set == Some(h) && !self.settled.contains(&r.index))
@@ -547,37 +448,32 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             return Ok(());
         }
         for i in &stale {
-            if let Some(r) = self.records.get(i) {
-                if self.accepted.get(&r.step) == Some(i) {
-                    self.accepted.remove(&r.step);
+            if let Some(r) = self.core.records.get(i) {
+                if self.core.accepted.get(&r.step) == Some(i) {
+                    self.core.accepted.remove(&r.step);
                 }
             }
         }
         self.settled.extend(stale.iter().copied());
         info!(half_turn = h, frames = ?stale, "an unfinished half turn is taken again whole");
-        self.send_store_async(ToStore::Entry(Entry::FramesSuperseded {
-            set: h,
-            frames: stale,
-            reason: format!("half turn {h} did not finish; it is taken again whole"),
-        }))
-        .await
+        self.core
+            .send_store_async(ToStore::Entry(Entry::FramesSuperseded {
+                set: h,
+                frames: stale,
+                reason: format!("half turn {h} did not finish; it is taken again whole"),
+            }))
+            .await
     }
 
-    /// Stops everything and waits for the controller.
-    async fn pause(&mut self, reason: String, half_turn: u64) -> Result<After, RunError> {
+    /// Stops everything and waits for the controller: `None` when the run resumes, or the
+    /// outcome that ends it.
+    async fn pause(&mut self, reason: String, half_turn: u64) -> Result<Option<Outcome>, RunError> {
         self.stop_segment().await;
-        if let Err(e) = self.drain().await {
+        if let Err(e) = Strategy::drain(self).await {
             warn!("while pausing: {e}");
         }
-        self.pauses += 1;
         let next_step = half_turn * u64::from(self.c.frames_per_half_turn);
-        Ok(
-            match hold_paused(&mut self.link, &self.to_store, &reason, next_step).await? {
-                AfterPause::Resume => After::Resume,
-                AfterPause::Abort(r) => After::End(Outcome::Aborted(r)),
-                AfterPause::Detach(r) => After::End(Outcome::Paused(r)),
-            },
-        )
+        Ok(self.core.hold(&reason, next_step).await?.ending())
     }
 
     fn interval_rad(&self) -> f64 {
@@ -587,7 +483,7 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
     fn wait(&self) -> Duration {
         let interval_s = self.c.interval_deg() / self.c.speed_deg_per_s;
         Duration::from_secs_f64(
-            self.plan.policy.grab_timeout_s + 3.0 * interval_s + self.c.exposure_us * 1e-6,
+            self.core.plan.policy.grab_timeout_s + 3.0 * interval_s + self.c.exposure_us * 1e-6,
         )
     }
 
@@ -619,7 +515,7 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
         let ahead = position - zero + omega * RUN_UP_S + interval;
         let first = zero + (ahead / PI).ceil() * PI - interval;
         let n = u64::from(c.frames_per_half_turn);
-        let spare = u64::from(self.plan.suspender.max_reacquire) + 1;
+        let spare = u64::from(self.core.plan.suspender.max_reacquire) + 1;
         let pulses = u32::try_from(1 + n * half_turns * spare.min(4)).unwrap_or(u32::MAX);
         rotator.arm_trigger(first, interval, pulses).await?;
         let go = rotator.next_trigger(go_wait).await?;
@@ -629,7 +525,7 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             ms = t0.elapsed().as_secs_f64() * 1e3,
             "spinning; camera on the line"
         );
-        self.device_s += t0.elapsed().as_secs_f64();
+        self.core.device_s += t0.elapsed().as_secs_f64();
         Ok(())
     }
 
@@ -640,7 +536,7 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             return;
         }
         self.spinning = false;
-        self.free = None;
+        self.line = None;
         if let Err(e) = self.rig.camera.stop().await {
             warn!("stopping the camera: {e}");
         }
@@ -673,7 +569,7 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             let t0 = Instant::now();
             let pulse: TriggerPulse = self.rig.analyzer.rotator.next_trigger(wait).await?;
             let frame = self.rig.camera.grab(wait).await?;
-            self.device_s += t0.elapsed().as_secs_f64();
+            self.core.device_s += t0.elapsed().as_secs_f64();
             let bad = |m: String| DeviceError::new(ErrorKind::Protocol, "continuous", m);
             let start_deg = (pulse.angle_rad - zero).to_degrees().rem_euclid(180.0);
             let grid = (start_deg / interval_deg).round() as u64 % n;
@@ -747,8 +643,8 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             ));
         }
         let spec = self.steps[step as usize].clone();
-        let index = self.next_index;
-        self.next_index += 1;
+        let index = self.core.next_index;
+        self.core.next_index += 1;
         let record = frame_record(
             (index, step, &spec),
             &frame,
@@ -759,17 +655,18 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
                 sigma_deg,
             },
             self.rig.sun_deg,
-            self.plan.site.as_ref(),
+            self.core.plan.site.as_ref(),
         );
-        self.records.insert(index, record.clone());
-        self.accepted.insert(step, index);
-        self.in_flight.insert(index);
-        self.send_store_async(ToStore::Frame {
-            record,
-            pixels: frame.pixels,
-        })
-        .await
-        .map_err(|e| DeviceError::new(ErrorKind::Other, "storage", e.to_string()))?;
+        self.core.records.insert(index, record.clone());
+        self.core.accepted.insert(step, index);
+        self.core.in_flight.insert(index);
+        self.core
+            .send_store_async(ToStore::Frame {
+                record,
+                pixels: frame.pixels,
+            })
+            .await
+            .map_err(|e| DeviceError::new(ErrorKind::Other, "storage", e.to_string()))?;
         Ok(index)
     }
 
@@ -801,7 +698,8 @@ impl<R: Rotator, C: Camera> Cont<'_, R, C> {
             rows: Some(estimator.rows.iter().map(|r| [r[0], r[1], r[2]]).collect()),
         };
         self.checking.insert(h, frames);
-        self.send_store_async(ToStore::ProcessSet(job))
+        self.core
+            .send_store_async(ToStore::ProcessSet(job))
             .await
             .map_err(|e| DeviceError::new(ErrorKind::Other, "storage", e.to_string()))
     }
