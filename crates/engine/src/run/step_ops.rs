@@ -165,12 +165,9 @@ impl StepLoop<'_> {
                         record,
                         pixels: frame.pixels,
                     };
-                    // The bounded channel: blocks only when two frames are already queued.
-                    let tx = self.core.to_store.clone();
-                    let sent = tokio::task::spawn_blocking(move || tx.send(msg).is_ok())
-                        .await
-                        .unwrap_or(false);
-                    if !sent {
+                    // The bounded channel: waits (off the loop's thread) only when two frames
+                    // are already queued.
+                    if self.core.send_store_async(msg).await.is_err() {
                         return Err(OpError::Device(DeviceError::new(
                             ErrorKind::Other,
                             "storage",
