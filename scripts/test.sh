@@ -32,7 +32,8 @@ if [ "${1:-}" = "--deps-only" ]; then exit 0; fi
 # scripts/requirements.txt and reinstalled when that file changes; the tests find the venv's
 # python through POLARIMETER_PYTHON:
 # * zarr-python 3, xarray and xxhash read runs back from the outside (scripts/check_run.py,
-#   scripts/zarr_interop.py; crates/engine/tests/{store,crash_safety}.rs, crates/cli/tests/integration/crash.rs);
+#   scripts/zarr_interop.py; crates/engine/tests/store.rs, tests/tests/runs/crash_safety.rs,
+#   crates/cli/tests/integration/crash.rs);
 # * public client libraries (pylablib, thorlabs_elliptec, roesel's elliptec) drive the
 #   simulated Elliptec and FW102C/FW212C devices (tests/tests/hil/conformance_elliptec.rs).
 PY_VENV=target/py-venv

@@ -51,7 +51,7 @@
 use crate::faults::{Dice, DutyCycle, FaultProfile};
 use crate::motion::{output_from_motor, Profile};
 use crate::simulator::{next_request, Scan, SimDialect, Simulator, Truth};
-use polar_drivers::apt::codec::{self as id, le_i32, le_u16, Message, HOST, USB};
+use polar_apt_protocol::{self as id, le_i32, le_u16, Message, HOST, USB};
 use std::f64::consts::TAU;
 
 /// A partial message idle this long (simulated seconds) is dropped.
@@ -64,7 +64,7 @@ pub const HOME_SWITCH_DEG: f64 = 0.5;
 const KDC101_T_S: f64 = 2048.0 / 6.0e6;
 
 /// Status bits (the protocol's `P_MOT_SB_*`), as the driver's codec declares them.
-pub use polar_drivers::apt::codec::status as bits;
+pub use polar_apt_protocol::status as bits;
 
 /// Which mount.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -1018,6 +1018,7 @@ pub const SIM: SimDialect = SimDialect {
     models: polar_drivers::apt::DIALECT.models,
     build: simulate,
     at_speed: Some(simulate_at_speed),
+    motion: None,
 };
 
 #[cfg(test)]

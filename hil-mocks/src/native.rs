@@ -4,7 +4,7 @@
 
 use crate::faults::{Dice, DutyCycle, FaultProfile};
 use crate::motion::{output_from_motor, Profile, Ramp};
-use crate::simulator::{SimDialect, Simulator, Truth};
+use crate::simulator::{SimDialect, SimMotion, Simulator, Truth};
 use polar_firmware_protocol::{
     encode_vec, BootReason, Command, Decoder, DeviceKind, ErrorCode, Packet, Reply, StatusFlags,
     PROTOCOL_VERSION,
@@ -675,7 +675,7 @@ pub const SIM: SimDialect = SimDialect {
         };
         Some(Box::new(NativeDevice::new(config, faults, seed)))
     },
-    // Cruise at the speed, accelerate to it in 1/8 s, home in 0.1 s.
+    // Cruise at the speed, accelerate to it in 1 / AT_SPEED_RAMP_PER_S s, home in 0.1 s.
     at_speed: Some(|model, deg_s, faults, seed| {
         if model != "rotator" {
             return None;
@@ -683,11 +683,20 @@ pub const SIM: SimDialect = SimDialect {
         let mut config = NativeConfig::rotator();
         let v = (deg_s * f64::from(config.counts_per_turn) / 360.0).round();
         config.velocity_counts_per_s = v.clamp(1.0, f64::from(u32::MAX)) as u32;
-        config.acceleration_counts_per_s2 = config.velocity_counts_per_s.saturating_mul(8);
+        config.acceleration_counts_per_s2 = config
+            .velocity_counts_per_s
+            .saturating_mul(AT_SPEED_RAMP_PER_S);
         config.homing_s = 0.1;
         Some(Box::new(NativeDevice::new(config, faults, seed)))
     }),
+    motion: Some(SimMotion {
+        ramp_s: 1.0 / AT_SPEED_RAMP_PER_S as f64,
+        max_spin_deg_per_s: MAX_SPIN_TURNS_PER_S * 360.0,
+    }),
 };
+
+/// A rotator built at a speed ([`SIM`]'s `at_speed`) reaches it in 1 / this many seconds.
+pub const AT_SPEED_RAMP_PER_S: u32 = 8;
 
 #[cfg(test)]
 mod tests {

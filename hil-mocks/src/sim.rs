@@ -4,7 +4,7 @@
 
 use crate::faults::FaultProfile;
 pub use crate::simulator::{
-    next_request, BuildAtSpeed, BuildSimulator, Scan, SimDialect, Simulator, Truth,
+    next_request, BuildAtSpeed, BuildSimulator, Scan, SimDialect, SimMotion, Simulator, Truth,
 };
 use crate::{apt, elliptec, fw102c, native};
 

@@ -129,4 +129,17 @@ pub struct SimDialect {
     /// plan sets `simulation.stage_deg_per_s`); `None`: the dialect's rotators run at their
     /// real speed only.
     pub at_speed: Option<BuildAtSpeed>,
+    /// How its rotators built by `at_speed` move, for the continuous planner's stage limits;
+    /// `None`: not known here (a plan must give them).
+    pub motion: Option<SimMotion>,
+}
+
+/// How a dialect's simulated rotators move when built at a cruise speed
+/// ([`SimDialect::at_speed`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SimMotion {
+    /// Seconds from rest to the cruise speed (the acceleration is the speed over this).
+    pub ramp_s: f64,
+    /// The fastest its velocity mode spins, degrees per second.
+    pub max_spin_deg_per_s: f64,
 }

@@ -3,6 +3,8 @@
 //! * [`hil::dialects`]: every dialect of `polar_drivers::registry` against its simulator from
 //!   `polar_hil_mocks::sim::SIMULATORS`, over a real pseudo-terminal, connected by its registry
 //!   constructor: identify, home, move or select, read back, and the simulator's truth agrees.
+//! * [`hil::doc_tables`]: ARCHITECTURE.md's and docs/DEVICES.md's tables of dialects and camera
+//!   backends against the registries.
 //! * [`hil::cameras`]: the camera backends' registry, and Aravis's fake GigE Vision camera opened
 //!   through it (skipped, with the reason printed, where `arv-fake-gv-camera-0.8` is absent).
 //! * [`hil::plans`]: a capture plan end to end on `examples/rigs/sim.toml` (the simulated stage on
@@ -17,6 +19,10 @@
 //! * [`hil::k10cr1`]: a capture on `examples/rigs/sim_k10cr1.toml` (the simulated K10CR1 through
 //!   the APT driver) through the `run` command's entry point; its Stokes products against the
 //!   rendered truth.
+//! * [`hil::apt_capture`]: a capture through the real APT driver on the simulated K10CR1 and
+//!   PRM1Z8, the engine's run with the analyzer on an `AptRotator`; Stokes against the truth.
+//! * [`hil::genicam_loop`]: Aravis's in-process fake GigE camera painting each frame from the
+//!   simulated stage's true angle, the stage driven by its real driver; DoLP and AoP recovered.
 //! * [`hil::conformance_elliptec`], [`hil::conformance_apt`]: the public client libraries
 //!   (pylablib, thorlabs_elliptec, elliptec, thorlabs-apt-device) against the simulated devices
 //!   on pseudo-terminals, through `scripts/conformance/*.py` in the venv `POLARIMETER_PYTHON`
@@ -25,11 +31,14 @@
 //! Crate-level tests stay in their crates.
 
 mod hil {
+    pub mod apt_capture;
     pub mod cameras;
     pub mod conformance_apt;
     pub mod conformance_elliptec;
     pub mod dialects;
+    pub mod doc_tables;
     pub mod following;
+    pub mod genicam_loop;
     pub mod k10cr1;
     pub mod plan_kinds;
     pub mod plans;

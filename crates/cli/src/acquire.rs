@@ -11,8 +11,8 @@ use crate::commands::CommandError;
 use crate::plan_load::{forecast_models, load_plan, load_plan_resolved};
 use polar_engine::plan::{Plan, SimStage};
 use polar_engine::run::{self, Control, Controller, Event, Outcome, Rig, RunState};
-use polar_engine::sim::SimRig;
 use polar_hal::{Camera, OnRotator, Rotator};
+use polar_rig::{sim_stage, SimRig};
 use polar_rig::{Hardware, Rig as RigFile};
 use serde_json::{json, Value};
 use std::io::IsTerminal;
@@ -255,7 +255,7 @@ pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandEr
         crate::rig::apply_site(&mut plan, r);
     }
     // What `acquire run --simulate` would refuse, refused here with the same message.
-    polar_engine::sim::SimRig::validate(&plan, &dir).map_err(err)?;
+    polar_rig::SimRig::validate(&plan, &dir).map_err(err)?;
     plan.check_frame(plan.simulation.width, plan.simulation.height)
         .map_err(err)?;
     let (scene, mut camera) = forecast_models(&plan, &dir)?;
@@ -264,7 +264,7 @@ pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandEr
             camera = c;
         }
     }
-    let timing = polar_engine::forecast::Timing::simulated(&plan);
+    let timing = polar_rig::sim_stage::timing(&plan).map_err(err)?;
     let f = polar_engine::forecast::forecast(&plan, &scene, &camera, &timing).map_err(err)?;
     let mut v = json!({ "plan": plan.name, "kind": plan.kind.name(), "forecast": f });
     if let Some(c) = chosen {
@@ -283,7 +283,9 @@ fn saturation_forecast(plan: &Plan, plan_dir: &Path) -> Vec<String> {
     let Ok((scene, camera)) = forecast_models(plan, plan_dir) else {
         return Vec::new();
     };
-    let timing = polar_engine::forecast::Timing::simulated(plan);
+    let Ok(timing) = polar_rig::sim_stage::timing(plan) else {
+        return Vec::new();
+    };
     let Ok(f) = polar_engine::forecast::forecast(plan, &scene, &camera, &timing) else {
         return Vec::new();
     };
@@ -507,28 +509,31 @@ seed = 7
 stage_deg_per_s = 720
 "#;
 
-/// The `demo --stage` values: `native` (our firmware's rotator, the default) and every other
-/// simulated rotator's model (`k10cr1`, `ell14`, ...), from the simulators' registry.
+/// The `demo --stage` values: the default simulated stage's dialect (`native`, our firmware's
+/// rotator; the default) and every other simulated rotator's model (`k10cr1`, `ell14`, ...),
+/// from the simulators' registry.
 pub fn demo_stages() -> Vec<&'static str> {
-    std::iter::once("native")
+    let (default, _) = sim_stage::default_stage();
+    std::iter::once(default)
         .chain(
-            SimStage::rotators()
+            sim_stage::rotators()
                 .into_iter()
-                .filter(|(d, _)| *d != "native")
+                .filter(|(d, _)| *d != default)
                 .map(|(_, m)| m),
         )
         .collect()
 }
 
-/// The `[simulation] stage` of `demo --stage NAME`: `None` for `native`; an error naming
-/// `--stage`, the value and the allowed values otherwise.
+/// The `[simulation] stage` of `demo --stage NAME`: `None` for the default stage; an error
+/// naming `--stage`, the value and the allowed values otherwise.
 pub fn demo_stage(name: &str) -> Result<Option<SimStage>, CommandError> {
-    if name == "native" {
+    let (default, _) = sim_stage::default_stage();
+    if name == default {
         return Ok(None);
     }
-    SimStage::rotators()
+    sim_stage::rotators()
         .into_iter()
-        .find(|(d, m)| *d != "native" && *m == name)
+        .find(|(d, m)| *d != default && *m == name)
         .map(|(d, m)| {
             Some(SimStage {
                 dialect: d.to_string(),
@@ -544,9 +549,9 @@ pub fn demo_stage(name: &str) -> Result<Option<SimStage>, CommandError> {
 }
 
 /// `demo`: a short adaptive acquisition on simulated devices into `out` (replaced), the
-/// analyzer on our firmware's simulated rotator.
+/// analyzer on the default simulated stage (our firmware's rotator).
 pub fn demo(out: &Path, ui: Ui) -> Result<String, CommandError> {
-    demo_on_stage(out, "native", ui)
+    demo_on_stage(out, sim_stage::default_stage().0, ui)
 }
 
 /// `demo --stage NAME`: the demo with the analyzer on the simulated stage `NAME` (one of

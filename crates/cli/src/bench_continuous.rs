@@ -28,8 +28,8 @@ use anyhow::{anyhow, bail, Context};
 use clap::Args;
 use nalgebra::Vector3;
 use polar_engine::plan::Plan;
-use polar_engine::sim::SimRig;
 use polar_model::span::{span_signal, SpanExposure};
+use polar_rig::SimRig;
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 
@@ -134,10 +134,11 @@ fn continuous_plan(sets: u32, exposure_us: f64, camera: Option<&Path>) -> anyhow
 }
 
 /// Runs `plan` on the simulated rig into `dir` through the engine's
-/// [`polar_engine::run::run_simulated`] (the step loop, or the continuous loop for
+/// simulated rig's [`polar_rig::run_simulated`] (the step loop, or the continuous loop for
 /// `kind = "continuous"`); the sets accepted and the engine's wall time.
 fn run_plan(plan: &Plan, dir: &Path) -> anyhow::Result<(u64, f64)> {
-    use polar_engine::run::{link, run_simulated, Outcome};
+    use polar_engine::run::{link, Outcome};
+    use polar_rig::run_simulated;
     let _ = std::fs::remove_dir_all(dir);
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -210,7 +211,7 @@ fn dolp_sigma(s: &Vector3<f64>, cov: &nalgebra::Matrix3<f64>) -> f64 {
 
 /// The panel's predicted Stokes covariance (DN^2) and `K G L` for `spans` at `exposure_us`.
 fn panel_prediction(
-    world: &polar_engine::sim::SimWorld,
+    world: &polar_rig::simulated::SimWorld,
     spans: &[(f64, f64)],
     exposure_us: f64,
 ) -> anyhow::Result<polar_model::span::SpanSignal> {
@@ -252,7 +253,7 @@ fn continuous_spans(plan: &Plan) -> anyhow::Result<Vec<(f64, f64)>> {
 fn within_two_sigma(
     dir: &Path,
     plan: &Plan,
-    world: &polar_engine::sim::SimWorld,
+    world: &polar_rig::simulated::SimWorld,
     sets: u64,
     exposure_us: f64,
 ) -> anyhow::Result<(f64, usize)> {
@@ -298,7 +299,7 @@ fn within_two_sigma(
 
 /// Writes the dim camera (the modern CMOS example at f/32) into `dir`.
 fn dim_camera(dir: &Path) -> anyhow::Result<PathBuf> {
-    let mut cam = polar_model::sensor::Camera::from_toml_str(polar_engine::sim::DEFAULT_CAMERA)?;
+    let mut cam = polar_model::sensor::Camera::from_toml_str(polar_rig::simulated::DEFAULT_CAMERA)?;
     cam.f_number = DIM_F_NUMBER;
     cam.name = format!("{} at f/{DIM_F_NUMBER}", cam.name);
     std::fs::create_dir_all(dir)?;

@@ -23,15 +23,6 @@ impl From<DeviceError> for DevicesError {
     }
 }
 
-/// The `--dialect` values: every dialect of the registry, with its description as help.
-pub fn dialect_values() -> clap::builder::PossibleValuesParser {
-    clap::builder::PossibleValuesParser::new(
-        DIALECTS
-            .iter()
-            .map(|d| clap::builder::PossibleValue::new(d.name).help(d.description)),
-    )
-}
-
 /// The registry's dialect named `name`, or an error naming `--dialect`, the value and the
 /// dialects allowed.
 pub fn dialect(name: &str) -> Result<&'static Dialect, DevicesError> {
@@ -677,12 +668,14 @@ fn simulated_bench(
         .map_or_else(|| "rig".into(), |s| s.to_string_lossy().into_owned());
     let name = format!("{stem}.camera.toml");
     let camera_path = rig_path.parent().unwrap_or(Path::new(".")).join(&name);
-    polar_rig::file::write_new(&camera_path, polar_engine::sim::DEFAULT_CAMERA).map_err(|e| {
-        CommandError(format!(
-            "--write-rig {}: the camera file: {e}",
-            rig_path.display()
-        ))
-    })?;
+    polar_rig::file::write_new(&camera_path, polar_rig::simulated::DEFAULT_CAMERA).map_err(
+        |e| {
+            CommandError(format!(
+                "--write-rig {}: the camera file: {e}",
+                rig_path.display()
+            ))
+        },
+    )?;
     note.push_str(&format!(
         "# The simulated camera's noise model is {name} (the modern CMOS example); edit it or\n\
          # point camera.file at a calibrated camera file.\n\n"

@@ -44,7 +44,8 @@ pub fn load_plan_resolved(path: &Path) -> Result<(Plan, PathBuf, Option<Value>),
     {
         use polar_engine::continuous_planner::{describe, resolve, to_json};
         let (scene, camera) = forecast_models(&plan, &dir)?;
-        if let Some(choice) = resolve(&mut plan, &scene, &camera).map_err(err)? {
+        let stage = polar_rig::sim_stage::stage_limits(&plan.simulation).map_err(err)?;
+        if let Some(choice) = resolve(&mut plan, &scene, &camera, stage).map_err(err)? {
             eprintln!("{}", describe(&choice));
             chosen = Some(to_json(&choice));
         }
@@ -61,7 +62,7 @@ pub fn forecast_models(
     let scene_text = match &sim.scene {
         Some(s) => std::fs::read_to_string(dir.join(s))
             .map_err(|e| CommandError(format!("simulation.scene = {s}: {e}")))?,
-        None => polar_engine::sim::DEFAULT_SCENE.to_string(),
+        None => polar_rig::simulated::DEFAULT_SCENE.to_string(),
     };
     let scene = polar_model::scene_file::Scene::from_toml_str_with_files(&scene_text, &|name| {
         std::fs::read_to_string(dir.join(name)).map_err(|e| e.to_string())
@@ -70,7 +71,7 @@ pub fn forecast_models(
     let camera_text = match &sim.camera {
         Some(c) => std::fs::read_to_string(dir.join(c))
             .map_err(|e| CommandError(format!("simulation.camera = {c}: {e}")))?,
-        None => polar_engine::sim::DEFAULT_CAMERA.to_string(),
+        None => polar_rig::simulated::DEFAULT_CAMERA.to_string(),
     };
     let camera = polar_model::sensor::Camera::from_toml_str(&camera_text)
         .map_err(|e| CommandError(format!("simulation.camera: {e}")))?;

@@ -33,8 +33,8 @@
 //!   purged before each; unsolicited status updates, stale replies and bytes that do not form
 //!   a plausible message are skipped (and counted, [`AptRotator::skipped`]).
 
-#[path = "apt_codec.rs"]
-pub mod codec;
+/// The APT message codec, shared with the simulator (`polar-apt-protocol`).
+pub use polar_apt_protocol as codec;
 
 use crate::any::AnyRotator;
 use crate::dialect::{

@@ -1,8 +1,8 @@
 //! The continuous planner (`polar_planner::continuous`) for plans: its problem built from a
 //! scene, a camera, a target and a background and the limits ([`problem`], shared by
-//! `polarimeter plan continuous` and a plan's `from_planner`), the simulated rig's stage limits
-//! ([`simulated_stage_limits`]), and the resolution of a continuous plan's `from_planner` into
-//! frames per half turn, exposure and speed ([`resolve`]).
+//! `polarimeter plan continuous` and a plan's `from_planner`), and the resolution of a
+//! continuous plan's `from_planner` into frames per half turn, exposure and speed
+//! ([`resolve`]).
 //!
 //! # The problem of a plan
 //!
@@ -14,22 +14,13 @@
 //! [`crate::continuous::planner_defaults`]); the timing uncertainty is the section's
 //! `timing_sigma_us` for `trigger = "timestamps"` and 0 for encoder triggers. The stage's limits
 //! are the table's `max_speed_deg_per_s` and `acceleration_deg_per_s2` where given, else the
-//! simulated stage's.
-//!
-//! # The simulated stage's limits
-//!
-//! The simulated rig's rotator is our firmware's (`[simulation] stage` absent or `dialect =
-//! "native"`), built at the plan's `simulation.stage_deg_per_s`: it cruises at that speed and
-//! reaches it in 1/8 s (`polar_hil_mocks::sim::SIMULATORS`, the native dialect's `at_speed`),
-//! so its acceleration is 8 times the speed per second; its velocity mode spins at most
-//! `polar_hil_mocks::native::MAX_SPIN_TURNS_PER_S` turns per second. The top speed is the
-//! cruise speed capped there. At the 360 deg/s of the bench rig these are `plan continuous`'s
-//! defaults, 360 deg/s and 2880 deg/s^2. The other simulated dialects' rotators have no
-//! position-compare trigger (a continuous run refuses them), so their limits must be given.
+//! limits of the stage the plan runs on, which the caller passes where it knows them (the
+//! simulated rig's stage: `polar_rig::sim_stage::stage_limits`, from its simulator's
+//! descriptor). The engine knows no device.
 
 use crate::continuous::{Continuous, ContinuousFromPlanner, FromPlannerObjective, TriggerSource};
 use crate::forecast_basis::{camera_at_gain, ForecastError, SCENE_TOL};
-use crate::plan::{Plan, PlanError, PlanKind, Simulation};
+use crate::plan::{Plan, PlanError, PlanKind};
 use polar_model::scene_file::Scene;
 use polar_model::sensor::{Camera, SensorModel};
 use polar_planner::continuous::{
@@ -37,10 +28,6 @@ use polar_planner::continuous::{
     StageLimits,
 };
 use serde_json::{json, Value};
-
-/// The simulated native rotator's acceleration per unit of its cruise speed, 1/s: it reaches
-/// its speed in 1/8 s (module docs).
-pub const SIM_ACCELERATION_PER_S: f64 = 8.0;
 
 /// Everything of the planner's problem besides the scene and the camera.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -150,40 +137,20 @@ pub fn problem(
     })
 }
 
-/// The simulated rig's stage limits (module docs): `Some` for our firmware's rotator, `None`
-/// for a dialect whose limits are not known here.
-pub fn simulated_stage_limits(sim: &Simulation) -> Option<StageLimits> {
-    let native = sim.stage.as_ref().is_none_or(|s| s.dialect == "native");
-    if !native {
-        return None;
-    }
-    let cruise_deg_per_s = sim.stage_deg_per_s;
-    let spin_max_deg_per_s = polar_hil_mocks::native::MAX_SPIN_TURNS_PER_S * 360.0;
-    Some(StageLimits {
-        max_speed_rad_per_s: cruise_deg_per_s.min(spin_max_deg_per_s).to_radians(),
-        acceleration_rad_per_s2: (SIM_ACCELERATION_PER_S * cruise_deg_per_s).to_radians(),
-    })
-}
-
-/// The settings of a `from_planner` table in `plan` (module docs); an error names the field
-/// that must be given (the stage's limits of a simulated stage other than ours).
+/// The settings of a `from_planner` table (module docs), with `stage` the limits of the stage
+/// the plan runs on where they are known; an error names the field that must be given.
 pub fn settings(
-    plan: &Plan,
     c: &Continuous,
     fp: &ContinuousFromPlanner,
+    stage: Option<StageLimits>,
 ) -> Result<Settings, PlanError> {
-    let sim = simulated_stage_limits(&plan.simulation);
+    let sim = stage;
     let stage_field = |field: &str| PlanError::Invalid {
         field: format!("continuous.from_planner.{field}"),
         value: "(none)".into(),
-        allowed: format!(
-            "a value: the limits of the simulated stage {:?} are not known (only the native \
-             rotator's are)",
-            plan.simulation
-                .stage
-                .as_ref()
-                .map_or("native", |s| s.dialect.as_str())
-        ),
+        allowed: "a value: the limits of this plan's stage are not known (a simulated stage \
+                  gives them where its simulator says how it moves)"
+            .into(),
     };
     let max_speed_rad_per_s = match (fp.max_speed_deg_per_s, sim) {
         (Some(v), _) => v.to_radians(),
@@ -225,7 +192,8 @@ pub fn settings(
 /// docs): the planner's frames per half turn, exposure (us) and speed (deg/s) replace the
 /// table, exactly as the planner chose them, and the section is checked. Returns the choice
 /// (with the limits that bind), or `None` for a plan without a table to resolve. The choice
-/// and its binding limits are logged.
+/// and its binding limits are logged. `stage`: the limits of the stage the plan runs on, where
+/// known (the table's own values come first).
 ///
 /// Errors name the field: the table's, a material not in the scene (listing the scene's), the
 /// model's, the planner's (no setting within the limits), and a choice the section refuses.
@@ -233,6 +201,7 @@ pub fn resolve(
     plan: &mut Plan,
     scene: &Scene,
     camera: &Camera,
+    stage: Option<StageLimits>,
 ) -> Result<Option<ContinuousChoice>, ForecastError> {
     if plan.kind != PlanKind::Continuous {
         return Ok(None);
@@ -244,7 +213,7 @@ pub fn resolve(
         return Ok(None);
     };
     fp.validate()?;
-    let settings = settings(plan, &c, &fp)?;
+    let settings = settings(&c, &fp, stage)?;
     let field = |f: &str| format!("continuous.from_planner.{f}");
     let p = problem(
         scene,
@@ -364,35 +333,18 @@ mod tests {
     const SCENE: &str = include_str!("../../../examples/rooftop_panels.toml");
     const CAMERA: &str = include_str!("../../../examples/cameras/cmos_modern.toml");
 
+    /// The simulated rig's default stage at 360 deg/s (`polar_rig::sim_stage`): 360 deg/s,
+    /// reached in 1/8 s.
+    const BENCH_STAGE: StageLimits = StageLimits {
+        max_speed_rad_per_s: 360.0 * std::f64::consts::PI / 180.0,
+        acceleration_rad_per_s2: 2880.0 * std::f64::consts::PI / 180.0,
+    };
+
     fn plan(table: &str, simulation: &str) -> Result<Plan, PlanError> {
         Plan::from_toml_str(&format!(
             "kind = \"continuous\"\n[continuous]\nhalf_turns = 2\nfrom_planner = {{ {table} }}\n\
              [simulation]\n{simulation}\n"
         ))
-    }
-
-    /// The simulated native stage at 360 deg/s gives `plan continuous`'s default limits
-    /// (360 deg/s, 2880 deg/s^2; exact: the same products of exact binary numbers), the
-    /// default 720 deg/s stage the velocity mode's cap 720 deg/s and 5760 deg/s^2; another
-    /// dialect's stage has none.
-    #[test]
-    fn simulated_stage_limits_are_the_simulators() {
-        let mut sim = Simulation {
-            stage_deg_per_s: 360.0,
-            ..Simulation::default()
-        };
-        let l = simulated_stage_limits(&sim).expect("native");
-        assert_eq!(l.max_speed_rad_per_s, 360f64.to_radians());
-        assert_eq!(l.acceleration_rad_per_s2, 2880f64.to_radians());
-        sim.stage_deg_per_s = 720.0;
-        let l = simulated_stage_limits(&sim).expect("native");
-        assert_eq!(l.max_speed_rad_per_s, 720f64.to_radians());
-        assert_eq!(l.acceleration_rad_per_s2, 5760f64.to_radians());
-        sim.stage = Some(crate::plan::SimStage {
-            dialect: "apt".into(),
-            model: None,
-        });
-        assert!(simulated_stage_limits(&sim).is_none());
     }
 
     /// Resolution on the rooftop scene: the section takes the planner's three values
@@ -408,7 +360,7 @@ mod tests {
             "stage_deg_per_s = 360",
         )
         .expect("plan");
-        let choice = resolve(&mut p, &scene, &camera)
+        let choice = resolve(&mut p, &scene, &camera, Some(BENCH_STAGE))
             .expect("resolve")
             .expect("a choice");
         let c = p.continuous.as_ref().expect("section");
@@ -421,18 +373,20 @@ mod tests {
         let fps = f64::from(c.frames_per_half_turn) * c.speed_deg_per_s / 180.0;
         assert!(fps <= 200.0 * (1.0 + 1e-9), "{fps}");
         assert!(describe(&choice).contains("frames per half turn"));
-        assert!(resolve(&mut p, &scene, &camera).expect("again").is_none());
+        assert!(resolve(&mut p, &scene, &camera, Some(BENCH_STAGE))
+            .expect("again")
+            .is_none());
     }
 
     /// Errors name the field, the value and what is allowed: a target not in the scene
-    /// (listing the scene's materials), an APT stage without limits, an unresolved section
+    /// (listing the scene's materials), a stage without known limits, an unresolved section
     /// at the run's check (naming the commands that resolve it).
     #[test]
     fn errors_name_the_field() {
         let scene = Scene::from_toml_str(SCENE).expect("scene");
         let camera = Camera::from_toml_str(CAMERA).expect("camera");
         let mut p = plan("target = \"roof\", background = \"asphalt\"", "").expect("plan");
-        let e = resolve(&mut p, &scene, &camera)
+        let e = resolve(&mut p, &scene, &camera, Some(BENCH_STAGE))
             .expect_err("unknown")
             .to_string();
         assert!(
@@ -444,7 +398,7 @@ mod tests {
             "stage = { dialect = \"apt\" }",
         )
         .expect("plan");
-        let e = resolve(&mut p, &scene, &camera)
+        let e = resolve(&mut p, &scene, &camera, None)
             .expect_err("apt")
             .to_string();
         assert!(

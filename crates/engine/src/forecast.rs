@@ -33,6 +33,7 @@ use polar_model::scene::{MaterialResult, Prepared};
 use polar_model::scene_file::Scene;
 use polar_model::sensor::{Camera, Exposure, SensorModel};
 use polar_model::stats::{dolp_aop_stats, MethodChoice, Regime, RegimeChoice, StokesEstimator};
+use polar_planner::continuous::StageLimits;
 use polar_planner::{conventional, optimise, Constraints, Contrast};
 use serde::Serialize;
 use serde_json::{json, Value};
@@ -55,18 +56,23 @@ pub struct Timing {
     pub settle_s: f64,
     /// Per frame beyond the exposure (readout, transfer), seconds.
     pub readout_s: f64,
+    /// The stage's limits for a continuous plan's `from_planner`, where the rig knows them.
+    #[serde(skip)]
+    pub stage_limits: Option<StageLimits>,
 }
 
 impl Timing {
     /// The simulated rig's: the plan's `simulation.stage_deg_per_s`, no settling, and 1/200 s
     /// of readout per frame (the simulated camera's highest frame rate is 200 Hz). The
     /// simulated stage also ramps its speed up and down, which this constant-speed timing
-    /// leaves out: the forecast is a lower bound for it.
-    pub fn simulated(plan: &Plan) -> Timing {
+    /// leaves out: the forecast is a lower bound for it. `stage_limits`: the simulated stage's
+    /// (`polar_rig::sim_stage::timing` passes them).
+    pub fn simulated(plan: &Plan, stage_limits: Option<StageLimits>) -> Timing {
         Timing {
             stage_deg_per_s: plan.simulation.stage_deg_per_s,
             settle_s: 0.0,
             readout_s: 1.0 / 200.0,
+            stage_limits,
         }
     }
 
@@ -503,6 +509,7 @@ fn class_settings(
     plan: &mut Plan,
     scene: &Scene,
     camera: &Camera,
+    stage_limits: Option<StageLimits>,
     notes: &mut Vec<String>,
 ) -> Result<Option<ClassSettings>, ForecastError> {
     Ok(match plan.kind {
@@ -555,7 +562,9 @@ fn class_settings(
             .map(|a| (a.initial_angles_deg.clone(), vec![a.exposure_us], a.gain_db)),
         // Span rows, not point rows: classes below from `continuous_classes`.
         PlanKind::Continuous => {
-            if let Some(choice) = crate::continuous_planner::resolve(plan, scene, camera)? {
+            if let Some(choice) =
+                crate::continuous_planner::resolve(plan, scene, camera, stage_limits)?
+            {
                 notes.push(crate::continuous_planner::describe(&choice));
             }
             None
@@ -657,7 +666,7 @@ pub fn forecast(
     let mut plan = plan.clone();
     let mut notes: Vec<String> = Vec::new();
     let names: Vec<&str> = scene.materials.iter().map(|m| m.name.as_str()).collect();
-    let at = class_settings(&mut plan, scene, camera, &mut notes)?;
+    let at = class_settings(&mut plan, scene, camera, timing.stage_limits, &mut notes)?;
 
     let steps = plan.steps()?;
     let darks = steps.iter().filter(|s| s.kind == FrameKind::Dark).count() as u64;
@@ -756,7 +765,8 @@ darks_after = 1
         let (scene, camera) = models();
         let plan =
             Plan::from_toml_str(include_str!("../../../examples/plans/continuous.toml")).unwrap();
-        let f = forecast(&plan, &scene, &camera, &Timing::simulated(&plan)).expect("forecast");
+        let f =
+            forecast(&plan, &scene, &camera, &Timing::simulated(&plan, None)).expect("forecast");
         assert_eq!((f.frames, f.sets, f.darks), (80, 20, 0));
         assert!((f.duration_s - 10.0).abs() < 1e-12, "{}", f.duration_s);
         assert_eq!(f.classes.len(), scene.materials.len());
@@ -764,7 +774,8 @@ darks_after = 1
         if let Some(c) = wide.continuous.as_mut() {
             c.speed_deg_per_s = 20_000.0;
         }
-        let w = forecast(&wide, &scene, &camera, &Timing::simulated(&wide)).expect("forecast");
+        let w =
+            forecast(&wide, &scene, &camera, &Timing::simulated(&wide, None)).expect("forecast");
         for (a, b) in f.classes.iter().zip(&w.classes) {
             assert!(a.sigma_dolp.is_finite() && a.sigma_s0_dn > 0.0, "{a:?}");
             assert!(
@@ -788,6 +799,7 @@ darks_after = 1
             stage_deg_per_s: 90.0,
             settle_s: 0.1,
             readout_s: 0.005,
+            stage_limits: None,
         };
         let f = forecast(&plan, &scene, &camera, &timing).expect("forecast");
         assert_eq!(f.frames, plan.steps().expect("steps").len() as u64);
@@ -807,7 +819,7 @@ darks_after = 1
             assert!(c.saturation_margin < 1.0);
         }
         // Timing::simulated: the plan's stage speed (720 deg/s by default), 200 Hz readout.
-        let sim = Timing::simulated(&plan);
+        let sim = Timing::simulated(&plan, None);
         assert_eq!(
             (sim.stage_deg_per_s, sim.settle_s, sim.readout_s),
             (720.0, 0.0, 0.005)
@@ -824,7 +836,8 @@ darks_after = 1
     fn panel_sigma_dolp_matches_monte_carlo() {
         let (scene, camera) = models();
         let plan = Plan::from_toml_str(CAPTURE).expect("plan");
-        let f = forecast(&plan, &scene, &camera, &Timing::simulated(&plan)).expect("forecast");
+        let f =
+            forecast(&plan, &scene, &camera, &Timing::simulated(&plan, None)).expect("forecast");
         let panel = f
             .classes
             .iter()
@@ -948,7 +961,8 @@ from_planner = { target = "panel", background = "asphalt" }
 exposure_us = [2000]
 "#;
         let plan = Plan::from_toml_str(text).expect("plan");
-        let f = forecast(&plan, &scene, &camera, &Timing::simulated(&plan)).expect("forecast");
+        let f =
+            forecast(&plan, &scene, &camera, &Timing::simulated(&plan, None)).expect("forecast");
         assert_eq!(f.frames, 3);
         assert!(
             f.notes
@@ -961,6 +975,7 @@ exposure_us = [2000]
             stage_deg_per_s: 0.0,
             settle_s: 0.0,
             readout_s: 0.0,
+            stage_limits: None,
         };
         let e = forecast(&plan, &scene, &camera, &bad)
             .expect_err("timing")
@@ -981,9 +996,15 @@ exposure_us = [2000]
              [simulation]\nstage_deg_per_s = 360\n",
         )
         .expect("plan");
-        let f = forecast(&plan, &scene, &camera, &Timing::simulated(&plan)).expect("forecast");
+        // The simulated rig's default stage at 360 deg/s (`polar_rig::sim_stage`).
+        let stage = Some(polar_planner::continuous::StageLimits {
+            max_speed_rad_per_s: 360f64.to_radians(),
+            acceleration_rad_per_s2: 2880f64.to_radians(),
+        });
+        let f =
+            forecast(&plan, &scene, &camera, &Timing::simulated(&plan, stage)).expect("forecast");
         let mut resolved = plan.clone();
-        crate::continuous_planner::resolve(&mut resolved, &scene, &camera).expect("resolve");
+        crate::continuous_planner::resolve(&mut resolved, &scene, &camera, stage).expect("resolve");
         let c = resolved.continuous.expect("section");
         assert_eq!(f.frames, 3 * u64::from(c.frames_per_half_turn));
         let at_speed = 3.0 * 180.0 / c.speed_deg_per_s;
@@ -1006,6 +1027,7 @@ exposure_us = [2000]
             stage_deg_per_s: 60.0,
             settle_s: 0.0,
             readout_s: 0.01,
+            stage_limits: None,
         };
         let tl = Plan::from_toml_str(
             "kind = \"time-lapse\"\n[time-lapse]\nangles_deg = [0, 60, 120]\nexposure_us = \

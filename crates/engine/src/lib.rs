@@ -13,7 +13,9 @@
 //! - [`continuous_planner`]: the continuous planner's problem for a scene and a camera, and a
 //!   continuous plan's `from_planner` resolved with it.
 //! - [`analyzer_cal`]: the analyzer's zero offset and extinction ratio from Malus's law.
-//! - [`sim`]: the simulated devices a run uses with `--simulate` (and `demo`).
+//!
+//! The engine knows devices only through the HAL's traits: the simulated rig of `--simulate`
+//! and `demo` is `polar_rig::simulated`, and a run on it `polar_rig::run_simulated`.
 
 #![warn(missing_docs)]
 
@@ -30,7 +32,6 @@ pub mod plan;
 mod plan_error;
 pub mod products;
 pub mod run;
-pub mod sim;
 pub mod store;
 pub mod tiff_io;
 

@@ -405,64 +405,6 @@ pub struct SimStage {
     pub model: Option<String>,
 }
 
-impl SimStage {
-    /// Every simulated rotator as (dialect, model), in the simulators' table order: the
-    /// models whose simulator reports an angle (wheels and sliders report a slot).
-    pub fn rotators() -> Vec<(&'static str, &'static str)> {
-        use polar_hil_mocks::faults::FaultProfile;
-        use polar_hil_mocks::sim::{Truth, SIMULATORS};
-        SIMULATORS
-            .iter()
-            .flat_map(|s| s.models.iter().map(move |m| (s.dialect, *m, s.build)))
-            .filter(|(_, m, build)| {
-                build(m, FaultProfile::default(), 0)
-                    .is_some_and(|sim| matches!(sim.truth(0.0), Truth::Angle { .. }))
-            })
-            .map(|(d, m, _)| (d, m))
-            .collect()
-    }
-
-    /// The stage as (dialect, model), checked against [`SimStage::rotators`]; an error names
-    /// `simulation.stage.dialect` or `simulation.stage.model`, the value and what is allowed.
-    pub fn resolve(&self) -> Result<(&'static str, &'static str), PlanError> {
-        let rotators = Self::rotators();
-        let mut dialects: Vec<&str> = rotators.iter().map(|r| r.0).collect();
-        dialects.dedup();
-        let Some(dialect) = dialects.iter().copied().find(|d| *d == self.dialect) else {
-            return Err(invalid(
-                "simulation.stage.dialect",
-                format!("{:?}", self.dialect),
-                format!(
-                    "one of {} (dialects with a simulated rotator)",
-                    dialects.join(", ")
-                ),
-            ));
-        };
-        let models: Vec<&'static str> = rotators
-            .iter()
-            .filter(|r| r.0 == dialect)
-            .map(|r| r.1)
-            .collect();
-        match &self.model {
-            None => Ok((dialect, models[0])),
-            Some(m) => models
-                .iter()
-                .find(|x| **x == m.as_str())
-                .map(|x| (dialect, *x))
-                .ok_or_else(|| {
-                    invalid(
-                        "simulation.stage.model",
-                        format!("{m:?}"),
-                        format!(
-                            "one of {} (the simulated {dialect} rotators)",
-                            models.join(", ")
-                        ),
-                    )
-                }),
-        }
-    }
-}
-
 /// A plan.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -1120,9 +1062,6 @@ impl Plan {
             3600.0,
             true,
         )?;
-        if let Some(stage) = &sim.stage {
-            stage.resolve()?;
-        }
         check("simulation.cloud_depth", sim.cloud_depth, 0.0, 1.0, true)?;
         if sim.cloud_depth >= 1.0 {
             return Err(invalid("simulation.cloud_depth", sim.cloud_depth, "(0, 1)"));

@@ -10,8 +10,6 @@ use serde_json::{json, Map, Value};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-mod common;
-
 const W: u32 = 64;
 const H: u32 = 48;
 const N: u64 = 6;
@@ -673,7 +671,7 @@ fn expected_for_python(store: &RunStore) -> Value {
 
 #[test]
 fn python_zarr_reads_the_store() {
-    let Some(python) = common::python() else {
+    let Some(python) = python() else {
         return;
     };
     let tmp = TempDir::new("python");
@@ -808,4 +806,35 @@ fn an_index_array_torn_between_chunk_and_metadata_reads_as_its_older_state() {
     let slot = reopened.write_products(7, &slot_angles(2), &refs).unwrap();
     assert_eq!(slot, 2, "set 7 takes the third slot again");
     assert_eq!(reopened.product_slots().unwrap().len(), 3);
+}
+
+/// The Python interpreter with zarr 3, xarray and xxhash (`POLARIMETER_PYTHON`, which
+/// `scripts/test.sh` sets to its venv; else the venv `target/py-venv` if it exists, else
+/// `python3`), or `None` when the test may skip (`POLARIMETER_SKIP_PYTHON=1`). Panics when
+/// it is missing and skipping was not asked.
+fn python() -> Option<String> {
+    let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../target/py-venv/bin/python");
+    let py = std::env::var("POLARIMETER_PYTHON").unwrap_or_else(|_| {
+        if venv.is_file() {
+            venv.display().to_string()
+        } else {
+            "python3".into()
+        }
+    });
+    let ok = std::process::Command::new(&py)
+        .args(["-c", "import zarr, xarray, xxhash"])
+        .output()
+        .map(|o| o.status.success())
+        .unwrap_or(false);
+    if ok {
+        return Some(py);
+    }
+    if std::env::var("POLARIMETER_SKIP_PYTHON").as_deref() == Ok("1") {
+        println!("skipped the outside check: {py} lacks zarr, xarray or xxhash");
+        return None;
+    }
+    panic!(
+        "{py} cannot import zarr, xarray and xxhash: run the tests with `bash scripts/test.sh` \
+         (it makes the venv and sets POLARIMETER_PYTHON), or set POLARIMETER_SKIP_PYTHON=1"
+    );
 }

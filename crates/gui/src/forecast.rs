@@ -1,8 +1,8 @@
 //! The forecast of a plan on the simulated rig, as the planner panel and the run tab show it.
 
-use polar_engine::forecast::{self, Timing};
+use polar_engine::forecast;
 use polar_engine::plan::Plan;
-use polar_engine::sim::SimRig;
+use polar_rig::SimRig;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -21,7 +21,7 @@ pub(crate) async fn compute_forecast(
 pub fn forecast_text(plan_text: &str, plan_dir: &Path) -> Result<String, String> {
     let plan = Plan::from_toml_str(plan_text).map_err(|e| e.to_string())?;
     let world = SimRig::world(&plan, plan_dir).map_err(|e| e.to_string())?;
-    let timing = Timing::simulated(&plan);
+    let timing = polar_rig::sim_stage::timing(&plan).map_err(|e| e.to_string())?;
     let f = forecast::forecast(&plan, &world.scene_file, &world.camera_model, &timing)
         .map_err(|e| e.to_string())?;
     let mut s = format!(
@@ -79,9 +79,15 @@ pub(crate) fn resolve_planners(plan: &mut Plan, plan_dir: &Path) -> Result<Vec<S
         }
     }
     if wants_spin {
-        if let Some(choice) =
-            polar_engine::continuous_planner::resolve(plan, &world.scene_file, &world.camera_model)
-                .map_err(|e| e.to_string())?
+        let stage =
+            polar_rig::sim_stage::stage_limits(&plan.simulation).map_err(|e| e.to_string())?;
+        if let Some(choice) = polar_engine::continuous_planner::resolve(
+            plan,
+            &world.scene_file,
+            &world.camera_model,
+            stage,
+        )
+        .map_err(|e| e.to_string())?
         {
             chosen.push(polar_engine::continuous_planner::describe(&choice));
         }

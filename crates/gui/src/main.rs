@@ -1,83 +1,64 @@
 //! `polarimeter-gui [--simulate | --rig FILE | hardware flags] [--out DIR] [--plan FILE]
-//! [--screenshots DIR]`: the plan
-//! runner, device panel, live view, planner and rooftop panels.
+//! [--screenshots DIR]` (`--help` lists them): the plan runner, device panel, live view,
+//! planner and rooftop panels.
 
+use clap::Parser;
 use eframe::egui;
 use polar_gui::engine::Devices;
 use polar_gui::{App, Status, Tab, View};
-use polar_rig::{Hardware, Overrides, Rig};
+use polar_rig::flags::HardwareFlags;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-const USAGE: &str =
-    "usage: polarimeter-gui [--simulate | HARDWARE] [--out DIR] [--plan FILE] [--screenshots DIR]
-
-  --simulate         drive the simulated devices (the default without HARDWARE)
-  HARDWARE           real devices, as `polarimeter run`: --rig FILE (a rig file: [stage],
-                     [camera], [analyzer]), or all of --port PATH --dialect NAME
-                     --camera sim|genicam:ID|v4l:NAME|uvc:BUS_OR_NAME --camera-file FILE, and optionally
-                     --address N (Elliptec, 0..=15) and --zero-offset-deg X; a flag
-                     overrides the rig file's entry
-  --out DIR          base folder of the run directories (default: the current folder)
-  --plan FILE        open this plan (TOML or YAML) in the editor
-  --screenshots DIR  run the plan, then save PNGs of the live view, the device panel (a
-                     snapshot, the live camera stream, live polarimetry), the planner and
-                     rooftop panels into DIR and quit (CI runs this under Xvfb)";
+/// `polarimeter-gui`: its flags. The hardware flags are `polarimeter acquire run`'s, from the
+/// one definition both programs parse (`polar_rig::flags`).
+#[derive(Debug, Parser)]
+#[command(
+    name = "polarimeter-gui",
+    version,
+    about = "The polarimeter's desktop application: plan editor and runner, device panel, live view, planner and rooftop panels."
+)]
+struct GuiArgs {
+    /// Drive the simulated devices (the default without a rig file or hardware flags).
+    #[arg(long)]
+    simulate: bool,
+    #[command(flatten)]
+    hardware: HardwareFlags,
+    /// Base folder of the run directories.
+    #[arg(long, default_value = ".")]
+    out: PathBuf,
+    /// Open this plan (TOML or YAML) in the editor.
+    #[arg(long)]
+    plan: Option<PathBuf>,
+    /// Run the plan, then save PNGs of the live view, the device panel (a snapshot, the live
+    /// camera stream, live polarimetry), the planner and rooftop panels into this folder and
+    /// quit (CI runs this under Xvfb).
+    #[arg(long)]
+    screenshots: Option<PathBuf>,
+}
 
 /// How long the screenshot tour may take before it gives up.
 const TOUR_LIMIT: Duration = Duration::from_secs(180);
 
 fn main() -> std::process::ExitCode {
-    let mut args = std::env::args().skip(1);
-    let mut out = PathBuf::from(".");
-    let mut plan: Option<String> = None; // a path
-    let mut shots: Option<PathBuf> = None;
-    let mut simulate = false;
-    let mut hw = HardwareFlags::default();
-    while let Some(a) = args.next() {
-        match a.as_str() {
-            "--simulate" => simulate = true,
-            "--rig" | "--port" | "--dialect" | "--camera" | "--camera-file" | "--address"
-            | "--zero-offset-deg" => match args.next() {
-                Some(v) => {
-                    if let Err(e) = hw.set(&a, &v) {
-                        return usage(&e);
-                    }
-                }
-                None => return usage(&format!("{a} needs a value")),
-            },
-            "--out" => match args.next() {
-                Some(d) => out = PathBuf::from(d),
-                None => return usage("--out needs a folder"),
-            },
-            "--plan" => match args.next() {
-                Some(f) => match std::fs::metadata(&f) {
-                    Ok(m) if m.is_file() => plan = Some(f),
-                    Ok(_) => return usage(&format!("--plan {f}: not a file")),
-                    Err(e) => return usage(&format!("--plan {f}: {e}")),
-                },
-                None => return usage("--plan needs a file"),
-            },
-            "--screenshots" => match args.next() {
-                Some(d) => shots = Some(PathBuf::from(d)),
-                None => return usage("--screenshots needs a folder"),
-            },
-            "-h" | "--help" => {
-                println!("{USAGE}");
-                return std::process::ExitCode::SUCCESS;
-            }
-            other => return usage(&format!("unknown argument {other:?}")),
-        }
-    }
-    let devices = match hw.devices() {
-        Ok(None) => Devices::Simulated,
-        Ok(Some(_)) if simulate => {
+    let args = GuiArgs::parse();
+    let devices = match args.hardware.hardware() {
+        Ok((None, _)) => Devices::Simulated,
+        Ok((Some(_), _)) if args.simulate => {
             return usage("--simulate and the hardware flags exclude each other")
         }
-        Ok(Some(h)) => Devices::Hardware(Box::new(h)),
-        Err(e) => return usage(&e),
+        Ok((Some(h), _)) => Devices::Hardware(Box::new(h)),
+        Err(e) => return usage(&e.to_string()),
     };
+    if let Some(p) = &args.plan {
+        match std::fs::metadata(p) {
+            Ok(m) if m.is_file() => {}
+            Ok(_) => return usage(&format!("--plan {}: not a file", p.display())),
+            Err(e) => return usage(&format!("--plan {}: {e}", p.display())),
+        }
+    }
+    let (out, plan, shots) = (args.out, args.plan, args.screenshots);
     if let Some(d) = &shots {
         if let Err(e) = std::fs::create_dir_all(d) {
             return usage(&format!("--screenshots {}: {e}", d.display()));
@@ -98,7 +79,7 @@ fn main() -> std::process::ExitCode {
             let mut app = App::new_on(out, devices, Some(cc.egui_ctx.clone()))?;
             if let Some(p) = plan {
                 // As the Open button: TOML or YAML, and its folder for relative paths.
-                app.plan_path = p;
+                app.plan_path = p.display().to_string();
                 app.open_plan();
             }
             let tour = shots.map(|dir| Tour::new(dir, tour_report));
@@ -127,93 +108,8 @@ fn main() -> std::process::ExitCode {
     }
 }
 
-/// The hardware flags as given.
-#[derive(Debug, Default)]
-struct HardwareFlags {
-    rig: Option<PathBuf>,
-    port: Option<String>,
-    dialect: Option<String>,
-    camera: Option<String>,
-    camera_file: Option<PathBuf>,
-    address: Option<u8>,
-    zero_offset_deg: Option<f64>,
-}
-
-impl HardwareFlags {
-    /// Takes `flag`'s `value`; the error names the flag, the value and what is allowed.
-    fn set(&mut self, flag: &str, value: &str) -> Result<(), String> {
-        match flag {
-            "--rig" => self.rig = Some(PathBuf::from(value)),
-            "--port" => self.port = Some(value.to_string()),
-            "--camera" => self.camera = Some(value.to_string()),
-            "--camera-file" => self.camera_file = Some(PathBuf::from(value)),
-            "--dialect" => {
-                let d = polar_drivers::registry::find(value).ok_or_else(|| {
-                    format!(
-                        "--dialect = {value:?} is invalid: allowed {}",
-                        polar_drivers::registry::names()
-                    )
-                })?;
-                self.dialect = Some(d.name.to_string());
-            }
-            "--address" => {
-                self.address = Some(
-                    value
-                        .parse::<u8>()
-                        .ok()
-                        .filter(|a| *a <= 15)
-                        .ok_or_else(|| {
-                            format!("--address = {value:?} is invalid: allowed 0..=15")
-                        })?,
-                )
-            }
-            _ => {
-                self.zero_offset_deg = Some(
-                    value
-                        .parse::<f64>()
-                        .ok()
-                        .filter(|v| v.is_finite())
-                        .ok_or_else(|| {
-                            format!(
-                                "--zero-offset-deg = {value:?} is invalid: allowed a finite angle"
-                            )
-                        })?,
-                )
-            }
-        }
-        Ok(())
-    }
-
-    /// The hardware, if the rig file or any flag names it (then all of the required entries
-    /// must be given by one or the other; a flag overrides the rig's entry).
-    fn devices(&self) -> Result<Option<Hardware>, String> {
-        match &self.rig {
-            Some(path) => Rig::load(path)
-                .and_then(|rig| {
-                    rig.hardware(&Overrides {
-                        port: self.port.clone(),
-                        dialect: self.dialect.clone(),
-                        address: self.address,
-                        camera: self.camera.clone(),
-                        camera_file: self.camera_file.clone(),
-                        zero_offset_deg: self.zero_offset_deg,
-                    })
-                })
-                .map_err(|e| format!("--rig: {e}")),
-            None => Hardware::from_flags(
-                self.port.clone(),
-                self.dialect.as_deref(),
-                self.camera.clone(),
-                self.camera_file.clone(),
-                self.address.unwrap_or(0),
-                self.zero_offset_deg.unwrap_or(0.0),
-            ),
-        }
-    }
-}
-
 fn usage(msg: &str) -> std::process::ExitCode {
-    eprintln!("polarimeter-gui: {msg}\n{USAGE}");
+    eprintln!("polarimeter-gui: {msg} (see --help)");
     std::process::ExitCode::from(2)
 }
 

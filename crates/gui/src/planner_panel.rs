@@ -5,7 +5,7 @@
 //! # What is computed (MODEL.md sections 8 and 9)
 //!
 //! The scene and camera are the simulated rig's defaults
-//! ([`polar_engine::sim::DEFAULT_SCENE`], [`polar_engine::sim::DEFAULT_CAMERA`]). The two
+//! ([`polar_rig::simulated::DEFAULT_SCENE`], [`polar_rig::simulated::DEFAULT_CAMERA`]). The two
 //! materials are evaluated over the field of view at [`polar_engine::forecast::SCENE_TOL`]
 //! (their band Stokes means `mu_t`, `mu_b` and texture covariances `Sigma_t`, `Sigma_b`, in
 //! W m^-2 sr^-1). The planner's contrast is the one `polarimeter plan --scene` and
@@ -38,13 +38,13 @@ use egui_plot::{Legend, Line, Plot, PlotPoints};
 use nalgebra::Matrix3;
 use polar_engine::forecast::SCENE_TOL;
 use polar_engine::plan::{Plan, PlanKind};
-use polar_engine::sim::{DEFAULT_CAMERA, DEFAULT_SCENE};
 use polar_model::metrics::{matched_filter, ClassStats};
 use polar_model::scene::{MaterialResult, Prepared};
 use polar_model::scene_file::Scene;
 use polar_model::sensor::{Camera, Exposure, SensorModel};
 use polar_planner::optimize::MAX_CHANNELS;
 use polar_planner::{conventional, optimise, Constraints, Contrast};
+use polar_rig::simulated::{DEFAULT_CAMERA, DEFAULT_SCENE};
 
 /// The optimiser's angle tolerance, degrees (as the engine's forecast and the CLI use).
 const PLANNER_TOL_DEG: f64 = 0.01;

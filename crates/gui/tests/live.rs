@@ -7,8 +7,8 @@ use eframe::egui;
 use egui_kittest::kittest::Queryable;
 use egui_kittest::Harness;
 use polar_engine::plan::Plan;
-use polar_engine::sim::SimRig;
 use polar_gui::{App, DEFAULT_PLAN};
+use polar_rig::SimRig;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 

@@ -278,9 +278,9 @@ fn device_command_without_devices_is_refused() {
 #[test]
 fn hardware_flags_path_on_a_simulated_stage() {
     use polar_engine::plan::Plan;
-    use polar_engine::sim::SimRig;
     use polar_gui::engine::Devices;
     use polar_rig::Hardware;
+    use polar_rig::SimRig;
 
     let dir = temp_dir("hardware");
     std::fs::create_dir_all(&dir).unwrap();
@@ -505,11 +505,13 @@ fn continuous_from_planner_resolves_in_the_gui() {
         max_frames_per_half_turn = 8 }\n[simulation]\nwidth = 48\nheight = 36\n";
     let mut plan = polar_engine::plan::Plan::from_toml_str(text).unwrap();
     let here = std::path::Path::new(".");
-    let world = polar_engine::sim::SimRig::world(&plan, here).unwrap();
+    let world = polar_rig::SimRig::world(&plan, here).unwrap();
+    let stage = polar_rig::sim_stage::stage_limits(&plan.simulation).unwrap();
     let choice = polar_engine::continuous_planner::resolve(
         &mut plan,
         &world.scene_file,
         &world.camera_model,
+        stage,
     )
     .unwrap()
     .unwrap();

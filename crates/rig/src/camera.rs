@@ -161,7 +161,7 @@ pub fn sim_camera_following(
 
 /// [`sim_camera_following`] set up for a run of `plan`: a calibration plan finds the bench it
 /// needs in front of the camera (the integrating sphere or the reference polarizer of
-/// `polar_engine::sim::calibration_scene`), as the simulated rig of `--simulate` places them;
+/// `crate::simulated::calibration_scene`), as the simulated rig of `--simulate` places them;
 /// the other kinds look at the scene.
 pub fn sim_camera_for_plan(
     opts: &SimOptions,
@@ -188,7 +188,7 @@ pub fn sim_camera_for_plan(
     let camera = CameraModel::from_toml_str(&camera_text)
         .map_err(|e| CameraError::Input(format!("camera file: {e}")))?;
     let bench = match plan {
-        Some(plan) => polar_engine::sim::calibration_scene(
+        Some(plan) => crate::simulated::calibration_scene(
             plan,
             &camera,
             scene.spec.band.clone(),

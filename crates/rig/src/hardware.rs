@@ -136,9 +136,9 @@ pub async fn connect_hardware(hw: &Hardware) -> Result<Connected, RigError> {
 /// [`connect_hardware`] for a run of `plan`. On the simulated stage with the simulated camera
 /// the rig is a whole simulated bench: the camera's lens cap is the run's to put on for dark
 /// frames, a calibration plan finds its integrating sphere or reference polarizer in front of
-/// the camera (`polar_engine::sim::calibration_scene`), and a continuous plan with
+/// the camera (`crate::simulated::calibration_scene`), and a continuous plan with
 /// `trigger = "encoder"` has the camera's trigger line wired to the stage's position-compare
-/// output (`polar_engine::sim::compare_line`), as the cable from a real stage's trigger output
+/// output (`crate::simulated::compare_line`), as the cable from a real stage's trigger output
 /// to a real camera's line input would be.
 pub async fn connect_hardware_for(
     hw: &Hardware,
@@ -204,9 +204,9 @@ async fn connect(
                 ..SimOptions::default()
             };
             let mut cam = camera::sim_camera_for_plan(&opts, angle, plan).map_err(RigError::of)?;
-            illumination = Some(polar_engine::sim::scene_light(&cam.illumination()));
+            illumination = Some(crate::simulated::scene_light(&cam.illumination()));
             if let Some(interval_rad) = line_interval_rad {
-                cam.wire_line(polar_engine::sim::compare_line(
+                cam.wire_line(crate::simulated::compare_line(
                     server.truth_handle(),
                     interval_rad,
                 ));
@@ -230,7 +230,7 @@ async fn connect(
                 ..SimOptions::default()
             };
             let cam = camera::sim_camera_for_plan(&opts, source, plan).map_err(RigError::of)?;
-            illumination = Some(polar_engine::sim::scene_light(&cam.illumination()));
+            illumination = Some(crate::simulated::scene_light(&cam.illumination()));
             follows_reports = true;
             ThreadedCamera::spawn(cam, ThreadPolicy::default()).map_err(RigError::of)?
         }

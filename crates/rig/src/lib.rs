@@ -8,6 +8,12 @@
 //!   dialects' registry (`polar_drivers::registry`) and the camera backends' registry.
 //! * [`follow`]: a simulated camera behind a stage the rig does not simulate, rendering through
 //!   the positions the stage reports.
+//! * [`simulated`]: the simulated rig of `--simulate`, `demo` and the tests (a stage simulator
+//!   on a pseudo-terminal driven by its dialect's real driver, the camera rendering through
+//!   the stage's true angle), [`sim_stage`] the plan's choice of its stage and that stage's
+//!   limits, and [`sim_run`] a plan run on it.
+//! * [`flags`]: the hardware flags (`--rig`, `--port`, `--dialect`, ...) the CLI and the GUI
+//!   both parse, defined once.
 //! * [`file`]: the rig file (TOML) that names a lab's stage, camera, site and analyzer once,
 //!   and the calibrations written back to it as new revisions.
 //!
@@ -16,13 +22,19 @@
 
 pub mod camera;
 pub mod file;
+pub mod flags;
 pub mod follow;
 pub mod hardware;
+pub mod sim_run;
+pub mod sim_stage;
+pub mod simulated;
 
 pub use file::{Overrides, Rig};
 pub use hardware::{
     connect_hardware, connect_hardware_for, Connected, Hardware, HardwareRig, SIM_PORT,
 };
+pub use sim_run::{run_simulated, SimRunError};
+pub use simulated::{SimError, SimRig, SimWorld};
 
 /// An error of the rig, already worded for the user (it names the file, key or flag, the
 /// value and what is allowed).

@@ -4,6 +4,7 @@
 use polar_hal::Camera;
 use polar_rig::camera::{self, SimOptions, CAMERA_BACKENDS};
 use std::process::{Child, Command, Stdio};
+use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 /// Every backend this build has lists without error, and the simulated camera opens by name
@@ -40,6 +41,13 @@ fn registry_lists_and_opens_the_simulated_camera() {
     assert_eq!(frame.pixels.len(), 320 * 240);
 }
 
+/// One fake GigE camera on loopback at a time in this binary (the process and the in-process
+/// fake of [`super::genicam_loop`] answer on the same port).
+pub fn one_fake_at_a_time() -> MutexGuard<'static, ()> {
+    static FAKE_GIGE: Mutex<()> = Mutex::new(());
+    FAKE_GIGE.lock().unwrap_or_else(|p| p.into_inner())
+}
+
 const FAKE_PROGRAM: &str = "arv-fake-gv-camera-0.8";
 const FAKE_NAME: &str = "genicam:Aravis-Fake-GV01";
 
@@ -59,6 +67,7 @@ impl Drop for FakeGv {
 /// checked. Skipped, saying why, where the program is not installed.
 #[test]
 fn fake_gige_camera_through_the_registry() {
+    let _one = one_fake_at_a_time();
     let child = Command::new(FAKE_PROGRAM)
         .args(["-i", "127.0.0.1"])
         .stdin(Stdio::null())

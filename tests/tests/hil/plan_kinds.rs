@@ -147,7 +147,7 @@ fn calibrate_analyzer_on_the_simulated_rig_file() {
 /// each) on the simulated rig, with `--rig` a copy of `examples/rigs/sim.toml` (and its camera
 /// file) in a scratch folder: the fitted system gain K is within 4 of its own standard
 /// uncertainties and 3 % of the simulated camera file's gain (the simulated rig's default
-/// camera, `polar_engine::sim::DEFAULT_CAMERA`); the measured camera is written beside the
+/// camera, `polar_rig::simulated::DEFAULT_CAMERA`); the measured camera is written beside the
 /// copy's camera file as `cmos_modern.r1.toml` with that gain (exactly: it is the fit's), the
 /// base file is kept unchanged, and the copy, read again, points at the new revision.
 #[test]
@@ -186,7 +186,7 @@ fn calibrate_noise_on_the_simulated_rig_file() {
         k["value"].as_f64().expect("K"),
         k["uncertainty"].as_f64().expect("sigma K"),
     );
-    let camera = polar_model::sensor::Camera::from_toml_str(polar_engine::sim::DEFAULT_CAMERA)
+    let camera = polar_model::sensor::Camera::from_toml_str(polar_rig::simulated::DEFAULT_CAMERA)
         .expect("the default camera");
     let truth = camera.gain_dn_per_e;
     println!("calibrate-noise: K = {value} +- {sigma} DN/e, camera file {truth} DN/e");

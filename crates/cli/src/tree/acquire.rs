@@ -5,7 +5,7 @@ use super::errors::in_plan_file;
 use super::output::{print_json, print_run, refused};
 use clap::{Args, Subcommand};
 use polar_cli::acquire::{self, Ui};
-use polar_cli::{commands, devices};
+use polar_rig::flags::HardwareFlags;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -51,77 +51,6 @@ impl AcquireGroup {
     }
 }
 
-/// Real devices for `run` and `resume`: a rig file, flags, or both (a flag overrides the rig
-/// file's entry, which overrides the default); without either, `run --simulate`.
-#[derive(Debug, Args)]
-pub struct HardwareArgs {
-    /// The rig file (TOML: [stage] dialect, port, address, model; [camera] backend, id, file;
-    /// [site]; [analyzer]). The flags below override its entries.
-    #[arg(long)]
-    rig: Option<PathBuf>,
-    /// The stage's serial port (prefer a stable /dev/serial/by-id/... path; `sim`: the
-    /// dialect's simulator on a pseudo-terminal).
-    #[arg(long)]
-    port: Option<String>,
-    /// The stage's protocol.
-    #[arg(long, value_parser = devices::dialect_values())]
-    dialect: Option<String>,
-    /// Bus address (Elliptec 0..=15); default the rig's, else 0.
-    #[arg(long, value_parser = clap::value_parser!(u8).range(0..=15))]
-    address: Option<u8>,
-    /// The camera: sim, genicam:ID, v4l:NAME or uvc:BUS_OR_NAME.
-    #[arg(long)]
-    camera: Option<String>,
-    /// The camera's noise model (a calibrated camera file, e.g. from `calibrate noise`).
-    #[arg(long)]
-    camera_file: Option<PathBuf>,
-    /// Stage angle at which the analyzer's axis is along the camera's x axis, degrees (from a
-    /// calibrate-analyzer run); default the rig's, else 0.
-    #[arg(long, allow_negative_numbers = true)]
-    zero_offset_deg: Option<f64>,
-}
-
-impl HardwareArgs {
-    /// The rig file (if given) and the hardware it and the flags describe;
-    /// `--zero-offset-deg` is checked whether the devices are real or simulated.
-    fn hardware(&self) -> Result<(Option<polar_rig::Hardware>, Option<polar_rig::Rig>), String> {
-        if let Some(z) = self.zero_offset_deg {
-            if !(z.is_finite() && z.abs() <= 360.0) {
-                return Err(format!(
-                    "--zero-offset-deg = {} is out of range: allowed a finite angle in \
-                     [-360, 360] degrees",
-                    commands::compact(z)
-                ));
-            }
-        }
-        match &self.rig {
-            Some(path) => {
-                let rig = polar_cli::rig::load(path).map_err(|e| e.to_string())?;
-                let hw = rig
-                    .hardware(&polar_rig::Overrides {
-                        port: self.port.clone(),
-                        dialect: self.dialect.clone(),
-                        address: self.address,
-                        camera: self.camera.clone(),
-                        camera_file: self.camera_file.clone(),
-                        zero_offset_deg: self.zero_offset_deg,
-                    })
-                    .map_err(|e| e.to_string())?;
-                Ok((hw, Some(rig)))
-            }
-            None => polar_rig::Hardware::from_flags(
-                self.port.clone(),
-                self.dialect.as_deref(),
-                self.camera.clone(),
-                self.camera_file.clone(),
-                self.address.unwrap_or(0),
-                self.zero_offset_deg.unwrap_or(0.0),
-            )
-            .map(|hw| (hw, None)),
-        }
-    }
-}
-
 /// `acquire demo` (and the top-level `demo`).
 #[derive(Debug, Args)]
 pub struct DemoArgs {
@@ -129,7 +58,7 @@ pub struct DemoArgs {
     #[arg(long, default_value = "demo-run")]
     out: PathBuf,
     /// The simulated rotation stage: native (our firmware) or a simulated Thorlabs mount.
-    #[arg(long, default_value = "native",
+    #[arg(long, default_value_t = acquire::demo_stages()[0].to_string(),
           value_parser = clap::builder::PossibleValuesParser::new(acquire::demo_stages()))]
     stage: String,
 }
@@ -159,7 +88,7 @@ pub struct RunArgs {
     #[arg(long)]
     out: Option<PathBuf>,
     #[command(flatten)]
-    hardware: HardwareArgs,
+    hardware: HardwareFlags,
 }
 
 impl RunArgs {
@@ -167,7 +96,7 @@ impl RunArgs {
     pub fn run(self) -> ExitCode {
         let (hw, rig) = match self.hardware.hardware() {
             Ok(hw) => hw,
-            Err(e) => return refused(e),
+            Err(e) => return refused(e.to_string()),
         };
         if self.simulate == hw.is_some() {
             return refused(
@@ -187,7 +116,7 @@ pub struct ResumeArgs {
     /// The run directory.
     run_dir: PathBuf,
     #[command(flatten)]
-    hardware: HardwareArgs,
+    hardware: HardwareFlags,
 }
 
 impl ResumeArgs {
@@ -195,7 +124,7 @@ impl ResumeArgs {
     pub fn run(self) -> ExitCode {
         let (hw, rig) = match self.hardware.hardware() {
             Ok(hw) => hw,
-            Err(e) => return refused(e),
+            Err(e) => return refused(e.to_string()),
         };
         print_run(acquire::resume_cmd(
             &self.run_dir,

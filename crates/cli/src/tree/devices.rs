@@ -78,7 +78,7 @@ pub struct StageArgs {
     #[arg(long)]
     port: Option<String>,
     /// The device's protocol.
-    #[arg(long, value_parser = devices::dialect_values())]
+    #[arg(long, value_parser = polar_rig::flags::dialect_values())]
     dialect: Option<String>,
     /// Bus address (Elliptec 0..=15); default the rig's, else 0.
     #[arg(long, value_parser = clap::value_parser!(u8).range(0..=15))]

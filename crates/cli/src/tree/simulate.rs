@@ -41,7 +41,7 @@ impl SimulateGroup {
 #[derive(Debug, Args)]
 struct StageArgs {
     /// The protocol it speaks.
-    #[arg(long, value_parser = devices::dialect_values())]
+    #[arg(long, value_parser = polar_rig::flags::dialect_values())]
     dialect: String,
     /// The model (default: the dialect's first, as `devices list --simulate` lists them).
     #[arg(long)]

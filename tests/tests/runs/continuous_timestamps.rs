@@ -8,16 +8,16 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use polar_engine::continuous::TriggerSource;
-use polar_engine::plan::{Plan, SimStage};
+use polar_engine::plan::Plan;
 use polar_engine::run::{self, Outcome};
-use polar_engine::sim::SimRig;
 use polar_engine::AngleSource;
+use polar_rig::SimRig;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-mod common;
+use super::common;
 
 const PLAN: &str = include_str!("../../../examples/plans/continuous_timestamps.toml");
 
@@ -267,7 +267,7 @@ fn refusals_name_the_trigger() {
     let _ = std::fs::remove_dir_all(&dir);
 
     let mut plan = Plan::from_toml_str(PLAN).unwrap();
-    plan.simulation.stage = Some(SimStage {
+    plan.simulation.stage = Some(polar_engine::plan::SimStage {
         dialect: "elliptec".into(),
         model: Some("ell14".into()),
     });

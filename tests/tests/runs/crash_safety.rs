@@ -3,7 +3,7 @@
 //! through `scripts/check_run.py`).
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use super::common;
 
 use common::{check_frame_set, done, go, outside_check, temp_dir, try_run, Script};
 use polar_engine::check::check_run;
@@ -318,8 +318,8 @@ seed = 6
     let recorded: Vec<serde_json::Value> =
         r.decisions().into_iter().map(|(_, v)| v.clone()).collect();
     assert!(recorded.len() >= 2, "{recorded:?}");
-    let world = polar_engine::sim::SimRig::world(&plan, std::path::Path::new(".")).unwrap();
-    let mask = polar_engine::sim::target_mask(&plan, &world.scene).unwrap();
+    let world = polar_rig::SimRig::world(&plan, std::path::Path::new(".")).unwrap();
+    let mask = polar_rig::simulated::target_mask(&plan, &world.scene).unwrap();
     let replayed =
         polar_engine::run::replayed_decisions(&plan, &dir, &world.camera_model, &mask).unwrap();
     assert_eq!(
@@ -358,8 +358,7 @@ fn frames_record_their_span_and_the_outside_check_reads_it() {
         let _ = std::fs::remove_dir_all(&dir);
         return;
     };
-    let script =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scripts/check_run.py");
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/check_run.py");
     let check = || {
         let out = std::process::Command::new(&py)
             .arg(&script)

@@ -9,7 +9,6 @@
 use polar_drivers::apt::{self, AptModel, AptRotator, AptSerial};
 use polar_engine::plan::Plan;
 use polar_engine::run::{self, Outcome};
-use polar_engine::sim::SimRig;
 use polar_engine::store::RunStore;
 use polar_hal::camera_thread::{ThreadPolicy, ThreadedCamera};
 use polar_hal::{Approach, OnRotator};
@@ -17,6 +16,7 @@ use polar_hil_mocks::apt::{AptDevice, AptSimConfig, AptSimModel};
 use polar_hil_mocks::camera::{CameraFaults, SimCamera, SimCameraConfig};
 use polar_hil_mocks::faults::FaultProfile;
 use polar_hil_mocks::serve::SimServer;
+use polar_rig::SimRig;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -100,7 +100,7 @@ fn capture_share(model: AptModel) -> f64 {
             camera,
             camera_model: world.camera_model.clone(),
             sensor,
-            illumination: Some(polar_engine::sim::scene_light(&illumination)),
+            illumination: Some(polar_rig::simulated::scene_light(&illumination)),
             target_mask: None,
             sun_deg: Some((
                 world.scene_file.spec.sun_zenith_deg,

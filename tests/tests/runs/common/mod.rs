@@ -5,14 +5,14 @@
 use polar_engine::journal::replay;
 use polar_engine::plan::Plan;
 use polar_engine::run::{self, Control, Event, Outcome, RunState, Summary};
-use polar_engine::sim::SimRig;
 use polar_engine::store::RunStore;
+use polar_rig::SimRig;
 use std::path::{Path, PathBuf};
 
 pub mod spans;
 
 pub fn temp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("polar-engine-{name}-{}", std::process::id()));
+    let d = std::env::temp_dir().join(format!("polar-runs-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     d
 }
@@ -167,7 +167,7 @@ pub fn check_frame_set(dir: &Path, planned_steps: u64) {
 /// `python3`), or `None` when the test may skip (`POLARIMETER_SKIP_PYTHON=1`). Panics when
 /// it is missing and skipping was not asked.
 pub fn python() -> Option<String> {
-    let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../target/py-venv/bin/python");
+    let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/py-venv/bin/python");
     let py = std::env::var("POLARIMETER_PYTHON").unwrap_or_else(|_| {
         if venv.is_file() {
             venv.display().to_string()
@@ -197,7 +197,7 @@ pub fn python() -> Option<String> {
 /// xarray, xxhash; see its doc) must find nothing wrong.
 pub fn outside_check(dir: &Path, finished: bool) {
     let Some(py) = python() else { return };
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scripts/check_run.py");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/check_run.py");
     let mut cmd = std::process::Command::new(py);
     cmd.arg(&script).arg(dir);
     if finished {

@@ -9,6 +9,7 @@
 //! expects, its form (short or long) and data length are that identifier's, it is addressed to
 //! the host and comes from a controller. Anything else is skipped one byte at a time until a
 //! plausible header lines up again (what thorlabs-apt-device's unpacker does).
+#![warn(missing_docs)]
 
 /// The host (the PC).
 pub const HOST: u8 = 0x01;

@@ -6,17 +6,17 @@ use nalgebra::Vector3;
 use polar_engine::continuous::SpanEstimator;
 use polar_engine::plan::Plan;
 use polar_engine::run::{self, Outcome};
-use polar_engine::sim::SimWorld;
 use polar_engine::store::RunStore;
 use polar_engine::FrameRecord;
 use polar_hal::Roi;
 use polar_hil_mocks::camera::{CameraFaults, SimCamera, SimCameraConfig};
+use polar_rig::SimWorld;
 use std::path::Path;
 use std::sync::Arc;
 
 /// The example plans' folder, where their relative paths start.
 pub fn plan_dir() -> &'static Path {
-    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../examples/plans"))
+    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../examples/plans"))
 }
 
 /// The longest exposure, us, at which the scene's brightest pixel stays below 60 % of the full
@@ -52,7 +52,7 @@ pub fn unsaturated_exposure_us(world: &SimWorld) -> f64 {
 
 /// Runs `plan` on the simulated rig into `dir` with nobody at the controller (a pause
 /// detaches; the outcome says why).
-pub fn run_sim(plan: &Plan, dir: &Path) -> Result<Outcome, run::SimRunError> {
+pub fn run_sim(plan: &Plan, dir: &Path) -> Result<Outcome, polar_rig::SimRunError> {
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -61,7 +61,7 @@ pub fn run_sim(plan: &Plan, dir: &Path) -> Result<Outcome, run::SimRunError> {
     local.block_on(&rt, async {
         let (controller, link) = run::link();
         drop(controller);
-        run::run_simulated(plan, plan_dir(), dir, false, link).await
+        polar_rig::run_simulated(plan, plan_dir(), dir, false, link).await
     })
 }
 

@@ -2,7 +2,7 @@
 //! a real pseudo-terminal, driven by its dialect's real driver, and the simulated camera, which
 //! renders every frame from the model through the stage's true angle (the stage simulator's
 //! truth). The plan's `simulation.stage` chooses the stage among the simulators' registry's
-//! rotators (`polar_hil_mocks::sim::SIMULATORS`; by default our firmware's rotator, `native`)
+//! rotators ([`crate::sim_stage`]; by default the registry's first rotator, our firmware's)
 //! and the driver comes from the dialects' registry (`polar_drivers::registry::DIALECTS`), so a
 //! new simulated rotator needs no change here. The stage moves and homes at
 //! `simulation.stage_deg_per_s` where its simulator offers a chosen speed
@@ -15,9 +15,11 @@
 //! analyzer calibration. Dark frames cap the lens ([`Illumination`] 0); the plan's
 //! `simulation.cloud_at_set` dims the scene in the middle of that set.
 
-use crate::plan::{Plan, PlanKind};
 use polar_drivers::any::AnyRotator;
 use polar_drivers::registry;
+use polar_engine::continuous::TriggerSource;
+use polar_engine::plan::{Plan, PlanKind};
+use polar_engine::run::{Rig as EngineRig, SceneLight};
 use polar_hal::camera_thread::{ThreadPolicy, ThreadedCamera};
 use polar_hal::{Approach, OnRotator};
 use polar_hal::{DeviceError, Roi};
@@ -26,7 +28,7 @@ use polar_hil_mocks::camera::{
 };
 use polar_hil_mocks::faults::FaultProfile;
 use polar_hil_mocks::serve::SimServer;
-use polar_hil_mocks::sim::{Simulator, SIMULATORS};
+use polar_hil_mocks::sim::Simulator;
 use polar_model::scene_file::Scene;
 use polar_model::sensor::{Camera as CameraModel, SensorModel};
 use std::path::{Path, PathBuf};
@@ -206,20 +208,13 @@ fn stage_simulator(
     faults: FaultProfile,
 ) -> Result<(&'static str, &'static str, Box<dyn Simulator>), SimError> {
     let sim = &plan.simulation;
-    let (dialect, model) = match &sim.stage {
-        Some(stage) => stage
-            .resolve()
-            .map_err(|e| SimError::Input(e.to_string()))?,
-        None => ("native", "rotator"),
-    };
-    let entry = SIMULATORS
-        .iter()
-        .find(|s| s.dialect == dialect)
-        .ok_or_else(|| {
-            SimError::Input(format!(
-                "simulation.stage.dialect = {dialect:?} has no simulator"
-            ))
-        })?;
+    let (dialect, model) = crate::sim_stage::resolve(sim.stage.as_ref())
+        .map_err(|e| SimError::Input(e.to_string()))?;
+    let entry = crate::sim_stage::descriptor(dialect).ok_or_else(|| {
+        SimError::Input(format!(
+            "simulation.stage.dialect = {dialect:?} has no simulator"
+        ))
+    })?;
     let device = match entry.at_speed {
         Some(at_speed) => at_speed(model, sim.stage_deg_per_s, faults, sim.seed),
         None => (entry.build)(model, faults, sim.seed),
@@ -276,9 +271,7 @@ pub fn compare_line(truth: polar_hil_mocks::serve::TruthHandle, interval_rad: f6
 pub const LINE_GAP: std::time::Duration = std::time::Duration::from_millis(20);
 
 /// The run's handle on the simulated scene's light (lens cap and clouds).
-pub fn scene_light(
-    illumination: &polar_hil_mocks::camera::Illumination,
-) -> crate::run::rig::SceneLight {
+pub fn scene_light(illumination: &polar_hil_mocks::camera::Illumination) -> SceneLight {
     let light = illumination.clone();
     Arc::new(move |factor| light.set(factor))
 }
@@ -306,11 +299,14 @@ pub fn target_mask(plan: &Plan, scene: &SimScene) -> Result<Option<Vec<bool>>, S
 
 impl SimRig {
     /// Checks everything a simulated run of `plan` would refuse before it acquires anything
-    /// (the scene and camera files, the fault profiles, the adaptive target's material),
+    /// (the stage, the scene and camera files, the fault profiles, the adaptive target's
+    /// material),
     /// with the messages the run gives; [`Plan::check_frame`] checks the rest against the
     /// simulated frame. `plan check` calls it;
     /// [`SimRig::start_rig`] goes through the same functions.
     pub fn validate(plan: &Plan, plan_dir: &Path) -> Result<(), SimError> {
+        crate::sim_stage::resolve(plan.simulation.stage.as_ref())
+            .map_err(|e| SimError::Input(e.to_string()))?;
         fault_profiles(plan)?;
         let world = SimRig::world(plan, plan_dir)?;
         target_mask(plan, &world.scene)?;
@@ -377,7 +373,7 @@ impl SimRig {
 
     /// Starts the stage simulator on a pseudo-terminal at `link_dir/stage` and builds the
     /// camera for `plan` (files relative to `plan_dir`), drawing its noise from
-    /// `noise_stream` ([`crate::run::noise_stream`] of the run directory, so that a resumed
+    /// `noise_stream` ([`polar_engine::run::noise_stream`] of the run directory, so that a resumed
     /// process never repeats an earlier process's draws). Returns the rig and the camera,
     /// running on its own thread.
     pub fn start(
@@ -416,10 +412,11 @@ impl SimRig {
         let mut cam = cam;
         // Only an encoder-triggered plan has the stage's compare output wired to the camera:
         // a timestamps plan simulates a camera the stage does not trigger.
-        if let Some(c) = plan.continuous.as_ref().filter(|c| {
-            plan.kind == PlanKind::Continuous
-                && c.trigger == crate::continuous::TriggerSource::Encoder
-        }) {
+        if let Some(c) = plan
+            .continuous
+            .as_ref()
+            .filter(|c| plan.kind == PlanKind::Continuous && c.trigger == TriggerSource::Encoder)
+        {
             cam.wire_line(compare_line(
                 server.truth_handle(),
                 c.interval_deg().to_radians(),
@@ -465,20 +462,14 @@ impl SimRig {
     }
 
     /// Starts the rig for `plan` and connects the real driver to the stage: the engine's
-    /// [`Rig`](crate::run::Rig) (the analyzer approached from the positive side with 0.5 deg
+    /// [`Rig`](polar_engine::run::Rig) (the analyzer approached from the positive side with 0.5 deg
     /// of overshoot, which takes up the simulated stage's 0.05 deg backlash) and the rig.
     pub async fn start_rig(
         plan: &Plan,
         plan_dir: &Path,
         link_dir: &Path,
         noise_stream: u64,
-    ) -> Result<
-        (
-            SimRig,
-            crate::run::rig::Rig<OnRotator<AnyRotator>, ThreadedCamera>,
-        ),
-        SimError,
-    > {
+    ) -> Result<(SimRig, EngineRig<OnRotator<AnyRotator>, ThreadedCamera>), SimError> {
         let (rig, camera) = SimRig::start(plan, plan_dir, link_dir, noise_stream)?;
         // The link may be faulty (an unplug during the handshake): a few tries, as a person
         // would replug and retry.
@@ -497,7 +488,7 @@ impl SimRig {
         let target_mask = target_mask(plan, &rig.scene)?;
         let stage_json = if plan.simulation.stage.is_none() {
             serde_json::json!({
-                "dialect": "native",
+                "dialect": rig.stage_dialect,
                 "model": "simulated native rotator (144000 counts/turn, 0.05 deg backlash)",
                 "link": rig.link.display().to_string(),
             })
@@ -521,7 +512,7 @@ impl SimRig {
             },
             "scene_materials": rig.scene.materials,
         });
-        let engine_rig = crate::run::rig::Rig {
+        let engine_rig = EngineRig {
             analyzer: OnRotator {
                 rotator: stage,
                 zero_offset_rad: 0.0,

@@ -7,12 +7,12 @@
 use polar_engine::journal::{replay, Entry};
 use polar_engine::plan::Plan;
 use polar_engine::run::{self, Event, Outcome, RunState};
-use polar_engine::sim::SimRig;
 use polar_engine::store::RunStore;
 use polar_engine::FrameKind;
+use polar_rig::SimRig;
 use std::path::Path;
 
-mod common;
+use super::common;
 use common::{check_frame_set, done, go, temp_dir, Script};
 
 const CAPTURE: &str = r#"

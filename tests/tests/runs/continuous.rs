@@ -7,9 +7,9 @@
 use nalgebra::Vector3;
 use polar_engine::continuous::SpanEstimator;
 use polar_engine::plan::Plan;
-use polar_engine::sim::{SimRig, SimWorld};
 use polar_hal::{ContinuousSupport, Roi, Rotator, TURN_RAD};
 use polar_hil_mocks::camera::{noise_seed, CameraFaults, SimCamera, SimCameraConfig};
+use polar_rig::{SimRig, SimWorld};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -242,7 +242,7 @@ fn trigger_counts_match_the_encoder() {
     let _ = std::fs::remove_dir_all(&link_dir);
 }
 
-mod common;
+use super::common;
 
 /// A continuous run of the example plan (4 frames per half turn at 360 deg/s, 6 half turns,
 /// an exposure that saturates no pixel) on the simulated rig: it finishes with every frame;

@@ -1,12 +1,9 @@
-//! A run of any plan on the simulated rig ([`crate::sim::SimRig`]): the library entry point of
+//! A run of any plan on the simulated rig ([`crate::simulated::SimRig`]): the library entry point of
 //! the demo's and the benchmarks' simulated runs.
 
-use super::link::RunLink;
-use super::outcome::{Outcome, RunError};
-use super::run_dir::noise_stream;
-use super::start::run;
-use crate::plan::Plan;
-use crate::sim::{SimError, SimRig};
+use crate::simulated::{SimError, SimRig};
+use polar_engine::plan::Plan;
+use polar_engine::run::{noise_stream, run, Outcome, RunError, RunLink};
 use std::path::Path;
 
 /// Why a simulated run could not go on.
@@ -23,7 +20,7 @@ pub enum SimRunError {
 /// Starts the simulated rig for `plan` (files relative to `plan_dir`; the stage's
 /// pseudo-terminal in `run_dir/.sim`), runs (or, with `resume`, continues) the plan into
 /// `run_dir` through [`run`], and stops the
-/// rig. A finished run's [`Summary`] has its timings (`elapsed_s`, `device_s`). Call it inside
+/// rig. A finished run's [`Summary`](polar_engine::run::Summary) has its timings (`elapsed_s`, `device_s`). Call it inside
 /// a [`tokio::task::LocalSet`].
 pub async fn run_simulated(
     plan: &Plan,

@@ -3,12 +3,13 @@
 //! pseudo-terminal, and the checks that name the field, the value and what is allowed.
 #![allow(clippy::unwrap_used)]
 
-use polar_engine::plan::{Plan, SimStage};
-use polar_engine::sim::SimRig;
+use polar_engine::plan::Plan;
 use polar_engine::store::RunStore;
+use polar_rig::sim_stage;
+use polar_rig::SimRig;
 use std::path::Path;
 
-mod common;
+use super::common;
 use common::{check_frame_set, done, go, temp_dir, Script};
 
 /// The runs tests' capture (3 sets of 4 angles, a dark before and after, 96 x 72) with the
@@ -89,14 +90,16 @@ fn capture_on_the_simulated_prm1z8() {
 }
 
 /// The rotators on offer come from the simulators' registry (wheels and sliders excluded);
-/// a dialect without a simulated rotator, a model that is not one of the dialect's rotators
-/// and an unknown key are refused naming the field, the value and what is allowed; a plan
+/// a dialect without a simulated rotator and a model that is not one of the dialect's
+/// rotators are refused by the simulated rig's check (what `plan check` and `acquire run
+/// --simulate` call) naming the field, the value and what is allowed; an unknown key is
+/// refused by the plan's parser; a plan
 /// without a stage serialises without the key (its stored plan is unchanged); the example
 /// plan `examples/plans/capture_k10cr1.toml` chooses the K10CR1.
 #[test]
 fn stage_choice_is_checked() {
     assert_eq!(
-        SimStage::rotators(),
+        sim_stage::rotators(),
         [
             ("native", "rotator"),
             ("elliptec", "ell14"),
@@ -107,18 +110,28 @@ fn stage_choice_is_checked() {
     );
     let default_model = Plan::from_toml_str(&capture(r#"{ dialect = "apt" }"#)).unwrap();
     let stage = default_model.simulation.stage.as_ref().unwrap();
-    assert_eq!(stage.resolve().unwrap(), ("apt", "k10cr1"));
-    let e = Plan::from_toml_str(&capture(r#"{ dialect = "fw102c" }"#))
-        .unwrap_err()
-        .to_string();
+    assert_eq!(sim_stage::resolve(Some(stage)).unwrap(), ("apt", "k10cr1"));
+    let refused = |stage: &str| {
+        let plan = Plan::from_toml_str(&capture(stage)).unwrap();
+        let e = SimRig::validate(&plan, Path::new("."))
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            e,
+            format!(
+                "simulation: {}",
+                sim_stage::resolve(plan.simulation.stage.as_ref()).unwrap_err()
+            )
+        );
+        e
+    };
+    let e = refused(r#"{ dialect = "fw102c" }"#);
     assert!(
         e.contains("simulation.stage.dialect = \"fw102c\"")
             && e.contains("allowed one of native, elliptec, apt"),
         "{e}"
     );
-    let e = Plan::from_toml_str(&capture(r#"{ dialect = "elliptec", model = "ell6" }"#))
-        .unwrap_err()
-        .to_string();
+    let e = refused(r#"{ dialect = "elliptec", model = "ell6" }"#);
     assert!(
         e.contains("simulation.stage.model = \"ell6\"")
             && e.contains("allowed one of ell14, ell18"),
@@ -138,5 +151,5 @@ fn stage_choice_is_checked() {
     let example =
         Plan::from_toml_str(include_str!("../../../examples/plans/capture_k10cr1.toml")).unwrap();
     let stage = example.simulation.stage.as_ref().unwrap();
-    assert_eq!(stage.resolve().unwrap(), ("apt", "k10cr1"));
+    assert_eq!(sim_stage::resolve(Some(stage)).unwrap(), ("apt", "k10cr1"));
 }
