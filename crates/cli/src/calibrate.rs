@@ -25,7 +25,7 @@
 //! The analysis is [`polar_model::calibration::photon_transfer`] (EMVA 1288 Release 4.0 Linear)
 //! on the pair statistics ([`polar_model::calibration::pair_statistics`]).
 
-use crate::figures::{register_font, FONT};
+use crate::plot::{canvas, legend, FONT};
 use plotters::prelude::*;
 use polar_model::calibration::{pair_statistics, photon_transfer, ExposurePoint, PhotonTransfer};
 use polar_model::montecarlo::{expose_pixels, fixed_pattern, MAX_FRAME_PIXELS};
@@ -644,7 +644,6 @@ pub(crate) fn measured_camera(
 /// exposure point, the fitted line of slope `K`, the linear range shaded and the saturation
 /// point marked.
 fn draw_photon_transfer(path: &Path, r: &PhotonTransfer) -> Result<(), CalibrateError> {
-    register_font();
     let e = |err: &dyn std::fmt::Display| file_err(path, format!("cannot draw: {err}"));
     let x_max = r.points.iter().map(|p| p.signal_dn).fold(1.0f64, f64::max) * 1.05;
     let y_hi = r
@@ -661,8 +660,7 @@ fn draw_photon_transfer(path: &Path, r: &PhotonTransfer) -> Result<(), Calibrate
         * 1.1;
     let x_lo = r.points.iter().map(|p| p.signal_dn).fold(0.0f64, f64::min);
     let k = r.k_dn_per_e;
-    let root = BitMapBackend::new(path, (1000, 700)).into_drawing_area();
-    root.fill(&WHITE).map_err(|x| e(&x))?;
+    let root = canvas(path, (1000, 700)).map_err(|x| e(&x))?;
     let mut chart = ChartBuilder::on(&root)
         .caption(
             format!(
@@ -743,14 +741,7 @@ fn draw_photon_transfer(path: &Path, r: &PhotonTransfer) -> Result<(), Calibrate
             )))
             .map_err(|x| e(&x))?;
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font((FONT, 15))
-        .draw()
-        .map_err(|x| e(&x))?;
+    legend(&mut chart, SeriesLabelPosition::UpperLeft, 15).map_err(|x| e(&x))?;
     root.present().map_err(|x| e(&x))?;
     Ok(())
 }

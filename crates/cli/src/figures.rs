@@ -24,49 +24,12 @@ use std::f64::consts::PI;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-/// Errors drawing figures.
-#[derive(Debug, thiserror::Error)]
-pub enum FigureError {
-    /// Plotting or file-system failure.
-    #[error("{path}: {message}")]
-    Draw {
-        /// The file being written.
-        path: PathBuf,
-        /// What went wrong.
-        message: String,
-    },
-    /// A model evaluation failed (a bug: every input here is in range).
-    #[error("model: {0}")]
-    Model(#[from] polar_model::ModelError),
-}
-
-/// Maps a plotters error to a [`FigureError`] naming the file.
-pub(crate) fn draw_err<E: std::fmt::Display>(path: &Path) -> impl Fn(E) -> FigureError + '_ {
-    move |e| FigureError::Draw {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    }
-}
-
-/// The font family every figure of the CLI draws with (the embedded DejaVu Sans).
-pub(crate) const FONT: &str = "sans-serif";
-
-/// Registers the embedded font under [`FONT`] (plotters' `ab_glyph` backend has no system
-/// fonts).
-pub(crate) fn register_font() {
-    // Registering twice is harmless; an invalid embedded font would be a build bug and leaves
-    // plotters to report a font error when drawing text.
-    let _ = plotters::style::register_font(
-        FONT,
-        FontStyle::Normal,
-        include_bytes!("../assets/DejaVuSans.ttf"),
-    );
-}
+pub use crate::plot::FigureError;
+use crate::plot::{canvas, draw_err, legend, FONT};
 
 /// Draws every figure into `out_dir` and returns the files written.
 pub fn draw_all(out_dir: &Path) -> Result<Vec<PathBuf>, FigureError> {
     std::fs::create_dir_all(out_dir).map_err(draw_err(out_dir))?;
-    register_font();
     let mut written = Vec::new();
     written.extend(fig_2_1(out_dir)?);
     written.extend(fig_3_6(out_dir)?);
@@ -110,9 +73,8 @@ fn fig_2_1(out: &Path) -> Result<Vec<PathBuf>, FigureError> {
         }
     }
     write_csv(&csv, &text)?;
-    let root = BitMapBackend::new(&png, (900, 600)).into_drawing_area();
     let e = draw_err(&png);
-    root.fill(&WHITE).map_err(&e)?;
+    let root = canvas(&png, (900, 600))?;
     let mut chart = ChartBuilder::on(&root)
         .caption(
             "Fresnel reflectance: glass n = 1.52, copper n = 1.02 + 2.577i (550 nm)",
@@ -180,14 +142,7 @@ fn fig_2_1(out: &Path) -> Result<Vec<PathBuf>, FigureError> {
             (FONT, 15),
         )))
         .map_err(&e)?;
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font((FONT, 16))
-        .draw()
-        .map_err(&e)?;
+    legend(&mut chart, SeriesLabelPosition::UpperLeft, 16).map_err(&e)?;
     root.present().map_err(&e)?;
     drop(chart);
     drop(root);
@@ -250,8 +205,7 @@ fn polar_panels(
     let any_seq = panels.iter().any(|p| !p.diverging);
     let bar_w = 90 * (u32::from(any_div) + u32::from(any_seq)) + 20;
     let (w, h) = (cols as u32 * panel + bar_w, rows as u32 * panel + 60);
-    let root = BitMapBackend::new(path, (w, h)).into_drawing_area();
-    root.fill(&WHITE).map_err(&e)?;
+    let root = canvas(path, (w, h))?;
     let (top, body) = root.split_vertically(50);
     top.draw_text(layout.caption, &(FONT, 18).into_text_style(&top), (15, 6))
         .map_err(&e)?;
@@ -639,8 +593,7 @@ fn fig_4_1_2(out: &Path) -> Result<Vec<PathBuf>, FigureError> {
         }
         write_csv(&csv, &text)?;
         let e = draw_err(&png);
-        let root = BitMapBackend::new(&png, (1300, 560)).into_drawing_area();
-        root.fill(&WHITE).map_err(&e)?;
+        let root = canvas(&png, (1300, 560))?;
         let (top, body) = root.split_vertically(40);
         top.draw_text(
             &format!("Contributions at the aperture, {name}: 1 km, 450-650 nm, sun zenith 46 deg, principal plane (+: towards the sun's azimuth)"),
@@ -693,14 +646,7 @@ fn fig_4_1_2(out: &Path) -> Result<Vec<PathBuf>, FigureError> {
                         PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
                     });
             }
-            chart
-                .configure_series_labels()
-                .position(SeriesLabelPosition::LowerLeft)
-                .background_style(WHITE.mix(0.85))
-                .border_style(BLACK)
-                .label_font((FONT, 14))
-                .draw()
-                .map_err(&e)?;
+            legend(&mut chart, SeriesLabelPosition::LowerLeft, 14).map_err(&e)?;
         }
         root.present().map_err(&e)?;
         written.push(png.clone());

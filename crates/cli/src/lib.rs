@@ -18,6 +18,7 @@ pub mod logging;
 pub mod plan;
 pub mod plan_continuous;
 pub mod plan_load;
+mod plot;
 pub mod rig;
 pub mod study;
 pub mod study_aptd;

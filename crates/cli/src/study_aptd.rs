@@ -28,6 +28,7 @@
 //! same Gaussian classes (MODEL.md section 8).
 
 use crate::commands::CommandError;
+use crate::plot::{canvas, legend};
 use crate::study::StudyArgs;
 use nalgebra::Vector3;
 use plotters::prelude::*;
@@ -357,12 +358,10 @@ pub fn csv(cases: &[Case]) -> String {
 
 /// ROC families, one panel per case.
 pub fn draw(cases: &[Case], path: &Path) -> Result<(), CommandError> {
-    crate::figures::register_font();
-    let font = crate::figures::FONT;
+    let font = crate::plot::FONT;
     let cols = 3usize;
     let rows = cases.len().div_ceil(cols).max(1);
-    let root = BitMapBackend::new(path, (1500, 420 * rows as u32)).into_drawing_area();
-    root.fill(&WHITE).map_err(err)?;
+    let root = canvas(path, (1500, 420 * rows as u32)).map_err(err)?;
     let colors = [
         RGBColor(200, 30, 30),
         RGBColor(31, 119, 180),
@@ -405,14 +404,7 @@ pub fn draw(cases: &[Case], path: &Path) -> Result<(), CommandError> {
                     PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(width))
                 });
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::LowerRight)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .label_font((font, 12))
-            .draw()
-            .map_err(err)?;
+        legend(&mut chart, SeriesLabelPosition::LowerRight, 12).map_err(err)?;
     }
     root.present().map_err(err)?;
     Ok(())

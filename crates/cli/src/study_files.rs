@@ -3,7 +3,7 @@
 //! (DoLP SNR, Pd at `pfa` of the three detectors, and the DoLP detector's ROC family for each
 //! target), and [`execute`], which runs the studies a command line selects and writes them.
 
-use crate::figures::{draw_err, register_font, FigureError, FONT};
+use crate::plot::{canvas, draw_err, FigureError, FONT};
 use crate::study::{
     format_value, Study, StudyArgs, StudyError, StudyKind, StudyPoint, StudyResult, StudySelection,
     GLASS_BREWSTER_DEG,
@@ -496,10 +496,8 @@ where
 
 /// The study's PNG: DoLP SNR, Pd at `pfa`, and the two ROC families.
 pub fn draw(result: &StudyResult, path: &Path) -> Result<(), FigureError> {
-    register_font();
     let e = draw_err(path);
-    let root = BitMapBackend::new(path, (1900, 1150)).into_drawing_area();
-    root.fill(&WHITE).map_err(&e)?;
+    let root = canvas(path, (1900, 1150))?;
     let (top, body) = root.split_vertically(56);
     let kind = result.kind;
     let sweep = match kind {

@@ -20,7 +20,7 @@
 //! instead (the reading of the study), and the azimuth stays the scene's (the specular
 //! plane). Meng (2012)'s values of Table 4.2 are not in the available text.
 
-use crate::figures::{draw_err, register_font, FigureError, FONT};
+use crate::plot::{canvas, draw_err, legend, FigureError, FONT};
 use crate::study::{with_sigma, Radiance, Study, StudyArgs, StudyError};
 use plotters::element::DashedPathElement;
 use plotters::prelude::*;
@@ -181,10 +181,8 @@ const CLASS_COLORS: [RGBColor; 3] = [
 /// (one line per class and roughness: solid 0.1, dashed 0.3, dotted 0.5), and the glass's ROC
 /// family over the field of view at the smoothest roughness.
 pub fn draw(rows: &[FovRow], scene: &str, path: &Path) -> Result<(), FigureError> {
-    register_font();
     let e = draw_err(path);
-    let root = BitMapBackend::new(path, (1900, 650)).into_drawing_area();
-    root.fill(&WHITE).map_err(&e)?;
+    let root = canvas(path, (1900, 650))?;
     let (top, body) = root.split_vertically(40);
     top.draw_text(
         &format!(
@@ -261,14 +259,7 @@ pub fn draw(rows: &[FovRow], scene: &str, path: &Path) -> Result<(), FigureError
             }
         }
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font((FONT, 14))
-        .draw()
-        .map_err(&e)?;
+    legend(&mut chart, SeriesLabelPosition::UpperLeft, 14).map_err(&e)?;
     // Panel 2: Pd of the DoLP detector.
     let mut chart = ChartBuilder::on(&panels[1])
         .caption(
@@ -351,14 +342,7 @@ pub fn draw(rows: &[FovRow], scene: &str, path: &Path) -> Result<(), FigureError
                 PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
             });
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::LowerRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font((FONT, 14))
-        .draw()
-        .map_err(&e)?;
+    legend(&mut chart, SeriesLabelPosition::LowerRight, 14).map_err(&e)?;
     root.present().map_err(&e)?;
     Ok(())
 }

@@ -19,7 +19,7 @@
 //!   not in the available text of Meng (2012); the substitute is the study scene and camera at
 //!   `--t-int-ms`.
 
-use crate::figures::{draw_err, register_font, FigureError, FONT};
+use crate::plot::{canvas, draw_err, legend, FigureError, FONT};
 use crate::study::{Study, StudyArgs, StudyError};
 use plotters::element::DashedPathElement;
 use plotters::prelude::*;
@@ -229,10 +229,8 @@ const COLORS: [RGBColor; 5] = [
 /// `scr-time.png`: one panel per target, SCR against integration time (log-log), the clutter
 /// limit dashed, saturated points crossed.
 pub fn draw_time(rows: &[TimeRow], scene: &str, path: &Path) -> Result<(), FigureError> {
-    register_font();
     let e = draw_err(path);
-    let root = BitMapBackend::new(path, (1600, 700)).into_drawing_area();
-    root.fill(&WHITE).map_err(&e)?;
+    let root = canvas(path, (1600, 700))?;
     let (top, body) = root.split_vertically(40);
     top.draw_text(
         &format!(
@@ -325,14 +323,7 @@ pub fn draw_time(rows: &[TimeRow], scene: &str, path: &Path) -> Result<(), Figur
             .legend(|(x, y)| {
                 DashedPathElement::new(vec![(x, y), (x + 20, y)], 5, 3, BLACK.stroke_width(2))
             });
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::LowerRight)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .label_font((FONT, 14))
-            .draw()
-            .map_err(&e)?;
+        legend(&mut chart, SeriesLabelPosition::LowerRight, 14).map_err(&e)?;
     }
     root.present().map_err(&e)?;
     Ok(())
@@ -480,10 +471,8 @@ pub fn sets_csv(dists: &[Distribution]) -> (String, String) {
 
 /// `scr-sets.png`: one histogram per target, the marked sets as vertical lines.
 pub fn draw_sets(dists: &[Distribution], scene: &str, path: &Path) -> Result<(), FigureError> {
-    register_font();
     let e = draw_err(path);
-    let root = BitMapBackend::new(path, (1600, 700)).into_drawing_area();
-    root.fill(&WHITE).map_err(&e)?;
+    let root = canvas(path, (1600, 700))?;
     let (top, body) = root.split_vertically(40);
     top.draw_text(
         &format!(
@@ -546,14 +535,7 @@ pub fn draw_sets(dists: &[Distribution], scene: &str, path: &Path) -> Result<(),
                     PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
                 });
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperLeft)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .label_font((FONT, 13))
-            .draw()
-            .map_err(&e)?;
+        legend(&mut chart, SeriesLabelPosition::UpperLeft, 13).map_err(&e)?;
     }
     root.present().map_err(&e)?;
     Ok(())
