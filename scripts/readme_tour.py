@@ -10,7 +10,8 @@ blocks (before its "Lab hardware" section) and each command in the examples' hea
 runs with stdin closed, in a scratch directory holding a copy of examples/, under a time limit,
 and must exit 0. Paths under /tmp/ are moved into the scratch directory, so nothing outside it
 is touched. A line whose comment says `needs hardware` is listed as skipped; one whose comment
-says `exits N` must exit N (an example of an error).
+says `exits N` must exit N (an example of an error). A command shown again (an example's header
+repeating a README line, up to its `--out DIR`) runs once and is listed as the same.
 
 `polarimeter simulate stage ... &` starts the simulator in the background, and the
 `/tmp/polarimeter-sim-PID/...` placeholders of the lines after it become the link it prints;
@@ -76,6 +77,12 @@ def strip_comment(command):
     return re.sub(r"\s+#.*$", "", command)
 
 
+def same_as(command):
+    """The command without its comment and its `--out DIR`: an example's header that shows a
+    command the README already ran (into another folder) runs once."""
+    return re.sub(r"\s+--out\s+\S+", "", strip_comment(command)).strip()
+
+
 def temp_entries():
     tmp = tempfile.gettempdir()
     return {e for e in os.listdir(tmp) if e.startswith("polarimeter-")}
@@ -119,12 +126,20 @@ def main(argv):
     background = []
     sim_port = None
     failed = 0
+    seen = {}
     for where, command in commands:
         if needs_hardware(command):
             results.append({"where": where, "command": command, "status": "skipped",
                             "reason": "needs hardware"})
             print(f"skip  {'':>7}  {command}  ({where}: needs hardware)", flush=True)
             continue
+        same = same_as(command)
+        if same in seen:
+            results.append({"where": where, "command": command, "status": "same",
+                            "as": seen[same]})
+            print(f"same  {'':>7}  {command}  ({where}: ran as {seen[same]})", flush=True)
+            continue
+        seen[same] = where
         run = strip_comment(command).replace("/tmp/", scratch + "/tmp/")
         if sim_port:
             run = re.sub(r"\S*/polarimeter-sim-PID/\S+", sim_port, run)
@@ -181,7 +196,8 @@ def main(argv):
     summary = {
         "ok": failed == 0,
         "commands": len(results),
-        "ran": sum(1 for r in results if r["status"] != "skipped"),
+        "ran": sum(1 for r in results if r["status"] not in ("skipped", "same")),
+        "same": sum(1 for r in results if r["status"] == "same"),
         "skipped": sum(1 for r in results if r["status"] == "skipped"),
         "failed": failed,
         "left_in_temp": left,

@@ -59,3 +59,10 @@ rm -rf target/gui-screenshots target/gui-runs && mkdir -p target/gui-runs
 xvfb-run -a -s "-screen 0 1400x900x24" \
   cargo run --release --locked -q -p polar-gui -- --simulate --out target/gui-runs \
   --screenshots target/gui-screenshots
+
+# Every command the README's tour and the examples' headers show, run as a new user runs them:
+# stdin closed, in a scratch directory holding a copy of examples/, each under a time limit;
+# any failure, hang or file left in the temporary directory fails the tests. It prints one line
+# per command (exit status, seconds, command).
+python3 scripts/readme_tour.py --bin target/release/polarimeter --scratch target/readme-tour \
+  --limit-s 600

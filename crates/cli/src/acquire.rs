@@ -266,7 +266,7 @@ pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandEr
     }
     let timing = polar_rig::sim_stage::timing(&plan).map_err(err)?;
     let f = polar_engine::forecast::forecast(&plan, &scene, &camera, &timing).map_err(err)?;
-    let mut v = json!({ "plan": plan.name, "kind": plan.kind.name(), "forecast": f });
+    let mut v = json!({ "plan": plan.name, "kind": plan.kind().name(), "forecast": f });
     if let Some(c) = chosen {
         v["continuous_from_planner"] = c;
     }
@@ -593,7 +593,7 @@ pub fn demo_on_stage(out: &Path, stage: &str, ui: Ui) -> Result<String, CommandE
             DEMO_TARGET,
         )?;
         probe.shutdown().await;
-        if let Some(a) = plan.adaptive.as_mut() {
+        if let Some(a) = plan.adaptive_mut() {
             a.exposure_us = (stats.t_int_s * 1e6 * DEMO_EXPOSURE_FRACTION)
                 .round()
                 .max(10.0);
@@ -662,7 +662,7 @@ fn demo_report(
          the full well): short, so that sensor noise makes detection hard and the angles matter",
         truth.width,
         truth.height,
-        plan.adaptive.as_ref().map_or(0.0, |a| a.exposure_us),
+        plan.adaptive().map_or(0.0, |a| a.exposure_us),
         100.0 * DEMO_EXPOSURE_FRACTION
     );
     let _ = writeln!(
@@ -693,7 +693,7 @@ fn demo_report(
         );
     }
     let final_deg = summary.final_angles_deg.clone().unwrap_or_default();
-    let exposure_us = plan.adaptive.as_ref().map_or(0.0, |a| a.exposure_us);
+    let exposure_us = plan.adaptive().map_or(0.0, |a| a.exposure_us);
     let table = demo_detection(truth, sensor, exposure_us, &final_deg)?;
     let _ = writeln!(
         s,

@@ -242,8 +242,7 @@ fn step_spans() -> Vec<(f64, f64)> {
 
 fn continuous_spans(plan: &Plan) -> anyhow::Result<Vec<(f64, f64)>> {
     Ok(plan
-        .continuous
-        .as_ref()
+        .continuous()
         .ok_or_else(|| anyhow!("the continuous plan has no [continuous] section"))?
         .spans_rad())
 }

@@ -563,13 +563,14 @@ pub fn list_cmd(
             }
         }
         if simulate && found.is_none() {
-            // The simulated devices `--simulate` offers: our firmware's rotator, simulated by
-            // the rig itself (port "sim").
+            // The simulated devices `--simulate` offers: the default simulated stage (our
+            // firmware's rotator), simulated by the rig itself (port "sim").
+            let (dialect, model) = polar_rig::sim_stage::default_stage();
             found = Some(polar_rig::file::StageEntry {
-                dialect: "native".into(),
+                dialect: dialect.into(),
                 port: polar_rig::SIM_PORT.into(),
                 address: 0,
-                model: Some("rotator".into()),
+                model: Some(model.into()),
             });
         }
         out["rig_written"] =

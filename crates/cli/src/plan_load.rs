@@ -27,7 +27,7 @@ pub fn load_plan_resolved(path: &Path) -> Result<(Plan, PathBuf, Option<Value>),
         .parent()
         .map(Path::to_path_buf)
         .unwrap_or_else(|| PathBuf::from("."));
-    if let Some(c) = plan.capture.clone() {
+    if let Some(c) = plan.capture().cloned() {
         if let Some(fp) = &c.from_planner {
             let (scene, camera) = forecast_models(&plan, &dir)?;
             let (angles, _why) =
@@ -37,11 +37,7 @@ pub fn load_plan_resolved(path: &Path) -> Result<(Plan, PathBuf, Option<Value>),
         }
     }
     let mut chosen = None;
-    if plan
-        .continuous
-        .as_ref()
-        .is_some_and(|c| c.from_planner.is_some())
-    {
+    if plan.continuous().is_some_and(|c| c.from_planner.is_some()) {
         use polar_engine::continuous_planner::{describe, resolve, to_json};
         let (scene, camera) = forecast_models(&plan, &dir)?;
         let stage = polar_rig::sim_stage::stage_limits(&plan.simulation).map_err(err)?;

@@ -132,10 +132,10 @@ pub fn write_back(
     run_dir: &Path,
     used_zero_offset_deg: f64,
 ) -> Result<Option<Value>, CommandError> {
-    if plan.kind == PlanKind::CalibrateNoise {
+    if plan.kind() == PlanKind::CalibrateNoise {
         return write_back_noise(rig, run_dir).map(Some);
     }
-    if plan.kind != PlanKind::CalibrateAnalyzer {
+    if plan.kind() != PlanKind::CalibrateAnalyzer {
         return Ok(None);
     }
     let store = polar_engine::store::RunStore::open(run_dir)

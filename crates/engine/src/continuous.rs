@@ -729,7 +729,7 @@ mod tests {
         let text = "kind = \"continuous\"\n[continuous]\nhalf_turns = 2\nfrom_planner = { \
                     target = \"panel\", background = \"asphalt\" }\n";
         let plan = crate::plan::Plan::from_toml_str(text).expect("plan");
-        let c = plan.continuous.clone().expect("section");
+        let c = plan.continuous().cloned().expect("section");
         let fp = c.from_planner.clone().expect("table");
         assert_eq!(fp, ContinuousFromPlanner::new("panel", "asphalt"));
         assert_eq!(fp.objective.name(), "time-to-dolp-sigma");

@@ -203,10 +203,10 @@ pub fn resolve(
     camera: &Camera,
     stage: Option<StageLimits>,
 ) -> Result<Option<ContinuousChoice>, ForecastError> {
-    if plan.kind != PlanKind::Continuous {
+    if plan.kind() != PlanKind::Continuous {
         return Ok(None);
     }
-    let Some(c) = plan.continuous.clone() else {
+    let Some(c) = plan.continuous().cloned() else {
         return Ok(None);
     };
     let Some(fp) = c.from_planner.clone() else {
@@ -245,7 +245,7 @@ pub fn resolve(
         field: "continuous.from_planner".into(),
         message: e.to_string(),
     })?;
-    let section = plan.continuous.as_mut().ok_or_else(|| PlanError::Invalid {
+    let section = plan.continuous_mut().ok_or_else(|| PlanError::Invalid {
         field: "continuous".into(),
         value: "(missing)".into(),
         allowed: "a [continuous] section".into(),
@@ -363,7 +363,7 @@ mod tests {
         let choice = resolve(&mut p, &scene, &camera, Some(BENCH_STAGE))
             .expect("resolve")
             .expect("a choice");
-        let c = p.continuous.as_ref().expect("section");
+        let c = p.continuous().expect("section");
         assert!(c.from_planner.is_none());
         c.validate().expect("valid");
         assert_eq!(c.frames_per_half_turn as usize, choice.frames_per_half_turn);
@@ -406,8 +406,7 @@ mod tests {
             "{e}"
         );
         let e = p
-            .continuous
-            .as_ref()
+            .continuous()
             .expect("section")
             .validate()
             .expect_err("unresolved")

@@ -512,9 +512,9 @@ fn class_settings(
     stage_limits: Option<StageLimits>,
     notes: &mut Vec<String>,
 ) -> Result<Option<ClassSettings>, ForecastError> {
-    Ok(match plan.kind {
+    Ok(match plan.kind() {
         PlanKind::Capture => {
-            let c = plan.capture.clone().ok_or_else(|| PlanError::Invalid {
+            let c = plan.capture().cloned().ok_or_else(|| PlanError::Invalid {
                 field: "capture".into(),
                 value: "(missing)".into(),
                 allowed: "a [capture] section".into(),
@@ -553,12 +553,10 @@ fn class_settings(
             Some((angles, c.exposure_us.clone(), c.gain_db))
         }
         PlanKind::TimeLapse => plan
-            .time_lapse
-            .as_ref()
+            .time_lapse()
             .map(|t| (t.angles_deg.clone(), vec![t.exposure_us], t.gain_db)),
         PlanKind::Adaptive => plan
-            .adaptive
-            .as_ref()
+            .adaptive()
             .map(|a| (a.initial_angles_deg.clone(), vec![a.exposure_us], a.gain_db)),
         // Span rows, not point rows: classes below from `continuous_classes`.
         PlanKind::Continuous => {
@@ -578,7 +576,7 @@ fn class_settings(
             None
         }
         PlanKind::CalibrateAnalyzer => {
-            if let Some(c) = &plan.calibrate_analyzer {
+            if let Some(c) = plan.calibrate_analyzer() {
                 notes.push(format!(
                     "calibrate-analyzer: a uniform source behind the reference polarizer at {} \
                      deg, swept through {} angles ({} deg apart) x {} repeats; fitted with \
@@ -675,7 +673,7 @@ pub fn forecast(
     let mut sets = sets.len() as u64;
     let mut frames = steps.len() as u64;
     let (mut duration_s, _) = schedule(&steps, timing);
-    if let (PlanKind::Adaptive, Some(a)) = (plan.kind, &plan.adaptive) {
+    if let Some(a) = plan.adaptive() {
         let first = a.initial_angles_deg.len();
         let more = a.frame_budget.saturating_sub(first) / a.channels.max(1);
         let extra = (more * a.channels) as u64;
@@ -694,7 +692,7 @@ pub fn forecast(
             a.frame_budget, a.channels
         ));
     }
-    if let (PlanKind::TimeLapse, Some(t)) = (plan.kind, &plan.time_lapse) {
+    if let Some(t) = plan.time_lapse() {
         notes.push(format!(
             "time-lapse: the last set starts at {} s",
             f64::from(t.count.saturating_sub(1)) * t.interval_s
@@ -702,7 +700,7 @@ pub fn forecast(
     }
 
     let mut classes = Vec::new();
-    if let (PlanKind::Continuous, Some(c)) = (plan.kind, &plan.continuous) {
+    if let Some(c) = plan.continuous() {
         // The schedule above is step-and-shoot's; at speed the half turns take their time.
         duration_s = c.duration_at_speed_s();
         classes = continuous_classes(scene, camera, c, &names, &mut notes)?;
@@ -718,7 +716,7 @@ pub fn forecast(
         )?;
     }
     Ok(Forecast {
-        kind: plan.kind.name().to_string(),
+        kind: plan.kind().name().to_string(),
         frames,
         sets,
         darks,
@@ -771,7 +769,7 @@ darks_after = 1
         assert!((f.duration_s - 10.0).abs() < 1e-12, "{}", f.duration_s);
         assert_eq!(f.classes.len(), scene.materials.len());
         let mut wide = plan.clone();
-        if let Some(c) = wide.continuous.as_mut() {
+        if let Some(c) = wide.continuous_mut() {
             c.speed_deg_per_s = 20_000.0;
         }
         let w =
@@ -1005,7 +1003,7 @@ exposure_us = [2000]
             forecast(&plan, &scene, &camera, &Timing::simulated(&plan, stage)).expect("forecast");
         let mut resolved = plan.clone();
         crate::continuous_planner::resolve(&mut resolved, &scene, &camera, stage).expect("resolve");
-        let c = resolved.continuous.expect("section");
+        let c = resolved.continuous().cloned().expect("section");
         assert_eq!(f.frames, 3 * u64::from(c.frames_per_half_turn));
         let at_speed = 3.0 * 180.0 / c.speed_deg_per_s;
         assert!((f.duration_s - at_speed).abs() <= 1e-12 * at_speed);

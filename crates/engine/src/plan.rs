@@ -405,46 +405,186 @@ pub struct SimStage {
     pub model: Option<String>,
 }
 
-/// A plan.
+/// A plan file as written: `kind` and every kind's optional section. [`Plan`] is read through
+/// it (serde's messages for unknown keys and wrong types, with their paths) and converted by
+/// [`Plan::try_from`], which keeps exactly the section of `kind`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct Plan {
+struct PlanFile {
     /// A name for people. A plan read from a file without one (or with a blank one) is named
     /// by the file's stem ([`Plan::from_path`]).
     #[serde(default)]
-    pub name: String,
+    name: String,
     /// What it does.
-    pub kind: PlanKind,
+    kind: PlanKind,
     /// `kind = "capture"`.
     #[serde(default)]
-    pub capture: Option<Capture>,
+    capture: Option<Capture>,
     /// `kind = "calibrate-noise"`.
     #[serde(default, rename = "calibrate-noise")]
-    pub calibrate_noise: Option<CalibrateNoise>,
+    calibrate_noise: Option<CalibrateNoise>,
     /// `kind = "calibrate-analyzer"`.
     #[serde(default, rename = "calibrate-analyzer")]
-    pub calibrate_analyzer: Option<CalibrateAnalyzer>,
+    calibrate_analyzer: Option<CalibrateAnalyzer>,
     /// `kind = "time-lapse"`.
     #[serde(default, rename = "time-lapse")]
-    pub time_lapse: Option<TimeLapse>,
+    time_lapse: Option<TimeLapse>,
     /// `kind = "adaptive"`.
     #[serde(default)]
-    pub adaptive: Option<Adaptive>,
+    adaptive: Option<Adaptive>,
     /// `kind = "continuous"`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub continuous: Option<crate::continuous::Continuous>,
+    continuous: Option<crate::continuous::Continuous>,
     /// Deadlines and retries.
     #[serde(default)]
-    pub policy: Policy,
+    policy: Policy,
     /// The per-set check.
     #[serde(default)]
-    pub suspender: Suspender,
+    suspender: Suspender,
     /// The site, for sun geometry.
     #[serde(default)]
-    pub site: Option<Site>,
+    site: Option<Site>,
     /// The simulated devices.
     #[serde(default)]
+    simulation: Simulation,
+}
+
+/// What a plan acquires: its kind with exactly that kind's section, so a plan without its
+/// section, or with another kind's, cannot be made.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Acquisition {
+    /// `kind = "capture"`.
+    Capture(Capture),
+    /// `kind = "calibrate-noise"`.
+    CalibrateNoise(CalibrateNoise),
+    /// `kind = "calibrate-analyzer"`.
+    CalibrateAnalyzer(CalibrateAnalyzer),
+    /// `kind = "time-lapse"`.
+    TimeLapse(TimeLapse),
+    /// `kind = "adaptive"`.
+    Adaptive(Adaptive),
+    /// `kind = "continuous"`.
+    Continuous(crate::continuous::Continuous),
+}
+
+impl Acquisition {
+    /// Its kind.
+    pub fn kind(&self) -> PlanKind {
+        match self {
+            Acquisition::Capture(_) => PlanKind::Capture,
+            Acquisition::CalibrateNoise(_) => PlanKind::CalibrateNoise,
+            Acquisition::CalibrateAnalyzer(_) => PlanKind::CalibrateAnalyzer,
+            Acquisition::TimeLapse(_) => PlanKind::TimeLapse,
+            Acquisition::Adaptive(_) => PlanKind::Adaptive,
+            Acquisition::Continuous(_) => PlanKind::Continuous,
+        }
+    }
+}
+
+/// A plan: a name, what it acquires ([`Acquisition`]) and the sections every kind shares.
+/// Read and written in the file's layout (`kind` and the kind's section).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "PlanFile", into = "PlanFile")]
+pub struct Plan {
+    /// A name for people. A plan read from a file without one (or with a blank one) is named
+    /// by the file's stem ([`Plan::from_path`]).
+    pub name: String,
+    /// What it acquires.
+    pub acquisition: Acquisition,
+    /// Deadlines and retries.
+    pub policy: Policy,
+    /// The per-set check.
+    pub suspender: Suspender,
+    /// The site, for sun geometry.
+    pub site: Option<Site>,
+    /// The simulated devices.
     pub simulation: Simulation,
+}
+
+impl TryFrom<PlanFile> for Plan {
+    type Error = PlanError;
+
+    /// Keeps the section of `kind`; an error names the missing section, or another kind's
+    /// section that is present.
+    fn try_from(f: PlanFile) -> Result<Plan, PlanError> {
+        let kind = f.kind;
+        let present = [
+            (PlanKind::Capture, f.capture.is_some()),
+            (PlanKind::CalibrateNoise, f.calibrate_noise.is_some()),
+            (PlanKind::CalibrateAnalyzer, f.calibrate_analyzer.is_some()),
+            (PlanKind::TimeLapse, f.time_lapse.is_some()),
+            (PlanKind::Adaptive, f.adaptive.is_some()),
+            (PlanKind::Continuous, f.continuous.is_some()),
+        ];
+        for (other, given) in present {
+            if other != kind && given {
+                return Err(invalid(
+                    other.name(),
+                    "(present)",
+                    format!(
+                        "only the [{}] section for kind = \"{}\"",
+                        kind.name(),
+                        kind.name()
+                    ),
+                ));
+            }
+        }
+        let missing = || {
+            invalid(
+                kind.name(),
+                "(missing)",
+                format!("a [{}] section for kind = \"{}\"", kind.name(), kind.name()),
+            )
+        };
+        let acquisition = match kind {
+            PlanKind::Capture => Acquisition::Capture(f.capture.ok_or_else(missing)?),
+            PlanKind::CalibrateNoise => {
+                Acquisition::CalibrateNoise(f.calibrate_noise.ok_or_else(missing)?)
+            }
+            PlanKind::CalibrateAnalyzer => {
+                Acquisition::CalibrateAnalyzer(f.calibrate_analyzer.ok_or_else(missing)?)
+            }
+            PlanKind::TimeLapse => Acquisition::TimeLapse(f.time_lapse.ok_or_else(missing)?),
+            PlanKind::Adaptive => Acquisition::Adaptive(f.adaptive.ok_or_else(missing)?),
+            PlanKind::Continuous => Acquisition::Continuous(f.continuous.ok_or_else(missing)?),
+        };
+        Ok(Plan {
+            name: f.name,
+            acquisition,
+            policy: f.policy,
+            suspender: f.suspender,
+            site: f.site,
+            simulation: f.simulation,
+        })
+    }
+}
+
+impl From<Plan> for PlanFile {
+    fn from(p: Plan) -> PlanFile {
+        let mut f = PlanFile {
+            name: p.name,
+            kind: p.acquisition.kind(),
+            capture: None,
+            calibrate_noise: None,
+            calibrate_analyzer: None,
+            time_lapse: None,
+            adaptive: None,
+            continuous: None,
+            policy: p.policy,
+            suspender: p.suspender,
+            site: p.site,
+            simulation: p.simulation,
+        };
+        match p.acquisition {
+            Acquisition::Capture(c) => f.capture = Some(c),
+            Acquisition::CalibrateNoise(c) => f.calibrate_noise = Some(c),
+            Acquisition::CalibrateAnalyzer(c) => f.calibrate_analyzer = Some(c),
+            Acquisition::TimeLapse(t) => f.time_lapse = Some(t),
+            Acquisition::Adaptive(a) => f.adaptive = Some(a),
+            Acquisition::Continuous(c) => f.continuous = Some(c),
+        }
+        f
+    }
 }
 
 /// One step of a run: one frame at one analyzer angle.
@@ -892,27 +1032,73 @@ impl Adaptive {
     }
 }
 
+/// Section accessors: the plan's section of a kind, `None` for a plan of another kind.
+macro_rules! sections {
+    ($($get:ident, $get_mut:ident, $variant:ident, $ty:ty;)*) => {
+        impl Plan {
+            $(
+                #[doc = concat!("The `", stringify!($variant), "` section, if the plan is of that kind.")]
+                pub fn $get(&self) -> Option<&$ty> {
+                    match &self.acquisition {
+                        Acquisition::$variant(x) => Some(x),
+                        _ => None,
+                    }
+                }
+                #[doc = concat!("The `", stringify!($variant), "` section to change, if the plan is of that kind.")]
+                pub fn $get_mut(&mut self) -> Option<&mut $ty> {
+                    match &mut self.acquisition {
+                        Acquisition::$variant(x) => Some(x),
+                        _ => None,
+                    }
+                }
+            )*
+        }
+    };
+}
+
+sections! {
+    capture, capture_mut, Capture, Capture;
+    calibrate_noise, calibrate_noise_mut, CalibrateNoise, CalibrateNoise;
+    calibrate_analyzer, calibrate_analyzer_mut, CalibrateAnalyzer, CalibrateAnalyzer;
+    time_lapse, time_lapse_mut, TimeLapse, TimeLapse;
+    adaptive, adaptive_mut, Adaptive, Adaptive;
+    continuous, continuous_mut, Continuous, crate::continuous::Continuous;
+}
+
 impl Plan {
+    /// Its kind.
+    pub fn kind(&self) -> PlanKind {
+        self.acquisition.kind()
+    }
+
+    /// The file's layout (serde's messages, with the key's path), then the kind's section
+    /// ([`Plan::try_from`]) and every range ([`Plan::validate`]).
+    fn from_file(file: Result<PlanFile, PlanError>) -> Result<Plan, PlanError> {
+        let plan = Plan::try_from(file?)?;
+        plan.validate()?;
+        Ok(plan)
+    }
+
     /// Parses TOML text; errors name the field.
     pub fn from_toml_str(text: &str) -> Result<Plan, PlanError> {
         let de = toml::Deserializer::new(text);
-        let plan: Plan = serde_path_to_error::deserialize(de).map_err(|e| PlanError::Parse {
-            path: e.path().to_string(),
-            message: e.inner().message().trim().to_string(),
-        })?;
-        plan.validate()?;
-        Ok(plan)
+        Plan::from_file(
+            serde_path_to_error::deserialize(de).map_err(|e| PlanError::Parse {
+                path: e.path().to_string(),
+                message: e.inner().message().trim().to_string(),
+            }),
+        )
     }
 
     /// Parses YAML text; errors name the field.
     pub fn from_yaml_str(text: &str) -> Result<Plan, PlanError> {
         let de = serde_yaml_ng::Deserializer::from_str(text);
-        let plan: Plan = serde_path_to_error::deserialize(de).map_err(|e| PlanError::Parse {
-            path: e.path().to_string(),
-            message: e.inner().to_string(),
-        })?;
-        plan.validate()?;
-        Ok(plan)
+        Plan::from_file(
+            serde_path_to_error::deserialize(de).map_err(|e| PlanError::Parse {
+                path: e.path().to_string(),
+                message: e.inner().to_string(),
+            }),
+        )
     }
 
     /// Reads a plan file: `.yaml`/`.yml` as YAML, anything else as TOML. A plan without a
@@ -943,66 +1129,18 @@ impl Plan {
         }
     }
 
-    /// Checks every field's range and that the section of `kind` (and no other) is present.
+    /// Checks every field's range: the shared sections, then the kind's.
     pub fn validate(&self) -> Result<(), PlanError> {
-        self.check_sections()?;
         self.check_common()?;
-        if let Some(c) = &self.continuous {
+        match &self.acquisition {
             // An unresolved `from_planner` is checked as written here; the run refuses it.
-            c.validate_as_written()?;
+            Acquisition::Continuous(c) => c.validate_as_written(),
+            Acquisition::Capture(c) => c.validate(),
+            Acquisition::CalibrateNoise(c) => c.validate(),
+            Acquisition::CalibrateAnalyzer(c) => c.validate(),
+            Acquisition::TimeLapse(t) => t.validate(),
+            Acquisition::Adaptive(a) => a.validate(),
         }
-        if let Some(c) = &self.capture {
-            c.validate()?;
-        }
-        if let Some(c) = &self.calibrate_noise {
-            c.validate()?;
-        }
-        if let Some(c) = &self.calibrate_analyzer {
-            c.validate()?;
-        }
-        if let Some(t) = &self.time_lapse {
-            t.validate()?;
-        }
-        if let Some(a) = &self.adaptive {
-            a.validate()?;
-        }
-        Ok(())
-    }
-
-    /// The section of `kind` is present, and no other kind's.
-    fn check_sections(&self) -> Result<(), PlanError> {
-        let sections = [
-            (PlanKind::Capture, self.capture.is_some()),
-            (PlanKind::CalibrateNoise, self.calibrate_noise.is_some()),
-            (
-                PlanKind::CalibrateAnalyzer,
-                self.calibrate_analyzer.is_some(),
-            ),
-            (PlanKind::TimeLapse, self.time_lapse.is_some()),
-            (PlanKind::Adaptive, self.adaptive.is_some()),
-            (PlanKind::Continuous, self.continuous.is_some()),
-        ];
-        for (kind, present) in sections {
-            if kind == self.kind && !present {
-                return Err(invalid(
-                    kind.name(),
-                    "(missing)",
-                    format!("a [{}] section for kind = \"{}\"", kind.name(), kind.name()),
-                ));
-            }
-            if kind != self.kind && present {
-                return Err(invalid(
-                    kind.name(),
-                    "(present)",
-                    format!(
-                        "only the [{}] section for kind = \"{}\"",
-                        self.kind.name(),
-                        self.kind.name()
-                    ),
-                ));
-            }
-        }
-        Ok(())
     }
 
     /// The sections every kind has: policy, suspender, site and simulation.
@@ -1071,7 +1209,7 @@ impl Plan {
 
     /// Replaces a capture's `from_planner` with the angles the planner chose.
     pub fn resolve_angles(&mut self, angles_deg: Vec<f64>) -> Result<(), PlanError> {
-        let Some(c) = self.capture.as_mut() else {
+        let Some(c) = self.capture_mut() else {
             return Err(invalid("capture", "(missing)", "a capture plan"));
         };
         let angles: Vec<f64> = angles_deg.iter().map(|a| a.rem_euclid(180.0)).collect();
@@ -1085,7 +1223,7 @@ impl Plan {
     /// adaptive target rectangle must lie inside the frame. `run` checks it against the
     /// camera it opens, `plan check` against the simulated frame.
     pub fn check_frame(&self, width: u32, height: u32) -> Result<(), PlanError> {
-        if let Some([x0, y0, x1, y1]) = self.adaptive.as_ref().and_then(|a| a.target.rect) {
+        if let Some([x0, y0, x1, y1]) = self.adaptive().and_then(|a| a.target.rect) {
             if x1 > width || y1 > height {
                 return Err(invalid(
                     "adaptive.target.rect",
@@ -1100,50 +1238,14 @@ impl Plan {
     /// The steps of the run, in order. An adaptive plan gives its darks and its first set;
     /// the loop adds the rest. A capture must have its angles resolved.
     pub fn steps(&self) -> Result<Vec<StepSpec>, PlanError> {
-        Ok(match self.kind {
-            PlanKind::Capture => self
-                .capture
-                .as_ref()
-                .ok_or_else(|| invalid("capture", "(missing)", "a [capture] section"))?
-                .steps()?,
-            PlanKind::CalibrateNoise => self
-                .calibrate_noise
-                .as_ref()
-                .ok_or_else(|| {
-                    invalid(
-                        "calibrate-noise",
-                        "(missing)",
-                        "a [calibrate-noise] section",
-                    )
-                })?
-                .steps(),
-            PlanKind::CalibrateAnalyzer => self
-                .calibrate_analyzer
-                .as_ref()
-                .ok_or_else(|| {
-                    invalid(
-                        "calibrate-analyzer",
-                        "(missing)",
-                        "a [calibrate-analyzer] section",
-                    )
-                })?
-                .steps(),
-            PlanKind::TimeLapse => self
-                .time_lapse
-                .as_ref()
-                .ok_or_else(|| invalid("time-lapse", "(missing)", "a [time-lapse] section"))?
-                .steps(),
-            PlanKind::Adaptive => self
-                .adaptive
-                .as_ref()
-                .ok_or_else(|| invalid("adaptive", "(missing)", "an [adaptive] section"))?
-                .steps(),
-            PlanKind::Continuous => {
+        Ok(match &self.acquisition {
+            Acquisition::Capture(c) => c.steps()?,
+            Acquisition::CalibrateNoise(c) => c.steps(),
+            Acquisition::CalibrateAnalyzer(c) => c.steps(),
+            Acquisition::TimeLapse(t) => t.steps(),
+            Acquisition::Adaptive(a) => a.steps(),
+            Acquisition::Continuous(c) => {
                 // One set per half turn; each step a frame triggered at its angle.
-                let c = self
-                    .continuous
-                    .as_ref()
-                    .ok_or_else(|| invalid("continuous", "(missing)", "a [continuous] section"))?;
                 let mut steps = Vec::new();
                 let angles = c.trigger_angles_deg();
                 for h in 0..u64::from(c.half_turns) {
@@ -1165,8 +1267,8 @@ impl Plan {
     /// The most frames the run can take (an adaptive plan's budget plus its darks; others:
     /// their steps).
     pub fn max_frames(&self) -> Result<u64, PlanError> {
-        match (&self.kind, &self.adaptive) {
-            (PlanKind::Adaptive, Some(a)) => Ok(a.frame_budget as u64 + u64::from(a.darks)),
+        match &self.acquisition {
+            Acquisition::Adaptive(a) => Ok(a.frame_budget as u64 + u64::from(a.darks)),
             _ => Ok(self.steps()?.len() as u64),
         }
     }
@@ -1319,7 +1421,7 @@ target = { material = "panel" }
         }
         let yaml = include_str!("../../../examples/plans/calibrate_noise.yaml");
         let plan = Plan::from_yaml_str(yaml).expect("yaml example");
-        assert_eq!(plan.kind, PlanKind::CalibrateNoise);
+        assert_eq!(plan.kind(), PlanKind::CalibrateNoise);
         let e = Plan::from_yaml_str(&yaml.replace("pairs: 1", "pairs: 0"))
             .expect_err("pairs")
             .to_string();

@@ -57,19 +57,15 @@ pub(crate) struct Places<'a> {
 /// plan's frames per half turn, exposure and speed. Returns what the planners chose.
 pub(crate) fn resolve_planners(plan: &mut Plan, plan_dir: &Path) -> Result<Vec<String>, String> {
     let wants_angles = plan
-        .capture
-        .as_ref()
+        .capture()
         .is_some_and(|c| c.angles_deg.is_none() && c.from_planner.is_some());
-    let wants_spin = plan
-        .continuous
-        .as_ref()
-        .is_some_and(|c| c.from_planner.is_some());
+    let wants_spin = plan.continuous().is_some_and(|c| c.from_planner.is_some());
     if !wants_angles && !wants_spin {
         return Ok(Vec::new());
     }
     let world = SimRig::world(plan, plan_dir).map_err(|e| e.to_string())?;
     let mut chosen = Vec::new();
-    if let Some(c) = plan.capture.clone().filter(|_| wants_angles) {
+    if let Some(c) = plan.capture().cloned().filter(|_| wants_angles) {
         if let (Some(fp), Some(&first)) = (&c.from_planner, c.exposure_us.first()) {
             let (angles, _why) =
                 forecast::planner_angles(&world.scene_file, &world.camera_model, fp, first)

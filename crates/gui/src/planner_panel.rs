@@ -541,9 +541,9 @@ impl PlannerPanel {
         };
         let mut inputs = self.inputs.clone();
         let mut used = false;
-        match plan.kind {
+        match plan.kind() {
             PlanKind::Capture => {
-                if let Some(c) = &plan.capture {
+                if let Some(c) = plan.capture() {
                     if let Some(fp) = &c.from_planner {
                         inputs.target = fp.target.clone();
                         inputs.background = fp.background.clone();
@@ -558,7 +558,7 @@ impl PlannerPanel {
                 }
             }
             PlanKind::Adaptive => {
-                if let Some(a) = &plan.adaptive {
+                if let Some(a) = plan.adaptive() {
                     if let Some(m) = &a.target.material {
                         inputs.target = m.clone();
                     }
@@ -582,13 +582,13 @@ impl PlannerPanel {
             format!(
                 "inputs from the plan {:?} ({})",
                 plan.name,
-                plan.kind.name()
+                plan.kind().name()
             )
         } else {
             format!(
                 "the plan {:?} ({}) has no planner inputs: defaults kept",
                 plan.name,
-                plan.kind.name()
+                plan.kind().name()
             )
         });
         if inputs != self.inputs {

@@ -515,7 +515,7 @@ fn continuous_from_planner_resolves_in_the_gui() {
     )
     .unwrap()
     .unwrap();
-    let n = u64::from(plan.continuous.as_ref().unwrap().frames_per_half_turn);
+    let n = u64::from(plan.continuous().unwrap().frames_per_half_turn);
     assert!((3..=8).contains(&n), "{n} frames per half turn");
     let (dir, mut h) = start("continuous-planner");
     h.state_mut().plan_text = text.into();

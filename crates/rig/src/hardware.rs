@@ -153,8 +153,8 @@ async fn connect(
 ) -> Result<Connected, RigError> {
     let line_interval_rad = plan
         .and_then(|plan| {
-            plan.continuous.as_ref().filter(|c| {
-                plan.kind == polar_engine::plan::PlanKind::Continuous
+            plan.continuous().filter(|c| {
+                plan.kind() == polar_engine::plan::PlanKind::Continuous
                     && c.trigger == polar_engine::continuous::TriggerSource::Encoder
             })
         })
@@ -214,7 +214,7 @@ async fn connect(
             ThreadedCamera::spawn(cam, ThreadPolicy::default()).map_err(RigError::of)?
         }
         (None, "sim") => {
-            if line_interval_rad.is_some() || plan.is_some_and(|p| p.continuous.is_some()) {
+            if line_interval_rad.is_some() || plan.is_some_and(|p| p.continuous().is_some()) {
                 return Err(RigError(format!(
                     "camera = \"sim\" with stage port = {:?}: the simulated camera follows a \
                      stage the rig does not simulate through the positions the stage reports, \

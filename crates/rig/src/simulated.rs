@@ -137,11 +137,10 @@ pub fn calibration_scene(
             .map_err(|e| SimError::Input(e.to_string()))?;
         Ok(w[(0, 0)] * unit_sensor.responsivity_e_per_s() * exposure_us * 1e-6)
     };
-    match plan.kind {
+    match plan.kind() {
         PlanKind::CalibrateNoise => {
             let c = plan
-                .calibrate_noise
-                .as_ref()
+                .calibrate_noise()
                 .ok_or_else(|| SimError::Input("calibrate-noise: the section is missing".into()))?;
             let longest = c.exposure_us.iter().copied().fold(0.0, f64::max);
             let l = 1.1 * camera_model.full_well_e / electrons_per_radiance(longest)?;
@@ -154,7 +153,7 @@ pub fn calibration_scene(
             )))
         }
         PlanKind::CalibrateAnalyzer => {
-            let c = plan.calibrate_analyzer.as_ref().ok_or_else(|| {
+            let c = plan.calibrate_analyzer().ok_or_else(|| {
                 SimError::Input("calibrate-analyzer: the section is missing".into())
             })?;
             let d = 0.999;
@@ -279,11 +278,7 @@ pub fn scene_light(illumination: &polar_hil_mocks::camera::Illumination) -> Scen
 /// The adaptive target's material as a mask of the simulated scene (row-major), if the plan
 /// names one; an error naming `adaptive.target.material` if the scene has no such material.
 pub fn target_mask(plan: &Plan, scene: &SimScene) -> Result<Option<Vec<bool>>, SimError> {
-    let Some(m) = plan
-        .adaptive
-        .as_ref()
-        .and_then(|a| a.target.material.as_deref())
-    else {
+    let Some(m) = plan.adaptive().and_then(|a| a.target.material.as_deref()) else {
         return Ok(None);
     };
     let k = scene.materials.iter().position(|x| x == m).ok_or_else(|| {
@@ -413,9 +408,8 @@ impl SimRig {
         // Only an encoder-triggered plan has the stage's compare output wired to the camera:
         // a timestamps plan simulates a camera the stage does not trigger.
         if let Some(c) = plan
-            .continuous
-            .as_ref()
-            .filter(|c| plan.kind == PlanKind::Continuous && c.trigger == TriggerSource::Encoder)
+            .continuous()
+            .filter(|c| plan.kind() == PlanKind::Continuous && c.trigger == TriggerSource::Encoder)
         {
             cam.wire_line(compare_line(
                 server.truth_handle(),
@@ -546,7 +540,7 @@ impl SimRig {
     /// The sun of the simulated scene (zenith, azimuth, degrees), which its frames record;
     /// `None` for the calibration sources (a uniform light has no sun).
     pub fn sun_deg(&self, plan: &Plan) -> Option<(f64, f64)> {
-        match plan.kind {
+        match plan.kind() {
             PlanKind::CalibrateNoise | PlanKind::CalibrateAnalyzer => None,
             _ => self
                 .scene_file

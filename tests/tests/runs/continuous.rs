@@ -262,11 +262,11 @@ fn continuous_run_on_the_simulated_rig() {
     let world = SimRig::world(&plan, common::spans::plan_dir()).unwrap();
     let exposure_us = common::spans::unsaturated_exposure_us(&world);
     {
-        let c = plan.continuous.as_mut().unwrap();
+        let c = plan.continuous_mut().unwrap();
         c.half_turns = 6;
         c.exposure_us = exposure_us;
     }
-    let c = plan.continuous.clone().unwrap();
+    let c = plan.continuous().cloned().unwrap();
     c.validate().unwrap();
     let dir = common::temp_dir("continuous-run");
     let outcome = common::spans::run_sim(&plan, &dir).unwrap();
@@ -341,7 +341,7 @@ fn a_half_turn_cut_by_a_dropped_frame_is_taken_again_whole() {
     ))
     .unwrap();
     {
-        let c = plan.continuous.as_mut().unwrap();
+        let c = plan.continuous_mut().unwrap();
         c.half_turns = 8;
         c.exposure_us = 500.0;
     }

@@ -135,11 +135,11 @@ fn timestamps_run_on_the_simulated_k10cr1() {
     let world = SimRig::world(&plan, common::spans::plan_dir()).unwrap();
     let exposure_us = common::spans::unsaturated_exposure_us(&world);
     {
-        let c = plan.continuous.as_mut().unwrap();
+        let c = plan.continuous_mut().unwrap();
         c.half_turns = 2;
         c.exposure_us = exposure_us;
     }
-    let c = plan.continuous.clone().unwrap();
+    let c = plan.continuous().cloned().unwrap();
     assert_eq!(c.trigger, TriggerSource::Timestamps);
     c.validate().unwrap();
     let dir = common::temp_dir("continuous-timestamps-k10cr1");
@@ -254,7 +254,7 @@ fn timestamps_run_on_the_simulated_k10cr1() {
 #[test]
 fn refusals_name_the_trigger() {
     let mut plan = Plan::from_toml_str(PLAN).unwrap();
-    plan.continuous.as_mut().unwrap().trigger = TriggerSource::Encoder;
+    plan.continuous_mut().unwrap().trigger = TriggerSource::Encoder;
     let dir = common::temp_dir("continuous-timestamps-encoder");
     let e = common::spans::run_sim(&plan, &dir)
         .expect_err("refused")

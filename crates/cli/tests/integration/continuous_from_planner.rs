@@ -85,7 +85,7 @@ fn resolves_to_what_plan_continuous_chooses() {
     );
     let (resolved, _, chosen) = load_plan_resolved(&path).unwrap();
     let chosen = chosen.expect("the planner's choice");
-    let c = resolved.continuous.as_ref().unwrap();
+    let c = resolved.continuous().unwrap();
     assert!(c.from_planner.is_none());
     resolved.validate().unwrap();
     c.validate().unwrap();

@@ -21,8 +21,7 @@ pub(super) fn adaptive_set(
     angles_rad: &[f64],
 ) -> Vec<(u64, StepSpec)> {
     let (exposure_us, gain_db) = plan
-        .adaptive
-        .as_ref()
+        .adaptive()
         .map_or((1000.0, 0.0), |a| (a.exposure_us, a.gain_db));
     angles_rad
         .iter()
@@ -52,7 +51,7 @@ pub(super) fn aptd_frame(
     camera: &CameraModel,
     plan: &Plan,
 ) -> AptdFrame {
-    let gain_db = plan.adaptive.as_ref().map_or(0.0, |a| a.gain_db);
+    let gain_db = plan.adaptive().map_or(0.0, |a| a.gain_db);
     let k = camera.gain_dn_per_e * 10f64.powf(gain_db / 20.0);
     let dark = camera.offset_dn + k * camera.dark_current_e_per_s * r.exposure_us * 1e-6;
     AptdFrame {
@@ -212,8 +211,7 @@ pub fn replayed_decisions(
     target_mask: &Option<Vec<bool>>,
 ) -> Result<Vec<Value>, RunError> {
     let a = plan
-        .adaptive
-        .as_ref()
+        .adaptive()
         .ok_or_else(|| RunError::Check("not an adaptive plan".into()))?;
     let replay = crate::journal::replay(run_dir)?;
     let superseded: BTreeSet<u64> = replay

@@ -23,11 +23,10 @@ pub(super) fn calibrate(
             .collect()
     };
     let bad = |e: String| RunError::Check(format!("calibration: {e}"));
-    match plan.kind {
+    match plan.kind() {
         PlanKind::CalibrateNoise => {
             let c = plan
-                .calibrate_noise
-                .as_ref()
+                .calibrate_noise()
                 .ok_or_else(|| bad("no [calibrate-noise] section".into()))?;
             let mut points = Vec::new();
             for &e in &c.exposure_us {
@@ -75,8 +74,7 @@ pub(super) fn calibrate(
         }
         PlanKind::CalibrateAnalyzer => {
             let c = plan
-                .calibrate_analyzer
-                .as_ref()
+                .calibrate_analyzer()
                 .ok_or_else(|| bad("no [calibrate-analyzer] section".into()))?;
             let mean = |r: &FrameRecord| -> Result<f64, RunError> {
                 let px = reader.read_frame(r.index)?;

@@ -149,7 +149,7 @@ where
     R: Rotator,
     C: Camera,
 {
-    let Some(c) = plan.continuous.as_ref() else {
+    let Some(c) = plan.continuous() else {
         return Err(plan_err(
             "continuous",
             "missing",

@@ -26,7 +26,7 @@ where
     R: Rotator + 'static,
     C: Camera + 'static,
 {
-    if plan.kind == PlanKind::Continuous {
+    if plan.kind() == PlanKind::Continuous {
         spin_loop::run(plan, rig, run_dir, resume, link).await
     } else {
         step_loop::run(plan, rig, run_dir, resume, link).await

@@ -127,7 +127,7 @@ where
     let stage = spawn_stage(rig.analyzer);
     // A new run that starts with a set: the stage goes to its first angle while the store is
     // created (about 30 fsyncs).
-    let first_move = if resume || plan.adaptive.is_some() {
+    let first_move = if resume || plan.adaptive().is_some() {
         None
     } else {
         first_move(plan, &stage)
@@ -158,7 +158,7 @@ where
         camera_model: rig.camera_model.clone(),
         pausing: false,
         configured: None,
-        keep_pixels: plan.kind == PlanKind::Adaptive,
+        keep_pixels: plan.kind() == PlanKind::Adaptive,
         kept: HashMap::new(),
         lens_capped: replay.lens_capped,
         light_level: 1.0,
@@ -276,7 +276,7 @@ impl StepLoop<'_> {
             .collect();
         self.aptd_next_step = steps.len() as u64;
         self.decisions = replay.decisions;
-        let Some(a) = &plan.adaptive else {
+        let Some(a) = plan.adaptive() else {
             return Ok(());
         };
         let core = &self.core;
@@ -449,7 +449,7 @@ impl StepLoop<'_> {
             return Ok(Flow::Take(unit));
         };
         let due_ns = self.core.run_start_unix_ns + (t * 1e9) as i64;
-        if let (Some(tl), Unit::Set(set, members)) = (self.core.plan.time_lapse.as_ref(), &unit) {
+        if let (Some(tl), Unit::Set(set, members)) = (self.core.plan.time_lapse(), &unit) {
             let late_s = (now_unix_ns(SystemTime::now()) - due_ns) as f64 * 1e-9;
             if late_s > 0.5 * tl.interval_s {
                 let skip = tl.late == crate::plan::LatePolicy::Skip;
