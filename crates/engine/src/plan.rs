@@ -362,7 +362,9 @@ pub struct Simulation {
     pub stage_deg_per_s: f64,
     /// The simulated stage: a rotator of a dialect's simulator
     /// (`polar_hil_mocks::sim::SIMULATORS`), e.g. `stage = { dialect = "apt", model =
-    /// "k10cr1" }`, driven through its dialect's driver; none: our firmware's rotator.
+    /// "k10cr1" }`, driven through its dialect's driver; none: the registry's first rotator
+    /// (our firmware's). The simulated rig checks the choice (`polar_rig::sim_stage`); the
+    /// engine does not know the simulators.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stage: Option<SimStage>,
     /// Fault profile of the stage's serial link (hil-mocks `FaultProfile` fields).
