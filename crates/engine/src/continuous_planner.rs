@@ -20,7 +20,7 @@
 
 use crate::continuous::{Continuous, ContinuousFromPlanner, FromPlannerObjective, TriggerSource};
 use crate::forecast_basis::{camera_at_gain, ForecastError, SCENE_TOL};
-use crate::plan::{Plan, PlanError, PlanKind};
+use crate::plan::{Plan, PlanError};
 use polar_model::scene_file::Scene;
 use polar_model::sensor::{Camera, SensorModel};
 use polar_planner::continuous::{
@@ -144,7 +144,6 @@ pub fn settings(
     fp: &ContinuousFromPlanner,
     stage: Option<StageLimits>,
 ) -> Result<Settings, PlanError> {
-    let sim = stage;
     let stage_field = |field: &str| PlanError::Invalid {
         field: format!("continuous.from_planner.{field}"),
         value: "(none)".into(),
@@ -152,12 +151,12 @@ pub fn settings(
                   gives them where its simulator says how it moves)"
             .into(),
     };
-    let max_speed_rad_per_s = match (fp.max_speed_deg_per_s, sim) {
+    let max_speed_rad_per_s = match (fp.max_speed_deg_per_s, stage) {
         (Some(v), _) => v.to_radians(),
         (None, Some(s)) => s.max_speed_rad_per_s,
         (None, None) => return Err(stage_field("max_speed_deg_per_s")),
     };
-    let acceleration_rad_per_s2 = match (fp.acceleration_deg_per_s2, sim) {
+    let acceleration_rad_per_s2 = match (fp.acceleration_deg_per_s2, stage) {
         (Some(a), _) => a.to_radians(),
         (None, Some(s)) => s.acceleration_rad_per_s2,
         (None, None) => return Err(stage_field("acceleration_deg_per_s2")),
@@ -203,9 +202,6 @@ pub fn resolve(
     camera: &Camera,
     stage: Option<StageLimits>,
 ) -> Result<Option<ContinuousChoice>, ForecastError> {
-    if plan.kind() != PlanKind::Continuous {
-        return Ok(None);
-    }
     let Some(c) = plan.continuous().cloned() else {
         return Ok(None);
     };

@@ -18,7 +18,7 @@
 use polar_drivers::any::AnyRotator;
 use polar_drivers::registry;
 use polar_engine::continuous::TriggerSource;
-use polar_engine::plan::{Plan, PlanKind};
+use polar_engine::plan::{Acquisition, Plan, PlanKind};
 use polar_engine::run::{Rig as EngineRig, SceneLight};
 use polar_hal::camera_thread::{ThreadPolicy, ThreadedCamera};
 use polar_hal::{Approach, OnRotator};
@@ -137,11 +137,8 @@ pub fn calibration_scene(
             .map_err(|e| SimError::Input(e.to_string()))?;
         Ok(w[(0, 0)] * unit_sensor.responsivity_e_per_s() * exposure_us * 1e-6)
     };
-    match plan.kind() {
-        PlanKind::CalibrateNoise => {
-            let c = plan
-                .calibrate_noise()
-                .ok_or_else(|| SimError::Input("calibrate-noise: the section is missing".into()))?;
+    match &plan.acquisition {
+        Acquisition::CalibrateNoise(c) => {
             let longest = c.exposure_us.iter().copied().fold(0.0, f64::max);
             let l = 1.1 * camera_model.full_well_e / electrons_per_radiance(longest)?;
             Ok(Some(uniform(
@@ -152,10 +149,7 @@ pub fn calibration_scene(
                 band,
             )))
         }
-        PlanKind::CalibrateAnalyzer => {
-            let c = plan.calibrate_analyzer().ok_or_else(|| {
-                SimError::Input("calibrate-analyzer: the section is missing".into())
-            })?;
+        Acquisition::CalibrateAnalyzer(c) => {
             let d = 0.999;
             let two = 2.0 * c.reference_angle_deg.to_radians();
             let l = 0.6 * camera_model.full_well_e / (2.0 * electrons_per_radiance(c.exposure_us)?);

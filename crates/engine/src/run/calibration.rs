@@ -1,7 +1,7 @@
 //! The calibrations a plan computes from its frames at the end of the run.
 
 use super::outcome::RunError;
-use crate::plan::{Plan, PlanKind};
+use crate::plan::{Acquisition, Plan};
 use crate::store::RunStore;
 use crate::{FrameKind, FrameRecord};
 use serde_json::Value;
@@ -23,11 +23,8 @@ pub(super) fn calibrate(
             .collect()
     };
     let bad = |e: String| RunError::Check(format!("calibration: {e}"));
-    match plan.kind() {
-        PlanKind::CalibrateNoise => {
-            let c = plan
-                .calibrate_noise()
-                .ok_or_else(|| bad("no [calibrate-noise] section".into()))?;
+    match &plan.acquisition {
+        Acquisition::CalibrateNoise(c) => {
             let mut points = Vec::new();
             for &e in &c.exposure_us {
                 let pick = |kind| -> Vec<&FrameRecord> {
@@ -72,10 +69,7 @@ pub(super) fn calibrate(
                 serde_json::to_value(&pt).unwrap_or(Value::Null),
             )))
         }
-        PlanKind::CalibrateAnalyzer => {
-            let c = plan
-                .calibrate_analyzer()
-                .ok_or_else(|| bad("no [calibrate-analyzer] section".into()))?;
+        Acquisition::CalibrateAnalyzer(c) => {
             let mean = |r: &FrameRecord| -> Result<f64, RunError> {
                 let px = reader.read_frame(r.index)?;
                 Ok(px.iter().map(|&p| f64::from(p)).sum::<f64>() / px.len().max(1) as f64)
