@@ -22,6 +22,7 @@ What a reader of the dataset is promised, checked without any of our code:
   end == start; the source is a known code (0 settled, 1 encoder trigger, 2 timestamps).
   A run written before frames recorded spans has none of these arrays: that is not a problem;
 - no set has two product slots, and every set the journal records as done has one;
+  `products/flags`, a bit mask, is stored as unsigned integers;
 - with --finished: the journal ends the run, every plan step between 0 and the last has
   exactly one accepted frame (but the steps of late time-lapse sets the plan skipped), and
   the summary counts the sets in the store.
@@ -118,6 +119,10 @@ def main(argv):
                     problems.append(f"xarray {group}/{name}: unnamed dimensions {var.dims}")
         except Exception as e:  # noqa: BLE001
             problems.append(f"xarray cannot open {group}: {type(e).__name__}: {e}")
+
+    flags = arrays.get("products/flags")
+    if flags is not None and flags.dtype.kind != "u":
+        problems.append(f"products/flags is a bit mask stored as {flags.dtype}, not unsigned")
 
     pixels = values.get("frames/pixels")
     # The frames the store mirrors: all N once the run is finished, the first M <= N before.

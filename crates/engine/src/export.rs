@@ -176,7 +176,13 @@ pub fn export_tiff(run_dir: &Path, out_dir: &Path) -> Result<ExportSummary, Expo
             match store.read_product(name, slot.slot) {
                 Ok(img) => {
                     let path = out_dir.join(format!("{stem}_{name}.tif"));
-                    write_tiff_f32(&path, w, h, &img)?;
+                    if name == "flags" {
+                        // The bit mask: a 16-bit integer image, exact (the values are 0..7).
+                        let mask: Vec<u16> = img.iter().map(|&f| f as u16).collect();
+                        write_tiff_u16(&path, w, h, &mask)?;
+                    } else {
+                        write_tiff_f32(&path, w, h, &img)?;
+                    }
                     summary.products += 1;
                 }
                 Err(e) => summary

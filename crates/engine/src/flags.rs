@@ -1,6 +1,6 @@
 //! Per-pixel quality flags of a set's products (`products/flags`): which values a reader must
-//! not take at face value. Stored as float32 holding small integers (the products' type),
-//! with the CF attributes `flag_masks` and `flag_meanings`.
+//! not take at face value. Stored as uint8, with the CF attributes `flag_masks` and
+//! `flag_meanings`.
 
 use crate::products::Products;
 
@@ -17,7 +17,7 @@ pub const AOP_UNDEFINED: u8 = 4;
 pub const AOP_SIGMA_MAX_RAD: f64 = std::f64::consts::PI / 3.464_101_615_137_754_5;
 
 /// The flags of every pixel of `p`.
-pub fn pixel_flags(p: &Products) -> Vec<f32> {
+pub fn pixel_flags(p: &Products) -> Vec<u8> {
     (0..p.pixel_count())
         .map(|i| {
             let mut f = 0u8;
@@ -32,7 +32,7 @@ pub fn pixel_flags(p: &Products) -> Vec<f32> {
             if !p.aop_rad[i].is_finite() || sigma.is_nan() || sigma > AOP_SIGMA_MAX_RAD {
                 f |= AOP_UNDEFINED;
             }
-            f32::from(f)
+            f
         })
         .collect()
 }

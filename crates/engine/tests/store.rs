@@ -4,7 +4,7 @@
 
 use polar_engine::export::{export_tiff, CSV_HEADER};
 use polar_engine::journal::{self, Entry, Journal};
-use polar_engine::store::{RunStore, StoreError};
+use polar_engine::store::{Plane, RunStore, StoreError};
 use polar_engine::{pixel_hash, AngleSource, FrameKind, FrameRecord};
 use serde_json::{json, Map, Value};
 use std::path::{Path, PathBuf};
@@ -163,7 +163,7 @@ fn write_run(dir: &Path) -> RunStore {
             .enumerate()
             .map(|(k, n)| (*n, product(slot as f32 * 10.0 + k as f32)))
             .collect();
-        let refs: Vec<(&str, &[f32])> = images.iter().map(|(n, v)| (*n, v.as_slice())).collect();
+        let refs: Vec<(&str, Plane)> = images.iter().map(|(n, v)| (*n, Plane::from(v))).collect();
         let written = store
             .write_products(slot + 3, &slot_angles(slot), &refs)
             .unwrap();
@@ -176,6 +176,54 @@ fn write_run(dir: &Path) -> RunStore {
         .unwrap();
     store.push_decision(json!({"round": 0})).unwrap();
     store
+}
+
+/// `products/flags` is a bit mask: stored as uint8 (the data type in its `zarr.json`), read
+/// back exactly; a run whose `flags` array is float32 (written by an earlier version and
+/// resumed now) takes the same uint8 mask as float32 values, so a resume never fails on it.
+#[test]
+fn flags_are_stored_as_unsigned_integers() {
+    let tmp = TempDir::new("flags-u8");
+    let store = RunStore::create(tmp.path(), W, H, attributes()).unwrap();
+    let n = (W * H) as usize;
+    let mask: Vec<u8> = (0..n).map(|i| (i % 8) as u8).collect();
+    let dolp = product(0.5);
+    store
+        .write_products(
+            0,
+            &[0.0, 60.0, 120.0],
+            &[("dolp", Plane::from(&dolp)), ("flags", Plane::U8(&mask))],
+        )
+        .unwrap();
+    let meta: Value = serde_json::from_slice(
+        &std::fs::read(tmp.path().join("run.zarr/products/flags/zarr.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(meta["data_type"], json!("uint8"), "{meta}");
+    assert_eq!(meta["fill_value"], json!(0), "{meta}");
+    let back = store.read_product("flags", 0).unwrap();
+    let want: Vec<f32> = mask.iter().map(|&b| f32::from(b)).collect();
+    assert_eq!(back, want);
+    // A float32 plane is never narrowed into the integer array.
+    let e = store
+        .write_products(1, &[0.0], &[("flags", Plane::from(&dolp))])
+        .unwrap_err();
+    assert!(e.to_string().contains("flags"), "{e}");
+    drop(store);
+
+    // An earlier run's float32 flags array (its metadata turned back to float32, its chunk
+    // gone) takes the uint8 mask as float32 values when the run is resumed.
+    let meta_path = tmp.path().join("run.zarr/products/flags/zarr.json");
+    let mut older = meta.clone();
+    older["data_type"] = json!("float32");
+    older["fill_value"] = json!("NaN");
+    std::fs::write(&meta_path, serde_json::to_vec(&older).unwrap()).unwrap();
+    std::fs::remove_dir_all(tmp.path().join("run.zarr/products/flags/c")).unwrap();
+    let reopened = RunStore::open(tmp.path()).unwrap();
+    reopened
+        .write_products(0, &[0.0, 60.0, 120.0], &[("flags", Plane::U8(&mask))])
+        .unwrap();
+    assert_eq!(reopened.read_product("flags", 0).unwrap(), want);
 }
 
 /// NaN-aware equality of records.
@@ -240,7 +288,7 @@ fn store_round_trip() {
     let e = store.write_frame(0, &[1, 2, 3]).unwrap_err();
     assert!(e.to_string().contains("frame 0: 3 values"), "{e}");
     let e = store
-        .write_products(9, &[0.0], &[("set", &product(0.0))])
+        .write_products(9, &[0.0], &[("set", Plane::from(&product(0.0)))])
         .unwrap_err();
     assert!(e.to_string().contains("\"set\""), "{e}");
     assert!(matches!(
@@ -774,7 +822,7 @@ fn an_index_array_torn_between_chunk_and_metadata_reads_as_its_older_state() {
     // A third slot and two more frame records, then the crash: both arrays' metadata revert
     // to what it was, while their chunks hold the newer values.
     let images: Vec<(&str, Vec<f32>)> = PRODUCT_NAMES.iter().map(|n| (*n, product(99.0))).collect();
-    let refs: Vec<(&str, &[f32])> = images.iter().map(|(n, v)| (*n, v.as_slice())).collect();
+    let refs: Vec<(&str, Plane)> = images.iter().map(|(n, v)| (*n, Plane::from(v))).collect();
     store.write_products(7, &slot_angles(2), &refs).unwrap();
     let records: Vec<FrameRecord> = (0..N + 2).map(record).collect();
     for i in N..N + 2 {

@@ -5,7 +5,7 @@ use super::outcome::{RunError, Verdict};
 use crate::journal::{Entry, Journal};
 use crate::products;
 use crate::products::{Dark, NoiseModel, Products, SetGeometry};
-use crate::store::RunStore;
+use crate::store::{Plane, RunStore};
 use crate::{FrameKind, FrameRecord};
 use polar_model::sensor::Camera as CameraModel;
 use polar_model::sensor::SensorModel;
@@ -242,11 +242,11 @@ impl Writer {
         if verdict.accepted {
             let names = Products::names();
             let flags = crate::flags::pixel_flags(&self.products);
-            let mut images: Vec<(&str, &[f32])> = names
+            let mut images: Vec<(&str, Plane)> = names
                 .iter()
-                .filter_map(|n| self.products.image(n).map(|img| (*n, img)))
+                .filter_map(|n| self.products.image(n).map(|img| (*n, Plane::F32(img))))
                 .collect();
-            images.push(("flags", &flags));
+            images.push(("flags", Plane::U8(&flags)));
             self.store
                 .write_products(job.set, &job.measured_deg, &images)
                 .map_err(|e| format!("products of set {}: {e}", job.set))?;
@@ -261,8 +261,15 @@ impl Writer {
                     job.exposure_us
                 ),
             };
+            let dark_source = match &dark {
+                Dark::Map(_) => json!({
+                    "dark_frames": self.darks.get(&job.exposure_us.to_bits()).map_or(0, |d| d.1),
+                    "exposure_us": job.exposure_us,
+                }),
+                Dark::Scalar(level) => json!({ "level_dn": f64::from(*level) }),
+            };
             self.store
-                .set_product_dark(job.set, &dark_text)
+                .set_product_dark(job.set, &dark_text, dark_source)
                 .map_err(|e| format!("products of set {}: {e}", job.set))?;
             self.store
                 .set_product_saturation(job.set, verdict.saturated_fraction)

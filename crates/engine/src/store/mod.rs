@@ -94,6 +94,7 @@ mod products;
 mod schema;
 use durable::{lock, DurableStore};
 pub use error::StoreError;
+pub use products::Plane;
 pub use schema::STATUS_CODES;
 
 pub use schema::{conventions, HASH_ALGORITHM, KIND_CODES};

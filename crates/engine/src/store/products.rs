@@ -3,6 +3,77 @@
 use super::metadata::index_chunk;
 use super::*;
 
+/// One product image of a set, in its array's data type: the measured planes are float32,
+/// the bit mask `flags` is uint8.
+#[derive(Debug, Clone, Copy)]
+pub enum Plane<'a> {
+    /// A float32 image (Stokes, DoLP, AoP and their sigmas).
+    F32(&'a [f32]),
+    /// An unsigned 8-bit image (the bit mask `flags`).
+    U8(&'a [u8]),
+}
+
+impl Plane<'_> {
+    fn len(&self) -> usize {
+        match self {
+            Plane::F32(v) => v.len(),
+            Plane::U8(v) => v.len(),
+        }
+    }
+}
+
+impl<'a> From<&'a [f32]> for Plane<'a> {
+    fn from(v: &'a [f32]) -> Self {
+        Plane::F32(v)
+    }
+}
+
+impl<'a> From<&'a Vec<f32>> for Plane<'a> {
+    fn from(v: &'a Vec<f32>) -> Self {
+        Plane::F32(v)
+    }
+}
+
+impl<'a> From<&'a [u8]> for Plane<'a> {
+    fn from(v: &'a [u8]) -> Self {
+        Plane::U8(v)
+    }
+}
+
+/// Stores `plane` as chunk `[slot, 0, 0]` of `a`, in `a`'s data type. A uint8 plane goes into
+/// a float32 array unchanged in value (a run written before `flags` was an integer array and
+/// resumed now); a float32 plane is never narrowed into an integer array.
+fn store_plane(
+    a: &Array<DurableStore>,
+    name: &str,
+    slot: u64,
+    plane: Plane<'_>,
+) -> Result<(), String> {
+    let at = [slot, 0, 0];
+    let float = a.data_type() == &data_type::float32();
+    let stored = match plane {
+        Plane::U8(v) if float => {
+            let wide: Vec<f32> = v.iter().map(|&b| f32::from(b)).collect();
+            a.store_chunk_opt(&at, wide.as_slice(), &codec_options())
+        }
+        Plane::U8(v) if a.data_type() == &data_type::uint8() => {
+            a.store_chunk_opt(&at, v, &codec_options())
+        }
+        Plane::F32(v) if float => a.store_chunk_opt(&at, v, &codec_options()),
+        _ => {
+            return Err(format!(
+                "product {name:?} is stored as {}; a {} image cannot be written into it",
+                a.data_type(),
+                match plane {
+                    Plane::F32(_) => "float32",
+                    Plane::U8(_) => "uint8",
+                }
+            ))
+        }
+    };
+    stored.map_err(|e| e.to_string())
+}
+
 impl RunStore {
     pub(super) fn load_products(&self) -> Result<ProductsState, StoreError> {
         let (_, sets) = self.read_whole::<i64>(PRODUCT_SET)?;
@@ -87,7 +158,7 @@ impl RunStore {
         &self,
         set: u64,
         angles_deg: &[f64],
-        images: &[(&str, &[f32])],
+        images: &[(&str, Plane<'_>)],
     ) -> Result<u64, StoreError> {
         self.store.begin_batch();
         let written = self.write_products_files(set, angles_deg, images);
@@ -101,10 +172,10 @@ impl RunStore {
         &self,
         set: u64,
         angles_deg: &[f64],
-        images: &[(&str, &[f32])],
+        images: &[(&str, Plane<'_>)],
     ) -> Result<u64, StoreError> {
         let mut seen = BTreeSet::new();
-        for (name, values) in images {
+        for (name, plane) in images {
             check_product_name(name)?;
             if !seen.insert(*name) {
                 return Err(StoreError::Product {
@@ -112,7 +183,7 @@ impl RunStore {
                     message: "given twice".into(),
                 });
             }
-            self.check_image(|| format!("product {name:?}"), values.len())?;
+            self.check_image(|| format!("product {name:?}"), plane.len())?;
         }
         let set_i64 = i64::try_from(set).map_err(|_| StoreError::Product {
             name: "set".into(),
@@ -167,13 +238,12 @@ impl RunStore {
             let names = state.names.iter().cloned().map(Value::String).collect();
             self.update_group_attribute(PRODUCTS, "names", Value::Array(names))?;
         }
-        for (name, values) in images {
+        for (name, plane) in images {
             if let Some(a) = state.arrays.get(*name) {
-                a.store_chunk_opt(&[slot, 0, 0], *values, &codec_options())
-                    .map_err(zarr_err(
-                        self.chunk_path(a, &[slot, 0, 0]).display().to_string(),
-                        "writing product chunk",
-                    ))?;
+                store_plane(a, name, slot, *plane).map_err(|message| StoreError::Product {
+                    name: (*name).to_string(),
+                    message: format!("{}: {message}", self.chunk_path(a, &[slot, 0, 0]).display()),
+                })?;
             }
         }
         let m = slots as usize;
@@ -185,10 +255,19 @@ impl RunStore {
         Ok(slot)
     }
 
-    /// Records which dark level set `set`'s products subtract (the `dark` attribute of
-    /// `products/`, an object by set number).
-    pub fn set_product_dark(&self, set: u64, description: &str) -> Result<(), StoreError> {
-        self.insert_into_attribute(PRODUCTS, "dark", &set.to_string(), json!(description))
+    /// Records which dark set `set`'s products subtract: in words (the `dark` attribute of
+    /// `products/`, an object by set number) and for a reader to recompute (`dark_source`:
+    /// `{"level_dn": L}` for a scalar level, `{"dark_frames": N, "exposure_us": T}` for the
+    /// mean of the run's first N dark frames at exposure T).
+    pub fn set_product_dark(
+        &self,
+        set: u64,
+        description: &str,
+        source: Value,
+    ) -> Result<(), StoreError> {
+        let key = set.to_string();
+        self.insert_into_attribute(PRODUCTS, "dark", &key, json!(description))?;
+        self.insert_into_attribute(PRODUCTS, "dark_source", &key, source)
     }
 
     /// Records the share of set `set`'s pixels where a frame saturated (the
@@ -217,7 +296,8 @@ impl RunStore {
             .collect())
     }
 
-    /// Reads product `name` of `slot`.
+    /// Reads product `name` of `slot`, as float32 whatever its stored type (the uint8 `flags`
+    /// convert exactly).
     pub fn read_product(&self, name: &str, slot: u64) -> Result<Vec<f32>, StoreError> {
         check_product_name(name)?;
         let node = format!("{PRODUCTS}/{name}");
@@ -236,15 +316,23 @@ impl RunStore {
                 message: format!("slot {slot} is past the {slots} slots stored"),
             });
         }
-        a.retrieve_chunk_if_exists_opt::<Vec<f32>>(&[slot, 0, 0], &codec_options())
-            .map_err(zarr_err(
-                self.chunk_path(&a, &[slot, 0, 0]).display().to_string(),
-                "reading product chunk",
-            ))?
-            .ok_or_else(|| StoreError::MissingChunk {
-                path: self.chunk_path(&a, &[slot, 0, 0]),
-                what: format!("product {name:?} of slot {slot}"),
-            })
+        let at = [slot, 0, 0];
+        let failed = zarr_err(
+            self.chunk_path(&a, &at).display().to_string(),
+            "reading product chunk",
+        );
+        let values = if a.data_type() == &data_type::uint8() {
+            a.retrieve_chunk_if_exists_opt::<Vec<u8>>(&at, &codec_options())
+                .map_err(failed)?
+                .map(|v| v.into_iter().map(f32::from).collect())
+        } else {
+            a.retrieve_chunk_if_exists_opt::<Vec<f32>>(&at, &codec_options())
+                .map_err(failed)?
+        };
+        values.ok_or_else(|| StoreError::MissingChunk {
+            path: self.chunk_path(&a, &at),
+            what: format!("product {name:?} of slot {slot}"),
+        })
     }
 
     /// The product names written so far (the `names` attribute of `products/`).

@@ -222,7 +222,11 @@ pub fn image_stack<TStorage: ?Sized>(
 ) -> Result<Array<TStorage>, zarrs::array::ArrayCreateError> {
     let (h, w) = (u64::from(height), u64::from(width));
     let (shape, chunk) = (vec![count, h, w], vec![1, h, w]);
-    if node.starts_with("/products/") {
+    if node == "/products/flags" {
+        // A bit mask: unsigned integers, 0 (no flag) where nothing was written.
+        let dims = ["slot", "y", "x"];
+        array(store, node, shape, chunk, data_type::uint8(), 0u8, &dims)
+    } else if node.starts_with("/products/") {
         let dims = ["slot", "y", "x"];
         array(
             store,

@@ -198,7 +198,7 @@ pub fn python() -> Option<String> {
 pub fn outside_check(dir: &Path, finished: bool) {
     let Some(py) = python() else { return };
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/check_run.py");
-    let mut cmd = std::process::Command::new(py);
+    let mut cmd = std::process::Command::new(&py);
     cmd.arg(&script).arg(dir);
     if finished {
         cmd.arg("--finished");
@@ -213,5 +213,28 @@ pub fn outside_check(dir: &Path, finished: bool) {
         out.status.success(),
         "check_run.py on {}: {text}",
         dir.display()
+    );
+    if finished {
+        recompute_check(dir, &py);
+    }
+}
+
+/// docs/DATASET.md's Python reference recomputes every set's products from the store alone
+/// (`scripts/recompute_products.py`, whose doc states the float32 tolerances) and agrees with
+/// the stored products.
+fn recompute_check(dir: &Path, py: &str) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/recompute_products.py");
+    let out = std::process::Command::new(py)
+        .arg(&script)
+        .arg(dir)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    println!("recompute_products.py {}: {text}", dir.display());
+    assert!(
+        out.status.success(),
+        "recompute_products.py on {}: {text}{}",
+        dir.display(),
+        String::from_utf8_lossy(&out.stderr)
     );
 }
