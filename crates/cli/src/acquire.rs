@@ -310,6 +310,13 @@ pub fn run_cmd(
         crate::rig::apply_site(&mut plan, r);
     }
     let run_dir = out.unwrap_or_else(|| run::default_run_dir(Path::new("."), &plan));
+    if run_dir.exists() && !run_dir.is_dir() {
+        return Err(CommandError(format!(
+            "--out {}: is a file, not a directory; a run needs a new directory (or an empty \
+             one) of its own",
+            run_dir.display()
+        )));
+    }
     let simulated_camera = hardware.as_ref().is_none_or(|h| h.camera == "sim");
     let start_warnings = if simulated_camera {
         saturation_forecast(&plan, &plan_dir)

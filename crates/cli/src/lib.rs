@@ -12,6 +12,7 @@ pub mod bench_stats;
 pub mod calibrate;
 pub mod camera;
 pub mod commands;
+pub mod count_arg;
 pub mod devices;
 pub mod figures;
 pub mod logging;

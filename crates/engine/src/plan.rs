@@ -37,6 +37,29 @@ fn invalid(field: &str, value: impl std::fmt::Display, allowed: impl Into<String
     }
 }
 
+/// The longest value an error message quotes whole, in characters.
+const QUOTED_VALUE_MAX_CHARS: usize = 120;
+
+/// `value`, or its start and its length when it is longer than [`QUOTED_VALUE_MAX_CHARS`]: an
+/// error names a value, it does not echo a file.
+fn shortened(value: String) -> String {
+    let chars = value.chars().count();
+    if chars <= QUOTED_VALUE_MAX_CHARS {
+        return value;
+    }
+    let head: String = value.chars().take(QUOTED_VALUE_MAX_CHARS - 20).collect();
+    format!("{head}… ({chars} characters)")
+}
+
+/// A list of angles as an error quotes it: whole when short, else its count and first values.
+fn quoted_angles(angles: &[f64]) -> String {
+    const SHOWN: usize = 8;
+    if angles.len() <= SHOWN {
+        return format!("{angles:?}");
+    }
+    format!("{} angles {:?}...", angles.len(), &angles[..SHOWN])
+}
+
 /// The plan kinds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -630,7 +653,7 @@ fn check_angles(field: &str, angles: &[f64], lo_n: usize, hi_n: usize) -> Result
     if !(lo_n..=hi_n).contains(&angles.len()) {
         return Err(invalid(
             field,
-            format!("{angles:?}"),
+            quoted_angles(angles),
             format!("{lo_n}..={hi_n} angles"),
         ));
     }
@@ -1084,12 +1107,22 @@ impl Plan {
     /// Parses TOML text; errors name the field.
     pub fn from_toml_str(text: &str) -> Result<Plan, PlanError> {
         let de = toml::Deserializer::new(text);
-        Plan::from_file(
-            serde_path_to_error::deserialize(de).map_err(|e| PlanError::Parse {
-                path: e.path().to_string(),
-                message: e.inner().message().trim().to_string(),
-            }),
-        )
+        Plan::from_file(serde_path_to_error::deserialize(de).map_err(|e| {
+            let at = e
+                .inner()
+                .span()
+                .map(|span| polar_model::error::line_column(text, span.start));
+            let field = e.path().to_string();
+            let path = match (field.as_str(), at) {
+                (".", Some(at)) => at,
+                (_, Some(at)) => format!("{field} ({at})"),
+                (_, None) => field,
+            };
+            PlanError::Parse {
+                path,
+                message: shortened(e.inner().message().trim().replace('\n', ", ")),
+            }
+        }))
     }
 
     /// Parses YAML text; errors name the field.

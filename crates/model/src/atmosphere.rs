@@ -61,20 +61,18 @@ pub struct Band {
 impl Band {
     /// A flat (panchromatic) band between `lo_nm` and `hi_nm` within `[300, 1100]`.
     pub fn flat(lo_nm: f64, hi_nm: f64) -> Result<Self, ModelError> {
-        ModelError::check_range(
-            "band_nm",
-            lo_nm,
-            300.0,
-            1100.0,
-            "[300, 1100], lower < upper",
-        )?;
-        ModelError::check_range(
-            "band_nm",
-            hi_nm,
-            lo_nm + 1.0,
-            1100.0,
-            "[300, 1100], lower < upper",
-        )?;
+        for edge in [lo_nm, hi_nm] {
+            ModelError::check_range("band_nm", edge, 300.0, 1100.0, "[300, 1100] nm")?;
+        }
+        if hi_nm < lo_nm + 1.0 {
+            return Err(ModelError::Invalid {
+                field: "band_nm",
+                reason: format!(
+                    "lower {lo_nm} nm, upper {hi_nm} nm: the lower edge must be below the upper \
+                     by at least 1 nm"
+                ),
+            });
+        }
         Ok(Band {
             samples: vec![(lo_nm, 1.0), (hi_nm, 1.0)],
         })

@@ -196,7 +196,8 @@ impl Scene {
         text: &str,
         read: &dyn Fn(&str) -> Result<String, String>,
     ) -> Result<Scene, ModelError> {
-        let f: File = toml::from_str(text).map_err(|e| invalid("scene", e.to_string()))?;
+        let f: File = toml::from_str(text)
+            .map_err(|e| invalid("scene", crate::error::toml_message(text, &e)))?;
         let site = f
             .site
             .as_ref()

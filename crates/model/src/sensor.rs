@@ -208,7 +208,8 @@ impl Camera {
     /// Parses and validates a camera file. TOML syntax errors and unknown keys name `camera`
     /// (with line and column); range errors name the field, the value and the allowed range.
     pub fn from_toml_str(text: &str) -> Result<Camera, ModelError> {
-        let camera: Camera = toml::from_str(text).map_err(|e| invalid("camera", e.to_string()))?;
+        let camera: Camera = toml::from_str(text)
+            .map_err(|e| invalid("camera", crate::error::toml_message(text, &e)))?;
         camera.validate()?;
         Ok(camera)
     }

@@ -310,8 +310,14 @@ impl SimRig {
             Some(name) => read_relative(plan_dir, name, "simulation.camera")?,
             None => DEFAULT_CAMERA.to_string(),
         };
-        let camera_model = CameraModel::from_toml_str(&camera_text)
-            .map_err(|e| SimError::Input(format!("simulation.camera: {e}")))?;
+        // A file's error names the file: its line and column are in that file, not the plan.
+        let named = |field: &str, file: &Option<String>| match file {
+            Some(name) => format!("{field} = {}", plan_dir.join(name).display()),
+            None => format!("{field} (the built-in example)"),
+        };
+        let camera_model = CameraModel::from_toml_str(&camera_text).map_err(|e| {
+            SimError::Input(format!("{}: {e}", named("simulation.camera", &sim.camera)))
+        })?;
         let scene_text = match &sim.scene {
             Some(name) => read_relative(plan_dir, name, "simulation.scene")?,
             None => DEFAULT_SCENE.to_string(),
@@ -327,7 +333,7 @@ impl SimRig {
         let scene_file = Scene::from_toml_str_with_files(&scene_text, &|name| {
             std::fs::read_to_string(scene_base.join(name)).map_err(|e| e.to_string())
         })
-        .map_err(|e| SimError::Input(format!("simulation.scene: {e}")))?;
+        .map_err(|e| SimError::Input(format!("{}: {e}", named("simulation.scene", &sim.scene))))?;
         let band = scene_file.spec.band.clone();
         let (w, h) = (sim.width, sim.height);
         let scene = match calibration_scene(plan, &camera_model, band, w, h)? {

@@ -193,7 +193,8 @@ pub struct SensorArgs {
     #[arg(long, default_value_t = 0.0)]
     pub drift: f64,
     /// Frame sets for a Monte Carlo of the whole chain (0: none), up to 1e7.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0,
+          value_parser = crate::count_arg::range(0, polar_model::montecarlo::MAX_SETS))]
     pub monte_carlo: usize,
     /// Monte Carlo seed.
     #[arg(long, default_value_t = 1)]
@@ -322,7 +323,8 @@ pub struct DolpStatsArgs {
     #[arg(long, default_value = "auto")]
     pub regime: String,
     /// Monte Carlo samples for a check (0: none), up to 5e7.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0,
+          value_parser = crate::count_arg::range(0, polar_model::stats::MAX_MC_SAMPLES))]
     pub monte_carlo: usize,
     /// Monte Carlo seed.
     #[arg(long, default_value_t = 1)]

@@ -447,3 +447,114 @@ fn errors_are_short_compact_and_name_the_flag_and_file() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Issue 42's bad-input matrix, each as a user meets it: a plan listing 1.5 million angles
+/// is refused in a line, not echoed (9 MB before); a TOML error in a plan names the line and
+/// column; `--out` naming a file says so (it blamed the simulated stage); a bad camera file
+/// named by a plan names that file beside its line and column; `--monte-carlo 1e9` is read as
+/// a count and refused by its flag and range (it named the library's `n_samples`); an inverted
+/// band says the edges are inverted (it said 500 was outside [300, 1100]).
+#[test]
+fn issue_42_bad_inputs_name_what_is_wrong() {
+    let dir = temp_dir("issue-42");
+    let huge: Vec<String> = (0..1_500_000).map(|i| (i % 180).to_string()).collect();
+    let plan = dir.join("million.toml");
+    let text = PLAN.replace("[0, 60, 120]", &format!("[{}]", huge.join(",")));
+    std::fs::write(&plan, &text).unwrap();
+    let err = refused(&polarimeter(&["plan", "check", plan.to_str().unwrap()]));
+    assert!(err.len() < 400, "{} characters", err.len());
+    assert!(
+        err.contains("capture.angles_deg") && err.contains("1500000 angles"),
+        "{err}"
+    );
+    std::fs::write(&plan, text.replace("]\nexposure_us", ",x]\nexposure_us")).unwrap();
+    let err = refused(&polarimeter(&["plan", "check", plan.to_str().unwrap()]));
+    assert!(err.len() < 400, "{} characters", err.len());
+    assert!(err.contains("line 4, column"), "{err}");
+
+    let good = dir.join("capture.toml");
+    std::fs::write(&good, PLAN).unwrap();
+    let file = dir.join("a-file");
+    std::fs::write(&file, "not a run").unwrap();
+    let err = refused(&polarimeter(&[
+        "acquire",
+        "run",
+        good.to_str().unwrap(),
+        "--simulate",
+        "--out",
+        file.to_str().unwrap(),
+    ]));
+    assert!(
+        err.contains("--out") && err.contains("is a file") && !err.contains("stage"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), "not a run");
+
+    std::fs::write(dir.join("bad_camera.toml"), "pixel_pitch_um = \"three\"\n").unwrap();
+    let with_camera = dir.join("with_camera.toml");
+    std::fs::write(
+        &with_camera,
+        PLAN.replace("[simulation]", "[simulation]\ncamera = \"bad_camera.toml\""),
+    )
+    .unwrap();
+    let out = polarimeter(&["plan", "check", with_camera.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("bad_camera.toml") && err.contains("line 1, column 18"),
+        "{err}"
+    );
+
+    let dolp = |n: &str| {
+        polarimeter(&[
+            "model",
+            "dolp-stats",
+            "--angles-deg",
+            "0,60,120",
+            "--stokes",
+            "1000,0,0",
+            "--sigma-i",
+            "10",
+            "--monte-carlo",
+            n,
+        ])
+    };
+    let err = refused(&dolp("1e9"));
+    assert!(
+        err.contains("--monte-carlo")
+            && err.contains("0 to 50000000")
+            && !err.contains("n_samples"),
+        "{err}"
+    );
+    let ok = dolp("1e3");
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&ok.stdout).unwrap();
+    assert_eq!(v["mc"]["samples"], 1000, "{v}");
+
+    let err = refused(&polarimeter(&[
+        "model",
+        "sensor",
+        "--camera",
+        &format!(
+            "{}/../../examples/cameras/cmos_modern.toml",
+            env!("CARGO_MANIFEST_DIR")
+        ),
+        "--angles-deg",
+        "0,45,90,135",
+        "--radiance-mean",
+        "1,0.2,0.1",
+        "--t-int-ms",
+        "5",
+        "--band-nm",
+        "700,450",
+    ]));
+    assert!(
+        err.contains("band") && err.contains("below the upper") && !err.contains("[300, 1100]"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
