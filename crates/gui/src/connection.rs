@@ -217,6 +217,7 @@ pub(crate) async fn connect(
                 target_mask: r.target_mask,
                 sun_deg: r.sun_deg,
                 devices: r.devices,
+                spin_acceleration_rad_per_s2: r.spin_acceleration_rad_per_s2,
             };
             Ok(Connected {
                 sim: Some(sim),

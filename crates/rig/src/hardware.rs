@@ -278,6 +278,8 @@ async fn connect(
             target_mask: None,
             sun_deg: None,
             devices,
+            // A stage's acceleration is not read from the device: the fixed run-up.
+            spin_acceleration_rad_per_s2: None,
         },
         simulator,
     })

@@ -520,6 +520,9 @@ impl SimRig {
             target_mask,
             sun_deg: rig.sun_deg(plan),
             devices,
+            spin_acceleration_rad_per_s2: crate::sim_stage::stage_limits(&plan.simulation)
+                .map_err(|e| SimError::Input(e.to_string()))?
+                .map(|l| l.acceleration_rad_per_s2),
         };
         Ok((rig, engine_rig))
     }

@@ -107,6 +107,7 @@ fn capture_share(model: AptModel) -> f64 {
                 world.scene_file.spec.sun_azimuth_deg,
             )),
             devices: Default::default(),
+            spin_acceleration_rad_per_s2: None,
         };
         let (ctl, link) = run::link();
         let run::Controller {

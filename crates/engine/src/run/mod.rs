@@ -54,5 +54,5 @@ pub use outcome::{Outcome, RunError, Saturation, Summary, Verdict};
 pub use pause::{CAP_LENS, UNCAP_LENS};
 pub use rig::{Rig, SceneLight};
 pub use run_dir::{default_run_dir, is_finished, noise_stream, plan_of, run_parts};
-pub use spin_loop::RUN_UP_S;
+pub use spin_loop::{run_up_s, RUN_UP_S};
 pub use start::run;

@@ -28,4 +28,8 @@ pub struct Rig<A, C> {
     pub sun_deg: Option<(f64, f64)>,
     /// A description of the devices for the store.
     pub devices: Value,
+    /// The stage's acceleration in velocity mode, rad/s^2, when known (the simulated rig's
+    /// stage): a continuous run's run-up is then its ramp to speed
+    /// ([`crate::run::run_up_s`]); `None` runs up for a fixed [`crate::run::RUN_UP_S`].
+    pub spin_acceleration_rad_per_s2: Option<f64>,
 }

@@ -37,9 +37,10 @@
 //!
 //! **Segments.** Spinning starts a segment: the camera is configured and started, the stage
 //! spins, and half turns are taken until the run ends or pauses. With encoder triggers the
-//! trigger is armed from a whole half turn at least [`RUN_UP_S`] ahead (one pulse before it,
+//! trigger is armed from a whole half turn at least the run-up ([`run_up_s`]: the stage's ramp
+//! to speed when its acceleration is known, else [`RUN_UP_S`]) ahead (one pulse before it,
 //! the *go* pulse, starts the camera, so the camera sees only armed positions); with
-//! timestamps the loop waits [`RUN_UP_S`] and reads the position until the line's speed is
+//! timestamps the loop waits the run-up and reads the position until the line's speed is
 //! the commanded one, and the first half turn is the next whole half turn of the analyzer.
 //! Pausing (at a half-turn boundary: the safe point), a device error and the end stop the
 //! camera and the spin (and disarm the trigger); resuming starts a new segment. So a pause, an
@@ -71,9 +72,24 @@ use tracing::{info, warn};
 
 mod timestamped;
 
-/// How far the stage turns at speed before the first armed position, seconds of its speed
-/// (its ramp to speed is shorter).
+/// The run-up when the stage's acceleration is not known: how far the stage turns at speed
+/// before the first armed position, seconds of its speed (a stage's ramp is shorter).
 pub const RUN_UP_S: f64 = 0.5;
+
+/// Seconds added to a known ramp for the commands between `spin` and the arming (a position
+/// read and the arming itself, a few serial round trips).
+const RUN_UP_MARGIN_S: f64 = 0.05;
+
+/// The run-up of a spin at `rad_per_s`: the stage's ramp to that speed (`|omega| / a`) plus
+/// [`RUN_UP_MARGIN_S`] when its acceleration `a` is known, else [`RUN_UP_S`]. The first armed
+/// position is at least this many seconds of travel at speed ahead, so the stage is at speed
+/// there: it covers only half that distance while it ramps.
+pub fn run_up_s(rad_per_s: f64, acceleration_rad_per_s2: Option<f64>) -> f64 {
+    match acceleration_rad_per_s2 {
+        Some(a) if a.is_finite() && a > 0.0 => rad_per_s.abs() / a + RUN_UP_MARGIN_S,
+        _ => RUN_UP_S,
+    }
+}
 
 /// What the products use the camera model for, with a spinning analyzer.
 const USED_FOR: &str = "the analyzer span rows (transmittance, extinction ratio, angle \
@@ -505,14 +521,15 @@ impl<R: Rotator, C: Camera> SpinLoop<'_, R, C> {
         self.spinning = true;
         self.last = None;
         let interval = self.interval_rad();
-        let go_wait = self.wait() + Duration::from_secs_f64(2.0 * RUN_UP_S + 1.0);
+        let run_up = run_up_s(omega, self.rig.spin_acceleration_rad_per_s2);
+        let go_wait = self.wait() + Duration::from_secs_f64(2.0 * run_up + 1.0);
         let rotator = &mut self.rig.analyzer.rotator;
         rotator.spin(omega).await?;
         let zero = self.rig.analyzer.zero_offset_rad;
         let position = rotator.spin_position_rad().await?;
-        // The first frame's position: a whole half turn of the analyzer, RUN_UP_S ahead; the
+        // The first frame's position: a whole half turn of the analyzer, the run-up ahead; the
         // go pulse one interval before it.
-        let ahead = position - zero + omega * RUN_UP_S + interval;
+        let ahead = position - zero + omega * run_up + interval;
         let first = zero + (ahead / PI).ceil() * PI - interval;
         let n = u64::from(c.frames_per_half_turn);
         let spare = u64::from(self.core.plan.suspender.max_reacquire) + 1;
@@ -702,5 +719,29 @@ impl<R: Rotator, C: Camera> SpinLoop<'_, R, C> {
             .send_store_async(ToStore::ProcessSet(job))
             .await
             .map_err(|e| DeviceError::new(ErrorKind::Other, "storage", e.to_string()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The simulated stage reaches 360 deg/s in 1/8 s: the run-up is that ramp and the 50 ms
+    /// margin, and the first armed position (the run-up's travel at speed ahead) lies beyond
+    /// the ramp's travel (half of it, at constant acceleration), so the stage is at speed there.
+    /// An unknown or nonsensical acceleration falls back to the fixed run-up.
+    #[test]
+    fn the_run_up_is_the_ramp_when_the_acceleration_is_known() {
+        let omega = 360f64.to_radians();
+        let a = omega * 8.0;
+        let t = run_up_s(omega, Some(a));
+        assert!((t - 0.175).abs() < 1e-12, "{t}");
+        assert!(omega * t > omega * omega / (2.0 * a));
+        assert_eq!(run_up_s(-omega, Some(a)), t, "either direction");
+        for unknown in [None, Some(0.0), Some(f64::NAN), Some(-a)] {
+            assert_eq!(run_up_s(omega, unknown), RUN_UP_S);
+        }
+        // A slow ramp (10 s) runs up for all of it, longer than the fixed run-up.
+        assert!((run_up_s(omega, Some(omega / 10.0)) - 10.05).abs() < 1e-12);
     }
 }

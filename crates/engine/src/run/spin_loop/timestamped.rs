@@ -3,7 +3,7 @@
 //! [`crate::run::timestamps`] through the stage's position reads puts the analyzer at its
 //! grid angle, and its span from the exposure's end on the host clock.
 
-use super::{SpinLine, SpinLoop, RUN_UP_S};
+use super::{run_up_s, SpinLine, SpinLoop};
 use crate::run::timestamps::{ClockMap, FitError, PositionSample, SpinFit, SpinTrack};
 use polar_hal::TURN_RAD;
 use polar_hal::{Camera, DeviceError, ErrorKind, Rotator, TriggerMode};
@@ -17,7 +17,7 @@ const RUN_UP_GAP_S: f64 = 0.02;
 /// The stage is at speed when the line through the last [`RUN_UP_SAMPLES`] reads turns
 /// within this fraction of the commanded speed.
 const SPEED_TOLERANCE: f64 = 0.02;
-/// The longest wait for the stage to reach speed after [`RUN_UP_S`], seconds.
+/// The longest wait for the stage to reach speed after the run-up ([`run_up_s`]), seconds.
 const AT_SPEED_TIMEOUT_S: f64 = 10.0;
 /// Reads in the line's sliding window (one per frame once running).
 const WINDOW: usize = 32;
@@ -56,7 +56,7 @@ fn lead_s(fit: &SpinFit) -> f64 {
 }
 
 impl<R: Rotator, C: Camera> SpinLoop<'_, R, C> {
-    /// Configures and starts the camera in software-trigger mode, spins, waits [`RUN_UP_S`],
+    /// Configures and starts the camera in software-trigger mode, spins, waits the run-up ([`run_up_s`]),
     /// then reads the position until the line through the last reads turns at the commanded
     /// speed (within 2 %), and aims the first half turn at the next whole half turn.
     pub(super) async fn start_timestamps(&mut self) -> Result<(), DeviceError> {
@@ -76,7 +76,8 @@ impl<R: Rotator, C: Camera> SpinLoop<'_, R, C> {
         let resolution = TURN_RAD / f64::from(rotator.info().counts_per_turn.max(1));
         let clock = Instant::now();
         let mut run_up = SpinTrack::new(RUN_UP_SAMPLES, omega, resolution).map_err(fit_err)?;
-        tokio::time::sleep(Duration::from_secs_f64(RUN_UP_S)).await;
+        let ramp_s = run_up_s(omega, self.rig.spin_acceleration_rad_per_s2);
+        tokio::time::sleep(Duration::from_secs_f64(ramp_s)).await;
         let deadline = Instant::now() + Duration::from_secs_f64(AT_SPEED_TIMEOUT_S);
         loop {
             run_up.push(read(rotator, clock).await?).map_err(fit_err)?;
