@@ -37,17 +37,21 @@ fn invalid(field: &str, value: impl std::fmt::Display, allowed: impl Into<String
     }
 }
 
-/// The longest value an error message quotes whole, in characters.
-const QUOTED_VALUE_MAX_CHARS: usize = 120;
+/// The longest parser message a plan error quotes whole, in characters: enough for any
+/// message of ours, short of echoing a value of megabytes back.
+const QUOTED_MESSAGE_MAX_CHARS: usize = 400;
 
-/// `value`, or its start and its length when it is longer than [`QUOTED_VALUE_MAX_CHARS`]: an
-/// error names a value, it does not echo a file.
-fn shortened(value: String) -> String {
-    let chars = value.chars().count();
-    if chars <= QUOTED_VALUE_MAX_CHARS {
-        return value;
+/// `message`, or its start and its length when it is longer than
+/// [`QUOTED_MESSAGE_MAX_CHARS`]: an error names a value, it does not echo a file.
+fn shortened(message: String) -> String {
+    let chars = message.chars().count();
+    if chars <= QUOTED_MESSAGE_MAX_CHARS {
+        return message;
     }
-    let head: String = value.chars().take(QUOTED_VALUE_MAX_CHARS - 20).collect();
+    let head: String = message
+        .chars()
+        .take(QUOTED_MESSAGE_MAX_CHARS - 40)
+        .collect();
     format!("{head}… ({chars} characters)")
 }
 

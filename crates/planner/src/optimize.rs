@@ -12,7 +12,8 @@
 //!    boundary (angles exactly `s` apart, an angle at an end of the range), where the optimum
 //!    of a binding constraint lies, are lattice points too. The conventional sets the
 //!    constraints allow and the widest equally spaced set are added.
-//! 2. **Refinement**: the best [`REFINED_STARTS`] distinct points are refined by an active-set
+//! 2. **Refinement**: the best [`REFINED_STARTS`] points of distinct neighbourhoods (on the
+//!    grid, no two within a grid step and a half: one start per basin) are refined by an active-set
 //!    BFGS with the analytic gradient: the constraints of a sorted tuple are linear (gaps,
 //!    wrap-around gap, range ends), a step is cut at the first one it meets, which becomes
 //!    active, and the search goes on in the tangent space of the active ones, releasing one
@@ -219,7 +220,8 @@ pub fn optimise(
                 }
             })
             .collect();
-        // Enumerate nondecreasing index tuples, keep the best few distinct ones.
+        // Enumerate nondecreasing index tuples, keep the best of a few neighbourhoods.
+        let radius_rad = 1.5 * span / m as f64;
         let mut idx = vec![0usize; n];
         let mut set = vec![0.0; n];
         loop {
@@ -228,7 +230,7 @@ pub fn optimise(
             }
             if feasible(&set, constraints) {
                 evaluations += 1;
-                keep(&mut best, contrast.scr(&set), &set, periodic);
+                keep(&mut best, contrast.scr(&set), &set, periodic, radius_rad);
             }
             if !next_nondecreasing(&mut idx, m) {
                 break;
@@ -323,6 +325,15 @@ pub fn optimise(
             }
         }
     }
+    // The refinement's projection onto an active range bound can end a rounding error
+    // (1e-12 rad) outside it: the answer lies inside, and its SCR is the one of those angles.
+    if let Some((lo, hi)) = constraints.range_rad {
+        if angles.iter().any(|a| !(lo..=hi).contains(a)) {
+            angles.iter_mut().for_each(|a| *a = a.clamp(lo, hi));
+            scr = contrast.scr(&angles);
+            evaluations += 1;
+        }
+    }
     Ok(Optimum {
         angles_rad: canonical(angles, periodic),
         scr,
@@ -330,19 +341,27 @@ pub fn optimise(
     })
 }
 
-/// Keeps `set` among the [`REFINED_STARTS`] best distinct sets (the same set modulo pi and
-/// order counts once).
-fn keep(best: &mut Vec<(f64, Vec<f64>)>, scr: f64, set: &[f64], periodic: bool) {
+/// Keeps `set` among the [`REFINED_STARTS`] best sets of distinct neighbourhoods: a set whose
+/// angles (modulo pi and order) are all within `radius_rad` of a kept set's is that set's
+/// neighbour, and only the better of the two is kept. So the starts spread over the SCR's
+/// basins instead of crowding one: with a radius of a grid step and a half, the grid points
+/// around one local optimum (which the refinement would all climb to the same answer) count
+/// once, and a second basin's best point (say all four angles at one angle, where the best
+/// set repeats one angle) gets its own start.
+fn keep(best: &mut Vec<(f64, Vec<f64>)>, scr: f64, set: &[f64], periodic: bool, radius_rad: f64) {
     if best.len() >= REFINED_STARTS && scr <= best[best.len() - 1].0 {
         return;
     }
     let key = canonical(set.to_vec(), periodic);
-    let same = |other: &Vec<f64>| {
+    let near = |other: &Vec<f64>| {
         let o = canonical(other.clone(), periodic);
-        o.iter().zip(&key).all(|(a, b)| (a - b).abs() < 1e-9)
+        o.iter().zip(&key).all(|(a, b)| (a - b).abs() <= radius_rad)
     };
-    if best.iter().any(|(_, other)| same(other)) {
-        return;
+    if let Some(i) = best.iter().position(|(_, other)| near(other)) {
+        if scr <= best[i].0 {
+            return;
+        }
+        best.remove(i);
     }
     best.push((scr, set.to_vec()));
     best.sort_by(|a, b| b.0.total_cmp(&a.0));
@@ -416,7 +435,7 @@ fn separation_lattice(
             }
             if feasible(&set, constraints) {
                 evaluations += 1;
-                keep(best, contrast.scr(&set), &set, periodic);
+                keep(best, contrast.scr(&set), &set, periodic, 1e-9);
             }
             if !next_nondecreasing(&mut bars, k + 1) {
                 break;

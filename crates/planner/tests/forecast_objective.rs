@@ -215,12 +215,34 @@ fn grid_best(contrast: &Contrast, n: usize, cons: &Constraints, m: usize) -> (f6
     }
 }
 
+/// The environment variable that replays a run's cases: its seed.
+const SEED_VAR: &str = "POLAR_PLANNER_PROPTEST_SEED";
+
+/// The run's seed, drawn once: `POLAR_PLANNER_PROPTEST_SEED` when set (to replay a run),
+/// else fresh from the clock, so every run draws new cases. Printed when drawn, so a
+/// failure's output names the seed that reproduces it (beside the shrunk case proptest
+/// prints and records in the regressions file).
+fn run_seed() -> u64 {
+    static SEED: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    *SEED.get_or_init(|| {
+        let seed = std::env::var(SEED_VAR)
+            .ok()
+            .and_then(|s| s.trim().parse::<u64>().ok())
+            .unwrap_or_else(|| {
+                std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(1, |d| d.as_nanos() as u64)
+            });
+        println!("proptest seed {seed}: replay with {SEED_VAR}={seed}");
+        seed
+    })
+}
+
 proptest! {
-    // A fixed seed: CI draws the same 96 cases every run, so a failure reproduces exactly;
-    // another seed here draws others.
+    // 96 fresh cases on every run (run_seed); a failure names its seed.
     #![proptest_config(ProptestConfig {
         cases: 96,
-        rng_seed: proptest::test_runner::RngSeed::Fixed(20_261_128),
+        rng_seed: proptest::test_runner::RngSeed::Fixed(run_seed()),
         .. ProptestConfig::default()
     })]
 
