@@ -90,11 +90,12 @@
 mod durable;
 mod error;
 mod metadata;
+mod plane;
 mod products;
 mod schema;
 use durable::{lock, DurableStore};
 pub use error::StoreError;
-pub use products::Plane;
+pub use plane::Plane;
 pub use schema::STATUS_CODES;
 
 pub use schema::{conventions, HASH_ALGORITHM, KIND_CODES};

@@ -1,44 +1,8 @@
 //! The products: one image per name and slot, the index of slots by set, the dark mean.
 
 use super::metadata::index_chunk;
+use super::plane::Plane;
 use super::*;
-
-/// One product image of a set, in its array's data type: the measured planes are float32,
-/// the bit mask `flags` is uint8.
-#[derive(Debug, Clone, Copy)]
-pub enum Plane<'a> {
-    /// A float32 image (Stokes, DoLP, AoP and their sigmas).
-    F32(&'a [f32]),
-    /// An unsigned 8-bit image (the bit mask `flags`).
-    U8(&'a [u8]),
-}
-
-impl Plane<'_> {
-    fn len(&self) -> usize {
-        match self {
-            Plane::F32(v) => v.len(),
-            Plane::U8(v) => v.len(),
-        }
-    }
-}
-
-impl<'a> From<&'a [f32]> for Plane<'a> {
-    fn from(v: &'a [f32]) -> Self {
-        Plane::F32(v)
-    }
-}
-
-impl<'a> From<&'a Vec<f32>> for Plane<'a> {
-    fn from(v: &'a Vec<f32>) -> Self {
-        Plane::F32(v)
-    }
-}
-
-impl<'a> From<&'a [u8]> for Plane<'a> {
-    fn from(v: &'a [u8]) -> Self {
-        Plane::U8(v)
-    }
-}
 
 /// Stores `plane` as chunk `[slot, 0, 0]` of `a`, in `a`'s data type. A uint8 plane goes into
 /// a float32 array unchanged in value (a run written before `flags` was an integer array and
