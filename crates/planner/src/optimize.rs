@@ -325,20 +325,56 @@ pub fn optimise(
             }
         }
     }
-    // The refinement's projection onto an active range bound can end a rounding error
-    // (1e-12 rad) outside it: the answer lies inside, and its SCR is the one of those angles.
-    if let Some((lo, hi)) = constraints.range_rad {
-        if angles.iter().any(|a| !(lo..=hi).contains(a)) {
-            angles.iter_mut().for_each(|a| *a = a.clamp(lo, hi));
-            scr = contrast.scr(&angles);
-            evaluations += 1;
-        }
+    // The refinement's projection onto active constraints can end a rounding error (1e-12
+    // rad) outside them: the answer is settled inside, and its SCR is the one of those angles.
+    if settle(&mut angles, constraints) {
+        scr = contrast.scr(&angles);
+        evaluations += 1;
     }
     Ok(Optimum {
         angles_rad: canonical(angles, periodic),
         scr,
         evaluations,
     })
+}
+
+/// Moves a refined set onto its constraints where it ends a rounding error outside them:
+/// sorted (a free rotator's angles modulo pi first), each gap to at least the separation
+/// (pushing later angles up), a free rotator's wrap-around gap, then the range ends (pushing
+/// earlier angles down from the top, then clamping). Returns whether anything moved.
+fn settle(angles: &mut [f64], c: &Constraints) -> bool {
+    let before = angles.to_vec();
+    if c.range_rad.is_none() {
+        // Directions: the gaps are those of the angles modulo pi, in that order.
+        angles.iter_mut().for_each(|a| *a = a.rem_euclid(PI));
+    }
+    angles.sort_by(f64::total_cmp);
+    let s = c.min_separation_rad;
+    for i in 1..angles.len() {
+        if angles[i] < angles[i - 1] + s {
+            angles[i] = angles[i - 1] + s;
+        }
+    }
+    let n = angles.len();
+    if c.range_rad.is_none() && n > 1 && s > 0.0 {
+        // The wrap-around gap, when a rounding error short of the separation.
+        let wrap = angles[0] + PI - angles[n - 1];
+        if wrap < s && s - wrap < 1e-9 {
+            angles[n - 1] = angles[0] + PI - s;
+        }
+    }
+    if let Some((lo, hi)) = c.range_rad {
+        if n > 0 && angles[n - 1] > hi {
+            angles[n - 1] = hi;
+            for i in (0..n - 1).rev() {
+                if angles[i] > angles[i + 1] - s {
+                    angles[i] = angles[i + 1] - s;
+                }
+            }
+        }
+        angles.iter_mut().for_each(|a| *a = a.clamp(lo, hi));
+    }
+    angles.iter().zip(&before).any(|(a, b)| a != b)
 }
 
 /// Keeps `set` among the [`REFINED_STARTS`] best sets of distinct neighbourhoods: a set whose

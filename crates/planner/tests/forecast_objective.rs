@@ -7,7 +7,8 @@
 //! condition bound):
 //!
 //! * the planner's SCR is the matched-filter SCR of the frames `SensorModel::signal` gives
-//!   (what `plan --scene` prints), to 1e-9 relative;
+//!   (what `plan --scene` prints), to 1e-12 relative where the frames' covariance is well
+//!   conditioned (found: 1.6e-14 over 587 cases);
 //! * it is at least that of every conventional set of the same `N` the constraints allow;
 //! * it is at least the best of an exhaustive grid of the allowed sets, finer than the
 //!   optimiser's own coarse grid.
@@ -249,12 +250,14 @@ proptest! {
     /// The planner's SCR is the forecast's and beats the allowed conventional sets and a
     /// fine exhaustive grid.
     ///
-    /// Tolerances: the forecast equality `1e-10 + 1e-14 kappa` relative, `kappa` the larger of
+    /// Tolerances: the forecast equality `1e-12 + 1e-14 kappa` relative, `kappa` the larger of
     /// the background frames' covariance condition number and their clutter-to-noise ratio
-    /// (two algebraic routes to the same number, a 3x3 push-through solve of `A Sigma + I` and
-    /// an N x N eigen-whitening, each with a rounding error of a few machine epsilons times
+    /// (two Cholesky solves of the same N x N covariance, the planner's in radiance units and
+    /// the matched filter's in DN, each with a rounding error of a few machine epsilons times
     /// `kappa`; a repeated angle or strong clutter over little noise makes `kappa` 1e7 and
-    /// more); the comparisons 1e-9
+    /// more; found: at most 1.6e-14 over 587 cases of `kappa` up to 1.3e4, where an
+    /// eigen-whitening inverse differs by up to 8e-9, which is why the matched filter solves
+    /// by Cholesky); the comparisons 1e-9
     /// relative (the optimiser's refinement stops within 1e-6 rad of a stationary point, where
     /// the SCR is flat to second order, ~1e-12 relative).
     #[test]
@@ -285,7 +288,7 @@ proptest! {
 
         let (forecast, condition) = forecast(&sensor, &c, t_int_s, &opt.angles_rad);
         prop_assert!(
-            (forecast - opt.scr).abs() <= (1e-10 + 1e-14 * condition) * forecast,
+            (forecast - opt.scr).abs() <= (1e-12 + 1e-14 * condition) * forecast,
             "planner {} against forecast {forecast} (condition {condition:.3e})", opt.scr
         );
 
@@ -335,7 +338,7 @@ fn the_ideal_objective_is_not_the_forecast() {
     let f_real = forecast_scr(&sensor, &c, t, &by_forecast.angles_rad);
     let f_ideal = forecast_scr(&sensor, &c, t, &by_ideal.angles_rad);
     assert!(
-        (f_real - by_forecast.scr).abs() <= 1e-9 * f_real,
+        (f_real - by_forecast.scr).abs() <= 1e-12 * f_real,
         "{f_real} against {}",
         by_forecast.scr
     );
