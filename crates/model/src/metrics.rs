@@ -203,16 +203,26 @@ fn regularisation_warning(w: &Whitening, warnings: &mut Vec<String>) {
     }
 }
 
+/// The matched filter `Sigma_b^-1 d` by a Cholesky solve (backward stable: its relative
+/// error is a few epsilon times the condition number; an eigen-whitening inverse loses up to
+/// 1e-8 relative at a condition of 5e3, when the clutter dominates the noise). A covariance
+/// whose smallest eigenvalues were floored (`wh` regularised) takes the regularised inverse.
+/// The one solve of [`scr`] and [`matched_filter`].
+fn clutter_filter(cov: &DMatrix<f64>, wh: &Whitening, d: &DVector<f64>) -> DVector<f64> {
+    match (wh.regularised, cov.clone().cholesky()) {
+        (false, Some(ch)) => ch.solve(d),
+        _ => &wh.inverse * d,
+    }
+}
+
 /// The signal-to-clutter ratio of `t` against background `b` and the background's condition
 /// number (regularised when near-singular).
 pub fn scr(t: &ClassStats, b: &ClassStats) -> Result<(f64, f64), ModelError> {
     check_pair(t, b)?;
     let w = whitening(&b.cov);
     let d = &t.mean - &b.mean;
-    Ok((
-        (d.transpose() * &w.inverse * &d)[(0, 0)].max(0.0),
-        w.condition_number,
-    ))
+    let filter = clutter_filter(&b.cov, &w, &d);
+    Ok((filter.dot(&d).max(0.0), w.condition_number))
 }
 
 /// The linear matched filter's ROC (MODEL.md section 8).
@@ -223,15 +233,7 @@ pub fn matched_filter(t: &ClassStats, b: &ClassStats, pfa: f64) -> Result<Roc, M
     let mut warnings = Vec::new();
     regularisation_warning(&wh, &mut warnings);
     let d = &t.mean - &b.mean;
-    // The filter `Sigma_b^-1 d` by a Cholesky solve (backward stable: its relative error is a
-    // few epsilon times the condition number); the eigen-whitening's inverse loses up to
-    // 1e-8 relative at a condition of 5e3, when the clutter dominates the noise. A covariance
-    // whose smallest eigenvalues were floored (not positive definite) takes the regularised
-    // inverse.
-    let w = match (wh.regularised, b.cov.clone().cholesky()) {
-        (false, Some(ch)) => ch.solve(&d),
-        _ => &wh.inverse * &d,
-    };
+    let w = clutter_filter(&b.cov, &wh, &d);
     let scr = w.dot(&d).max(0.0);
     let sb = (w.transpose() * &b.cov * &w)[(0, 0)].max(0.0).sqrt();
     let st = (w.transpose() * &t.cov * &w)[(0, 0)].max(0.0).sqrt();
