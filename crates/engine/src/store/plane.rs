@@ -25,20 +25,8 @@ impl Plane<'_> {
     }
 }
 
-impl<'a> From<&'a [f32]> for Plane<'a> {
-    fn from(v: &'a [f32]) -> Self {
-        Plane::F32(v)
-    }
-}
-
 impl<'a> From<&'a Vec<f32>> for Plane<'a> {
     fn from(v: &'a Vec<f32>) -> Self {
         Plane::F32(v)
-    }
-}
-
-impl<'a> From<&'a [u8]> for Plane<'a> {
-    fn from(v: &'a [u8]) -> Self {
-        Plane::U8(v)
     }
 }

@@ -56,9 +56,10 @@ fn lead_s(fit: &SpinFit) -> f64 {
 }
 
 impl<R: Rotator, C: Camera> SpinLoop<'_, R, C> {
-    /// Configures and starts the camera in software-trigger mode, spins, waits the run-up ([`run_up_s`]),
-    /// then reads the position until the line through the last reads turns at the commanded
-    /// speed (within 2 %), and aims the first half turn at the next whole half turn.
+    /// Configures and starts the camera in software-trigger mode, spins, waits the run-up
+    /// ([`run_up_s`]), then reads the position until the line through the last reads turns at
+    /// the commanded speed (within 2 %), and aims the first half turn at the next whole half
+    /// turn.
     pub(super) async fn start_timestamps(&mut self) -> Result<(), DeviceError> {
         let t0 = Instant::now();
         let c = self.c;
