@@ -52,6 +52,23 @@ cargo build -p polar-firmware-protocol --target thumbv7em-none-eabihf --locked
 # Optimised tests: the property and quadrature tests evaluate the model ~1e7 times.
 cargo test --workspace --release --locked
 
+# The Python package (crates/python) as a user installs it: `pip install ./crates/python`
+# (maturin, through pip's isolated build) into a fresh venv with the pinned test requirements,
+# then its pytest suite (every model function against the command line, the estimator against
+# polanalyser, open_run on finished, continuous and killed runs) and examples/python/tour.py,
+# run as a user runs it: stdin closed, in a scratch directory, under a time limit.
+PKG_VENV=target/py-pkg-venv
+rm -rf "$PKG_VENV" && python3 -m venv "$PKG_VENV"
+"$PKG_VENV/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps \
+  -r crates/python/tests/requirements.txt
+"$PKG_VENV/bin/python" -m pip install --quiet --disable-pip-version-check ./crates/python
+POLARIMETER_BIN="$PWD/target/release/polarimeter" timeout 900 \
+  "$PKG_VENV/bin/python" -m pytest -q -p no:cacheprovider crates/python/tests </dev/null
+rm -rf target/python-tour && mkdir -p target/python-tour
+ROOT="$PWD"
+(cd target/python-tour && POLARIMETER_BIN="$ROOT/target/release/polarimeter" timeout 600 \
+  "$ROOT/$PKG_VENV/bin/python" "$ROOT/examples/python/tour.py" </dev/null)
+
 # The GUI end to end under Xvfb: run the default plan on the simulated devices, then save a
 # PNG of each tab (live view, devices, planner, rooftop) and of the live camera and live
 # polarimetry. It fails if the run fails, a tab cannot be drawn or a PNG cannot be written. docs/gui/ holds the committed shots.

@@ -112,18 +112,8 @@ pub fn span_rows(sensor: &SensorModel, spans_rad: &[(f64, f64)]) -> Result<Vec<[
 /// The camera's noise model at `gain_db` (EMVA 1288 in DN, as the engine's products use it)
 /// and the dark level of an exposure of `exposure_us`, DN.
 pub fn noise_and_dark(camera: &CameraModel, gain_db: f64, exposure_us: f64) -> (NoiseModel, f64) {
-    let k = camera.gain_dn_per_e * 10f64.powf(gain_db / 20.0);
-    let noise = NoiseModel {
-        gain_dn_per_e: k,
-        offset_dn: camera.offset_dn,
-        read_var_dn2: k * k * camera.read_noise_e * camera.read_noise_e + 1.0 / 12.0,
-        // A full pixel reads the full well plus read noise: 3 sigma below the level counts
-        // as saturated.
-        saturation_dn: ((k * camera.full_well_e + camera.offset_dn).min(camera.adc_max_dn())
-            - 3.0 * k * camera.read_noise_e)
-            .clamp(0.0, 65535.0) as u16,
-    };
-    let dark = camera.offset_dn + k * camera.dark_current_e_per_s * exposure_us * 1e-6;
+    let noise = NoiseModel::from_camera(camera, gain_db);
+    let dark = noise.dark_level_dn(camera, exposure_us);
     (noise, dark)
 }
 

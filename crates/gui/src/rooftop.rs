@@ -43,10 +43,6 @@ pub const MIN_MAP_SIZE_PX: usize = 8;
 /// The largest map [`sky_map`] accepts, pixels across.
 pub const MAX_MAP_SIZE_PX: usize = 2048;
 
-/// Scale height of the surface pressure used for the refraction correction, metres (the CLI's
-/// `polarimeter model sun` default).
-pub const PRESSURE_SCALE_HEIGHT_M: f64 = 8434.0;
-
 /// Air temperature used for the refraction correction, degrees Celsius (the CLI's default).
 pub const REFRACTION_TEMPERATURE_C: f64 = 15.0;
 
@@ -405,7 +401,7 @@ pub fn sky_map(inputs: &SkyInputs, size_px: usize) -> Result<SkyMap, String> {
     // As `polarimeter model sun` with its defaults: standard pressure scaled to the elevation,
     // 15 C, Delta T estimated.
     let weather = Weather {
-        pressure_hpa: Weather::STANDARD.pressure_hpa * (-elev / PRESSURE_SCALE_HEIGHT_M).exp(),
+        pressure_hpa: Weather::standard_pressure_hpa(elev),
         temperature_c: REFRACTION_TEMPERATURE_C,
     };
     let sun = sun_position(&time, &site, None, Some(weather))

@@ -68,6 +68,13 @@ impl Weather {
         pressure_hpa: 1013.25,
         temperature_c: 15.0,
     };
+
+    /// The standard atmosphere's surface pressure at `elevation_m` above sea level, hPa: the
+    /// sea-level 1013.25 hPa scaled by `exp(-elevation / 8434 m)` (an isothermal atmosphere's
+    /// scale height at 15 C), the default when a site's pressure is not given.
+    pub fn standard_pressure_hpa(elevation_m: f64) -> f64 {
+        Weather::STANDARD.pressure_hpa * (-elevation_m / 8434.0).exp()
+    }
 }
 
 /// The sun's topocentric position.

@@ -109,7 +109,7 @@ fn default_tolerance() -> f64 {
 
 impl PbrdfArgs {
     /// Fills unset parameters from `--material` (explicit flags win).
-    fn resolved(&self) -> Result<PbrdfArgs, CommandError> {
+    pub fn resolved(&self) -> Result<PbrdfArgs, CommandError> {
         let Some(name) = &self.material else {
             return Ok(self.clone());
         };
@@ -133,7 +133,8 @@ impl PbrdfArgs {
         })
     }
 
-    fn surface(&self) -> Result<Surface, CommandError> {
+    /// The surface these (resolved) parameters describe.
+    pub fn surface(&self) -> Result<Surface, CommandError> {
         let idx = RefractiveIndex::new(required(self.n, "n", "(0, 100]")?, self.k.unwrap_or(0.0))?;
         let dhr = required(self.dhr, "dhr", "[0, 1]")?;
         if self.vegetation {
@@ -199,16 +200,7 @@ pub fn pbrdf(a: &PbrdfArgs, cache: &mut DiffuseCache) -> Result<Value, CommandEr
     };
     let f = surface.mueller_with(&g, &diffuse);
     let out = f.response_to_unpolarized();
-    let mut warnings = Vec::new();
-    if let Some(w) = diffuse.clamped {
-        warnings.push(w.to_string());
-    }
-    if !diffuse.specular_albedo.converged {
-        warnings.push(format!(
-            "specular albedo quadrature did not reach tolerance {tol:e}: error estimate {:e}",
-            diffuse.specular_albedo.error
-        ));
-    }
+    let warnings = diffuse_warnings(&diffuse, tol);
     let m = f.0;
     Ok(json!({
         "f": [[m[(0, 0)], m[(0, 1)], m[(0, 2)]], [m[(1, 0)], m[(1, 1)], m[(1, 2)]], [m[(2, 0)], m[(2, 1)], m[(2, 2)]]],
@@ -220,6 +212,22 @@ pub fn pbrdf(a: &PbrdfArgs, cache: &mut DiffuseCache) -> Result<Value, CommandEr
         "quadrature_evaluations": diffuse.specular_albedo.evaluations,
         "warnings": warnings,
     }))
+}
+
+/// What a diffuse term warns of: a clamped albedo product, a specular-albedo quadrature short
+/// of its tolerance `tol`.
+pub fn diffuse_warnings(diffuse: &DiffuseTerm, tol: f64) -> Vec<String> {
+    let mut warnings = Vec::new();
+    if let Some(w) = diffuse.clamped {
+        warnings.push(w.to_string());
+    }
+    if !diffuse.specular_albedo.converged {
+        warnings.push(format!(
+            "specular albedo quadrature did not reach tolerance {tol:e}: error estimate {:e}",
+            diffuse.specular_albedo.error
+        ));
+    }
+    warnings
 }
 
 /// `polarimeter model stokes`: least-squares Stokes reconstruction from analyzer intensities.

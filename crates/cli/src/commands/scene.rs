@@ -87,7 +87,7 @@ pub fn sun(a: &SunArgs) -> Result<Value, CommandError> {
     } else {
         let p = a
             .pressure_hpa
-            .unwrap_or(Weather::STANDARD.pressure_hpa * (-a.elevation_m / 8434.0).exp());
+            .unwrap_or(Weather::standard_pressure_hpa(a.elevation_m));
         ModelError::check_range("pressure_hpa", p, 1.0, 2000.0, "[1, 2000]")?;
         ModelError::check_range("temperature_c", a.temperature_c, -100.0, 60.0, "[-100, 60]")?;
         Some(Weather {

@@ -17,6 +17,29 @@ pub struct NoiseModel {
 }
 
 impl NoiseModel {
+    /// The noise model of `camera`'s frames at `gain_db` of analogue gain: the gain scales
+    /// `K` by `10^(gain_db / 20)`, and a pixel counts as saturated 3 read-noise sigma below the
+    /// level a full well (or the ADC's top) reads, since a pixel there is clipped or
+    /// nonlinear. The runs' products and the Python estimator both take it from here.
+    pub fn from_camera(camera: &polar_model::sensor::Camera, gain_db: f64) -> NoiseModel {
+        let k = camera.gain_dn_per_e * 10f64.powf(gain_db / 20.0);
+        NoiseModel {
+            gain_dn_per_e: k,
+            offset_dn: camera.offset_dn,
+            read_var_dn2: k * k * camera.read_noise_e * camera.read_noise_e + 1.0 / 12.0,
+            saturation_dn: ((k * camera.full_well_e + camera.offset_dn).min(camera.adc_max_dn())
+                - 3.0 * k * camera.read_noise_e)
+                .clamp(0.0, 65535.0) as u16,
+        }
+    }
+
+    /// The dark level of `camera`'s frames under this noise model's gain after
+    /// `exposure_us`, DN: the offset plus `K` times the dark current's electrons (the level
+    /// a run subtracts when it has too few dark frames for a map).
+    pub fn dark_level_dn(&self, camera: &polar_model::sensor::Camera, exposure_us: f64) -> f64 {
+        self.offset_dn + self.gain_dn_per_e * camera.dark_current_e_per_s * exposure_us * 1e-6
+    }
+
     pub(super) fn validate(&self) -> Result<(), ProductsError> {
         let checks: [(&'static str, f64, f64, f64, &'static str); 3] = [
             (

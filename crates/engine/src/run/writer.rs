@@ -177,20 +177,8 @@ impl Writer {
         Ok(())
     }
 
-    pub(super) fn noise(&self, gain_db: f64) -> (NoiseModel, f64) {
-        let c = &self.camera_model;
-        let k = c.gain_dn_per_e * 10f64.powf(gain_db / 20.0);
-        let noise = NoiseModel {
-            gain_dn_per_e: k,
-            offset_dn: c.offset_dn,
-            read_var_dn2: k * k * c.read_noise_e * c.read_noise_e + 1.0 / 12.0,
-            // A full pixel reads the full well plus read noise: 3 sigma below the level
-            // counts as saturated (a pixel there is clipped or nonlinear).
-            saturation_dn: ((k * c.full_well_e + c.offset_dn).min(c.adc_max_dn())
-                - 3.0 * k * c.read_noise_e)
-                .clamp(0.0, 65535.0) as u16,
-        };
-        (noise, k)
+    pub(super) fn noise(&self, gain_db: f64) -> NoiseModel {
+        NoiseModel::from_camera(&self.camera_model, gain_db)
     }
 
     pub(super) fn process(&mut self, job: SetJob) -> Result<(Verdict, f64), String> {
@@ -214,9 +202,8 @@ impl Writer {
             }
         };
         let geometry = SetGeometry::new(&rows).map_err(|e| e.to_string())?;
-        let (noise, k) = self.noise(job.gain_db);
-        let dark_scalar = self.camera_model.offset_dn
-            + k * self.camera_model.dark_current_e_per_s * job.exposure_us * 1e-6;
+        let noise = self.noise(job.gain_db);
+        let dark_scalar = noise.dark_level_dn(&self.camera_model, job.exposure_us);
         let dark = match self.darks.get(&job.exposure_us.to_bits()) {
             // A dark map only from enough darks that its own noise is small (16 frames:
             // a quarter of one frame's temporal noise); otherwise the calibrated level.

@@ -87,8 +87,13 @@ pub fn attributes(node: &str) -> Map<String, Value> {
     };
     let name = node.rsplit('/').next().unwrap_or(node);
     let product = node.starts_with("/products/");
-    match name {
-        "pixels" => a(Some("DN"), "raw frame as read from the camera"),
+    let mut m = match name {
+        "pixels" => {
+            let mut m = a(Some("DN"), "raw frame as read from the camera");
+            // CF: what describes each frame, so that xarray opens these as coordinates.
+            m.insert("coordinates".into(), json!(FRAME_COORDINATES));
+            m
+        }
         "kind" => coded("frame kind", &KIND_CODES),
         "step" => a(None, "plan step the frame fulfils"),
         "set" if product => a(None, "angle set of the slot (-1: slot not written)"),
@@ -184,8 +189,18 @@ pub fn attributes(node: &str) -> Map<String, Value> {
             m
         }
         _ => a(None, name),
+    };
+    if product && !matches!(name, "set" | "angles_deg") {
+        // CF: a product image's slot is described by its set and angles.
+        m.insert("coordinates".into(), json!("set angles_deg"));
     }
+    m
 }
+
+/// The per-frame arrays that describe a frame (its span, exposure, time, set, kind and
+/// whether it counts): the CF `coordinates` of `frames/pixels`.
+const FRAME_COORDINATES: &str = "angle_start_deg angle_end_deg angle_sigma_deg angle_source \
+     exposure_us host_time_unix_ns set step kind accepted status";
 
 fn checksum() -> Vec<Arc<dyn BytesToBytesCodecTraits>> {
     vec![Arc::new(Crc32cCodec::new())]

@@ -1,0 +1,67 @@
+"""Runs as xarray Datasets: ``open_run`` reads a run directory's Zarr store (the frames, their
+analyzer spans and times, the products of every set and the store's conventions) with
+zarr-python and xarray, before or after a resume, whatever interrupted it."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+#: Per-frame arrays that describe a frame rather than measure it: coordinates on ``frame``.
+FRAME_COORDS = ("angle_start_deg", "angle_end_deg", "angle_sigma_deg", "angle_source",
+                "measured_angle_deg", "commanded_angle_deg", "exposure_us", "gain",
+                "host_time_unix_ns", "device_timestamp_ns", "frame_set", "step", "kind",
+                "accepted", "status", "frame_id", "sun_zenith_deg", "sun_azimuth_deg")
+
+
+def _store(path: str | os.PathLike) -> Path:
+    p = Path(path)
+    store = p / "run.zarr" if (p / "run.zarr").is_dir() else p
+    if not (store / "zarr.json").is_file():
+        raise FileNotFoundError(f"{path}: not a run directory (no run.zarr/zarr.json in it)")
+    return store
+
+
+def open_run(path: str | os.PathLike, *, accepted_only: bool = True) -> Any:
+    """A run as one ``xarray.Dataset``.
+
+    Dimensions: ``frame`` (the stored frames; with ``accepted_only`` only those whose set's
+    products use them and the dark frames, as ``frames/accepted == 1``), ``y``, ``x``,
+    ``set`` (one per finished set: the products) and ``channel`` (its angles).
+
+    Variables: ``pixels`` (frame, y, x; uint16 DN, read lazily), the ten products and
+    ``flags`` (set, y, x), ``angles_deg`` (set, channel) and ``dark_mean`` (y, x) when the run
+    took dark frames. Coordinates on ``frame``: the analyzer span (``angle_start_deg``,
+    ``angle_end_deg``), ``exposure_us``, the host time ``host_time_unix_ns``
+    (datetime64), ``frame_set`` (the set the frame belongs to), ``kind`` and the rest of
+    ``FRAME_COORDS``. Attributes: the store's root attributes (``conventions``,
+    ``products_camera``, ``plan``, ``summary``, ...) and the products' (``dark_source``,
+    ``saturated_fraction``).
+    """
+    import xarray as xr
+    import zarr
+
+    store = _store(path)
+    root = zarr.open_group(str(store), mode="r")
+    frames = xr.open_zarr(str(store), group="frames", consolidated=False)
+    frames = frames.rename({"set": "frame_set"})
+    frames = frames.set_coords([c for c in FRAME_COORDS if c in frames.variables])
+    if accepted_only and "accepted" in frames.variables:
+        keep = frames["accepted"].values == 1
+        frames = frames.isel(frame=keep)
+    parts = [frames]
+    groups = set(root.group_keys())
+    attrs = dict(root.attrs)
+    if "products" in groups:
+        products = xr.open_zarr(str(store), group="products", consolidated=False)
+        attrs.update({k: v for k, v in products.attrs.items() if k != "names"})
+        products = products.set_coords("set").swap_dims({"slot": "set"})
+        parts.append(products)
+    if "darks" in groups and "mean" in root["darks"].array_keys():
+        darks = xr.open_zarr(str(store), group="darks", consolidated=False)
+        parts.append(darks.rename({"mean": "dark_mean"}))
+    ds = xr.merge(parts, combine_attrs="drop", compat="override", join="outer")
+    ds.attrs = attrs
+    ds.attrs["run_dir"] = str(store.parent if store.name == "run.zarr" else store)
+    return ds

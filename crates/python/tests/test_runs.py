@@ -1,0 +1,122 @@
+"""``open_run`` on a step-and-shoot, a continuous and a killed-then-resumed run: xarray opens
+each whole, and the products it shows are the estimator's on the frames it shows."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import polarimeter as pm
+from conftest import BIN, EXAMPLES, cli
+
+import xarray as xr
+
+
+def recompute_and_compare(ds) -> float:
+    """Recomputes every set's products from the dataset's own frames, spans, camera and dark
+    with ``pm.stokes``; the largest difference from the stored products in units of their
+    predicted sigma. Both are the engine's kernel on the same inputs, so any difference is
+    the dark map's float32 rounding."""
+    camera = ds.attrs["products_camera"]["model"]
+    worst = 0.0
+    for s in ds["set"].values:
+        if s < 0:
+            continue
+        light = ds.isel(frame=(ds["frame_set"].values == s) & (ds["kind"].values == 0))
+        rows = pm.analyzer_rows(light["angle_start_deg"].values, light["angle_end_deg"].values,
+                                camera=camera)
+        source = ds.attrs["dark_source"][str(int(s))]
+        if "level_dn" in source:
+            dark = dict(dark_dn=source["level_dn"])
+        else:
+            darks = ds.isel(frame=(ds["kind"].values == 1)
+                            & (ds["exposure_us"].values == source["exposure_us"]))
+            mean = darks["pixels"].values[: source["dark_frames"]].astype(np.float64).mean(0)
+            dark = dict(dark_map=mean.astype(np.float32))
+        got = pm.stokes(light["pixels"].values, rows, camera=camera,
+                        gain_db=float(light["gain"].values[0]), threads=0, **dark)
+        stored = ds.sel(set=s)
+        for name in ["s0", "s1", "s2", "dolp"]:
+            a, b = getattr(got, name), stored[name].values
+            assert np.array_equal(np.isnan(a), np.isnan(b)), name
+            sigma = stored["sigma_" + name].values
+            ok = ~np.isnan(a)
+            if ok.any():
+                worst = max(worst, float(np.max(np.abs(a - b)[ok] / sigma[ok])))
+        assert np.array_equal(got.flags, stored["flags"].values)
+    return worst
+
+
+def test_step_and_shoot_run_opens_whole(step_run: Path) -> None:
+    ds = pm.open_run(step_run)
+    assert set(ds.dims) >= {"frame", "y", "x", "set", "channel"}
+    assert ds["pixels"].dtype == np.uint16
+    assert np.issubdtype(ds["host_time_unix_ns"].dtype, np.datetime64)
+    assert "conventions" in ds.attrs and ds.attrs["summary"]
+    assert (ds["accepted"].values == 1).all()
+    # Products within 1e-3 of their own predicted sigma of a recomputation (float32).
+    assert recompute_and_compare(ds) < 1e-3
+
+
+def test_continuous_run_opens_whole(continuous_run: Path) -> None:
+    ds = pm.open_run(continuous_run)
+    span = ds["angle_end_deg"].values - ds["angle_start_deg"].values
+    light = ds["kind"].values == 0
+    assert (span[light] > 0).all(), "a continuous run's frames each sweep a span"
+    every = pm.open_run(continuous_run, accepted_only=False)
+    assert every.sizes["frame"] >= ds.sizes["frame"]
+    assert recompute_and_compare(ds) < 1e-3
+
+
+def test_killed_run_opens_before_and_after_resume(tmp_path: Path) -> None:
+    out = tmp_path / "killed"
+    plan = EXAMPLES / "plans" / "capture.toml"
+    proc = subprocess.Popen([str(BIN), "acquire", "run", str(plan), "--simulate", "--out",
+                             str(out)], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    journal = out / "journal.jsonl"
+    deadline = time.monotonic() + 60
+    try:
+        while time.monotonic() < deadline:
+            if journal.is_file() and journal.read_text().count('"frame"') >= 7:
+                break
+            time.sleep(0.02)
+        else:
+            pytest.fail("the run wrote no 7 frames in 60 s")
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    before = pm.open_run(out, accepted_only=False)
+    assert before.sizes["frame"] >= 1
+    hashes = set(before["hash"].values.tolist())
+    if before.sizes["set"]:
+        assert recompute_and_compare(pm.open_run(out)) < 1e-3
+    p = cli("acquire", "resume", str(out))
+    assert p.returncode == 0, p.stderr
+    after = pm.open_run(out, accepted_only=False)
+    # Nothing acquired before the kill is lost.
+    assert hashes <= set(after["hash"].values.tolist())
+    ds = pm.open_run(out)
+    assert ds.sizes["set"] >= 1
+    assert recompute_and_compare(ds) < 1e-3
+
+
+def test_not_a_run_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match="not a run directory"):
+        pm.open_run(tmp_path)
+
+
+def test_xarray_alone_opens_the_frames_with_their_coordinates(step_run: Path) -> None:
+    """Without the package: the store names the CF coordinates, so xarray sets the span,
+    exposure, time and set of each frame, and the set of each product slot, as coordinates."""
+    frames = xr.open_zarr(step_run / "run.zarr", group="frames", consolidated=False)
+    for name in ("angle_start_deg", "angle_end_deg", "exposure_us", "host_time_unix_ns",
+                 "set", "kind", "accepted"):
+        assert name in frames.coords, name
+    products = xr.open_zarr(step_run / "run.zarr", group="products", consolidated=False)
+    assert "set" in products.coords and "angles_deg" in products.coords
