@@ -55,7 +55,8 @@ cargo test --workspace --release --locked
 # The Python package (crates/python) as a user installs it: `pip install ./crates/python`
 # (maturin, through pip's isolated build) into a fresh venv with the pinned test requirements,
 # then its pytest suite (every model function against the command line, the estimator against
-# polanalyser, open_run on finished, continuous and killed runs) and examples/python/tour.py,
+# polanalyser, open_run on finished, continuous and killed runs, runs driven from Python and
+# interrupted by SIGINT) and examples/python/tour.py,
 # run as a user runs it: stdin closed, in a scratch directory, under a time limit.
 PKG_VENV=target/py-pkg-venv
 rm -rf "$PKG_VENV" && python3 -m venv "$PKG_VENV"
@@ -66,8 +67,8 @@ POLARIMETER_BIN="$PWD/target/release/polarimeter" timeout 900 \
   "$PKG_VENV/bin/python" -m pytest -q -p no:cacheprovider crates/python/tests </dev/null
 rm -rf target/python-tour && mkdir -p target/python-tour
 ROOT="$PWD"
-(cd target/python-tour && POLARIMETER_BIN="$ROOT/target/release/polarimeter" timeout 600 \
-  "$ROOT/$PKG_VENV/bin/python" "$ROOT/examples/python/tour.py" </dev/null)
+(cd target/python-tour && timeout 600 "$ROOT/$PKG_VENV/bin/python" "$ROOT/examples/python/tour.py" \
+  </dev/null)
 
 # The GUI end to end under Xvfb: run the default plan on the simulated devices, then save a
 # PNG of each tab (live view, devices, planner, rooftop) and of the live camera and live

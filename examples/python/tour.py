@@ -1,17 +1,13 @@
 """A tour of the `polarimeter` Python package, cell by cell (run it whole, or paste the cells
 into a notebook). Install: `pip install ./crates/python` from a clone (docs/PYTHON.md).
 
-Cells: the model on arrays; the estimator on frames; the planner; a run made by the
-`polarimeter` command on simulated devices, opened as an xarray Dataset, and its products
-recomputed from its own frames. Writes into the working directory: tour-run/ and
-tour-dolp.png. The run cell needs the `polarimeter` command: on PATH, or named by the
-POLARIMETER_BIN environment variable (a clone's is target/release/polarimeter).
+Cells: the model on arrays; the estimator on frames; the planner; a run on simulated devices
+with its progress, opened as an xarray Dataset, and its products recomputed from its own
+frames. Writes into the working directory: tour-run/ and tour-dolp.png.
 """
 
 # %% The model on arrays: Fresnel, the pBRDF, the sun
-import os
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -61,14 +57,19 @@ print(f"plan scene: angles {np.round(plan.angles_deg, 1)} deg, {plan.t_int_ms * 
 check = pm.check_plan(EXAMPLES / "plans" / "capture.toml")
 print(f"plan check: {check.forecast['frames']} frames in {check.forecast['duration_s']:.1f} s")
 
-# %% A run on simulated devices, opened as an xarray Dataset
-binary = os.environ.get("POLARIMETER_BIN") or shutil.which("polarimeter")
-if binary is None:
-    raise SystemExit("the run cell needs the polarimeter command (POLARIMETER_BIN or PATH)")
+# %% A run on simulated devices, with its progress; Ctrl-C would pause it (KeyboardInterrupt)
 shutil.rmtree("tour-run", ignore_errors=True)
-subprocess.run([binary, "acquire", "run", str(EXAMPLES / "plans" / "capture.toml"),
-                "--simulate", "--out", "tour-run"], check=True, stdin=subprocess.DEVNULL,
-               stdout=subprocess.DEVNULL)
+
+
+def progress(event: dict) -> None:
+    if event["kind"] == "set":
+        print(f"  set {event['set']}: mean DoLP {event['mean_dolp']:.3f}"
+              f"{'' if event['accepted'] else ' (rejected: ' + event['reason'] + ')'}")
+
+
+result = pm.run(EXAMPLES / "plans" / "capture.toml", "tour-run", simulate=True,
+                on_event=progress)
+print(f"run {result.state}: {result.summary['frames_accepted']} frames")
 ds = pm.open_run("tour-run")
 print(ds)
 

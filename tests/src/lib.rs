@@ -56,11 +56,7 @@ pub fn run_cli(
                 .ok_or_else(|| format!("{}: the rig names no devices", rig.path.display()))?,
         )
     };
-    let ui = polar_cli::acquire::Ui {
-        progress: false,
-        interactive: false,
-        auto_resume: max_resumes,
-    };
+    let ui = polar_cli::acquire::Ui::unattended(max_resumes);
     polar_cli::acquire::run_cmd(plan, hw, Some(&rig), Some(out.to_path_buf()), ui)
         .map_err(|e| e.to_string())
 }

@@ -23,8 +23,21 @@ fn err(e: impl std::fmt::Display) -> CommandError {
     CommandError(e.to_string())
 }
 
+/// What a caller other than the terminal (the Python package) hears of a run and how it
+/// asks the run to stop: every event, and an interrupt polled every
+/// [`HOOK_POLL_MS`] ms in place of the terminal's Ctrl-C.
+pub trait RunHooks {
+    /// Called with each event of the run, in order.
+    fn event(&self, event: &Event);
+    /// Whether the caller asks the run to pause at the next safe point (as one Ctrl-C).
+    fn interrupted(&self) -> bool;
+}
+
+/// How often a run polls [`RunHooks::interrupted`], milliseconds.
+pub const HOOK_POLL_MS: u64 = 50;
+
 /// How the terminal takes part in a run.
-#[derive(Debug, Clone, Copy)]
+#[derive(Clone)]
 pub struct Ui {
     /// Show a progress bar (on a terminal).
     pub progress: bool,
@@ -33,6 +46,19 @@ pub struct Ui {
     /// Resume automatically after a device-error pause, up to this many times (tests and
     /// fault campaigns; 0 for people).
     pub auto_resume: u32,
+    /// A caller's hooks in place of the terminal's Ctrl-C (`None` on the command line).
+    pub hooks: Option<std::rc::Rc<dyn RunHooks>>,
+}
+
+impl std::fmt::Debug for Ui {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Ui")
+            .field("progress", &self.progress)
+            .field("interactive", &self.interactive)
+            .field("auto_resume", &self.auto_resume)
+            .field("hooks", &self.hooks.is_some())
+            .finish()
+    }
 }
 
 impl Ui {
@@ -42,6 +68,18 @@ impl Ui {
             progress: std::io::stderr().is_terminal(),
             interactive: std::io::stdin().is_terminal(),
             auto_resume: 0,
+            hooks: None,
+        }
+    }
+
+    /// Nobody at a terminal: no progress bar, a pause leaves the run (after up to
+    /// `auto_resume` automatic resumes of device-error pauses).
+    pub fn unattended(auto_resume: u32) -> Ui {
+        Ui {
+            progress: false,
+            interactive: false,
+            auto_resume,
+            hooks: None,
         }
     }
 }
@@ -69,31 +107,10 @@ where
         mut state,
         mut events,
     } = ctl;
-    // Ctrl-C: pause at the next safe point, then at once, then detach.
-    let ctrl = control.clone();
-    let ctrl_c = tokio::task::spawn_local(async move {
-        let mut n = 0u32;
-        while tokio::signal::ctrl_c().await.is_ok() {
-            n += 1;
-            let c = match n {
-                1 => Control::Pause,
-                2 => Control::PauseNow,
-                _ => Control::Detach,
-            };
-            eprintln!(
-                "{}",
-                match c {
-                    Control::Pause => "pausing at the next safe point (Ctrl-C again: now)",
-                    Control::PauseNow =>
-                        "pausing now (Ctrl-C again: leave the run for `acquire resume`)",
-                    _ => "leaving the run",
-                }
-            );
-            if ctrl.send(c).await.is_err() {
-                break;
-            }
-        }
-    });
+    let ctrl_c = match ui.hooks.clone() {
+        Some(hooks) => tokio::task::spawn_local(hook_interrupts(hooks, control.clone())),
+        None => tokio::task::spawn_local(ctrl_c_interrupts(control.clone())),
+    };
     // Progress and the pause prompt.
     let bar = if ui.progress {
         let b = indicatif::ProgressBar::new(plan.max_frames().unwrap_or(0));
@@ -110,8 +127,12 @@ where
     let bar2 = bar.clone();
     let ctrl = control.clone();
     let mut auto = ui.auto_resume;
+    let hooks = ui.hooks.clone();
     let watcher = tokio::task::spawn_local(async move {
         while let Some(e) = events.recv().await {
+            if let Some(h) = &hooks {
+                h.event(&e);
+            }
             match e {
                 Event::Progress {
                     done,
@@ -179,6 +200,46 @@ where
         b.finish_and_clear();
     }
     outcome.map_err(err)
+}
+
+/// Ctrl-C on the terminal: pause at the next safe point, then at once, then detach.
+async fn ctrl_c_interrupts(ctrl: tokio::sync::mpsc::Sender<Control>) {
+    let mut n = 0u32;
+    while tokio::signal::ctrl_c().await.is_ok() {
+        n += 1;
+        let c = match n {
+            1 => Control::Pause,
+            2 => Control::PauseNow,
+            _ => Control::Detach,
+        };
+        eprintln!(
+            "{}",
+            match c {
+                Control::Pause => "pausing at the next safe point (Ctrl-C again: now)",
+                Control::PauseNow =>
+                    "pausing now (Ctrl-C again: leave the run for `acquire resume`)",
+                _ => "leaving the run",
+            }
+        );
+        if ctrl.send(c).await.is_err() {
+            break;
+        }
+    }
+}
+
+/// A caller's interrupt, polled: the first pauses at the next safe point, which (without a
+/// terminal) leaves the run for `acquire resume`.
+async fn hook_interrupts(
+    hooks: std::rc::Rc<dyn RunHooks>,
+    ctrl: tokio::sync::mpsc::Sender<Control>,
+) {
+    loop {
+        tokio::time::sleep(std::time::Duration::from_millis(HOOK_POLL_MS)).await;
+        if hooks.interrupted() {
+            let _ = ctrl.send(Control::Pause).await;
+            return;
+        }
+    }
 }
 
 /// The simulated rig and its run.
@@ -913,7 +974,7 @@ pub async fn run_to_end(
     let mut resume = false;
     let mut reasons = Vec::new();
     for resumes in 0..=max_resumes {
-        let (o, rig) = run_simulated(plan, Path::new("."), run_dir, resume, ui).await?;
+        let (o, rig) = run_simulated(plan, Path::new("."), run_dir, resume, ui.clone()).await?;
         rig.shutdown().await;
         match o {
             Outcome::Done(s) => return Ok((s, resumes, reasons)),
@@ -1003,11 +1064,7 @@ pub fn bench_run(sets: u32, exposure_us: f64) -> Result<String, CommandError> {
     let _ = std::fs::remove_dir_all(&dir);
     let rt = runtime()?;
     let local = tokio::task::LocalSet::new();
-    let ui = Ui {
-        progress: false,
-        interactive: false,
-        auto_resume: 0,
-    };
+    let ui = Ui::unattended(0);
     let (summary, _, _) = local.block_on(&rt, run_to_end(&plan, &dir, ui, 0))?;
     let _ = std::fs::remove_dir_all(&dir);
     let wall = summary.elapsed_s;
@@ -1180,11 +1237,7 @@ pub fn campaign(faults: u64, seed: u64, base: &Path) -> Result<Campaign, Command
         ..Campaign::default()
     };
     let rt = runtime()?;
-    let ui = Ui {
-        progress: false,
-        interactive: false,
-        auto_resume: 3,
-    };
+    let ui = Ui::unattended(3);
     let mut run = 0u64;
     // Every kind at least once, and until every kind has injected a fault (at most ten runs
     // of each), then round robin until `faults` were injected.
@@ -1214,7 +1267,7 @@ pub fn campaign(faults: u64, seed: u64, base: &Path) -> Result<Campaign, Command
         let before = polar_hil_mocks::faults::faults_fired();
         let t_run = Instant::now();
         let local = tokio::task::LocalSet::new();
-        let (summary, resumes, _) = local.block_on(&rt, run_to_end(&plan, &dir, ui, 20))?;
+        let (summary, resumes, _) = local.block_on(&rt, run_to_end(&plan, &dir, ui.clone(), 20))?;
         // A disconnect is set by a frame count, not a chance: count each (each forces a
         // pause and a resume in a new rig).
         let disconnects = if kinds[k].1.contains("disconnect_after_frames") {

@@ -14,12 +14,14 @@
 //! * [`estimator`]: Stokes, DoLP, AoP, their predicted sigma and the flags from a stack of
 //!   frames, with the engine's kernel, reading the numpy frames in place.
 //! * [`commands`]: the CLI's document commands (planner, scene, statistics) by their flags.
+//! * [`runs`]: `acquire run` and `acquire resume`, with events and Ctrl-C.
 #![warn(missing_docs)]
 
 mod commands;
 mod errors;
 mod estimator;
 mod optics;
+mod runs;
 mod sun;
 
 use pyo3::prelude::*;
@@ -35,5 +37,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(estimator::camera_noise, m)?)?;
     m.add_function(wrap_pyfunction!(estimator::stokes_products, m)?)?;
     m.add_function(wrap_pyfunction!(commands::command, m)?)?;
+    m.add_function(wrap_pyfunction!(runs::run_plan, m)?)?;
+    m.add_function(wrap_pyfunction!(runs::resume_run, m)?)?;
     Ok(())
 }

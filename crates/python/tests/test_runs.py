@@ -1,20 +1,21 @@
-"""``open_run`` on a step-and-shoot, a continuous and a killed-then-resumed run: xarray opens
-each whole, and the products it shows are the estimator's on the frames it shows."""
+"""Runs: ``open_run`` on a step-and-shoot, a continuous and a killed-then-resumed run (xarray
+opens each whole, and the products it shows are the estimator's on the frames it shows); a
+run driven from Python with its events; Ctrl-C pausing it; xarray alone on the store."""
 
 from __future__ import annotations
 
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+import xarray as xr
 
 import polarimeter as pm
 from conftest import BIN, EXAMPLES, cli
-
-import xarray as xr
 
 
 def recompute_and_compare(ds) -> float:
@@ -120,3 +121,62 @@ def test_xarray_alone_opens_the_frames_with_their_coordinates(step_run: Path) ->
         assert name in frames.coords, name
     products = xr.open_zarr(step_run / "run.zarr", group="products", consolidated=False)
     assert "set" in products.coords and "angles_deg" in products.coords
+
+
+def test_a_simulated_run_driven_from_python(tmp_path: Path) -> None:
+    events: list[dict] = []
+    result = pm.run(EXAMPLES / "plans" / "capture.toml", tmp_path / "py-run", simulate=True,
+                    on_event=events.append)
+    assert result.state == "done", result.data
+    progress = [e for e in events if e["kind"] == "progress"]
+    # One progress event per frame that counts, in order, up to the plan's frames.
+    assert [e["done"] for e in progress] == list(range(1, len(progress) + 1))
+    assert progress[-1]["done"] == progress[-1]["planned"] == result.summary["frames_accepted"]
+    assert events[-1] == {"kind": "state", "state": "done", "reason": None}
+    assert recompute_and_compare(result.open()) < 1e-3
+    with pytest.raises(ValueError, match="give either simulate=True or the hardware"):
+        pm.run(EXAMPLES / "plans" / "capture.toml", tmp_path / "neither")
+
+
+CHILD = """
+import sys
+import polarimeter as pm
+
+def on_event(e):
+    if e["kind"] == "progress" and e["done"] == 3:
+        print("frame 3", flush=True)
+
+try:
+    pm.run(sys.argv[1], sys.argv[2], simulate=True, on_event=on_event)
+    print("finished", flush=True)
+except KeyboardInterrupt as e:
+    print("KeyboardInterrupt:", e, flush=True)
+"""
+
+
+def test_ctrl_c_pauses_the_run_and_raises_keyboard_interrupt(tmp_path: Path) -> None:
+    """SIGINT to a Python process running a plan: the run pauses at its next safe point, the
+    call raises KeyboardInterrupt naming the run, the store opens, and resume finishes it
+    with every frame taken before the interrupt kept."""
+    out = tmp_path / "interrupted"
+    child = subprocess.Popen([sys.executable, "-c", CHILD, str(EXAMPLES / "plans" /
+                                                               "capture.toml"), str(out)],
+                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        line = child.stdout.readline()
+        assert line.strip() == "frame 3", line + child.stderr.read()
+        child.send_signal(signal.SIGINT)
+        rest, err = child.communicate(timeout=60)
+    finally:
+        child.kill()
+    assert "KeyboardInterrupt: the run paused at a safe point" in rest, rest + err
+    assert f"polarimeter.resume({str(out)!r})" in rest.replace('"', "'"), rest
+    before = pm.open_run(out, accepted_only=False)
+    assert 3 <= before.sizes["frame"] < 16, "paused after frame 3, before the plan's 16"
+    hashes = set(before["hash"].values.tolist())
+    result = pm.resume(out)
+    assert result.state == "done", result.data
+    after = pm.open_run(out, accepted_only=False)
+    assert hashes <= set(after["hash"].values.tolist())
+    assert recompute_and_compare(pm.open_run(out)) < 1e-3

@@ -156,14 +156,10 @@ fn demo_never_replaces_another_run() {
 #[test]
 fn demo_runs_on_the_simulated_k10cr1() {
     use polar_cli::acquire::{demo_on_stage, demo_stages, Ui};
-    let ui = Ui {
-        progress: false,
-        interactive: false,
-        auto_resume: 0,
-    };
+    let ui = Ui::unattended(0);
     let out_dir = std::env::temp_dir().join(format!("polar-demo-k10cr1-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out_dir);
-    let text = demo_on_stage(&out_dir, "k10cr1", ui).unwrap();
+    let text = demo_on_stage(&out_dir, "k10cr1", ui.clone()).unwrap();
     println!("{text}");
     assert!(
         text.contains("- stage: apt K10CR1 serial") && text.contains("real apt driver"),

@@ -10,7 +10,8 @@ instrument controller, on numpy arrays. Every number comes from the project's Ru
 * :mod:`polarimeter.estimator`: ``analyzer_rows``, ``camera_noise``, ``stokes``.
 * :mod:`polarimeter.planner`: ``plan_angles``, ``plan_scene``, ``plan_continuous``,
   ``check_plan``.
-* :mod:`polarimeter.runs`: ``open_run`` (needs xarray and zarr: ``pip install
+* :mod:`polarimeter.runs`: ``run`` and ``resume`` (plans on simulated or real devices, with
+  progress events and Ctrl-C), ``open_run`` (needs xarray and zarr: ``pip install
   polarimeter[runs]``).
 
 Conventions (docs/MODEL.md): Stokes ``[S0, S1, S2]``, ``S1 > 0`` along the frame's x axis,
@@ -23,11 +24,12 @@ from .model import (Fresnel, Pbrdf, SunPosition, dolp_stats, fresnel, pbrdf, pol
                     scene, sensor, sky, sun_position)
 from .planner import (AnglesPlan, ContinuousPlan, PlanCheck, ScenePlan, check_plan,
                       plan_angles, plan_continuous, plan_scene)
-from .runs import open_run
+from .runs import RunResult, open_run, resume, run
 
 __all__ = [
     "__version__", "Products", "analyzer_rows", "camera_noise", "stokes", "Fresnel", "Pbrdf",
     "SunPosition", "dolp_stats", "fresnel", "pbrdf", "polarimeter", "roc", "scene", "sensor",
     "sky", "sun_position", "AnglesPlan", "ContinuousPlan", "PlanCheck", "ScenePlan",
-    "check_plan", "plan_angles", "plan_continuous", "plan_scene", "open_run",
+    "check_plan", "plan_angles", "plan_continuous", "plan_scene", "RunResult", "open_run",
+    "resume", "run",
 ]

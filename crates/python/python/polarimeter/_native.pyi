@@ -1,7 +1,7 @@
 """Type stubs of the Rust extension module (``polarimeter._native``). The public API is the
 package's Python layer; these are its building blocks, on flat float64 arrays."""
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import numpy.typing as npt
@@ -64,3 +64,12 @@ def stokes_products(
     threads: int = 1,
 ) -> dict[str, Any]: ...
 def command(name: str, argv: list[str]) -> str: ...
+def run_plan(
+    plan: str,
+    out: str | None = None,
+    *,
+    simulate: bool = False,
+    rig: str | None = None,
+    on_event: Callable[[str], Any] | None = None,
+) -> str: ...
+def resume_run(run_dir: str, *, on_event: Callable[[str], Any] | None = None) -> str: ...

@@ -1,12 +1,76 @@
-"""Runs as xarray Datasets: ``open_run`` reads a run directory's Zarr store (the frames, their
-analyzer spans and times, the products of every set and the store's conventions) with
-zarr-python and xarray, before or after a resume, whatever interrupted it."""
+"""Runs from Python: ``run`` and ``resume`` (``polarimeter acquire run`` and ``acquire resume``,
+the same code, with progress events and Ctrl-C), and ``open_run``, which reads a run
+directory's Zarr store (the frames, their analyzer spans and times, the products of every set
+and the store's conventions) with zarr-python and xarray, before or after a resume, whatever
+interrupted it."""
 
 from __future__ import annotations
 
+import json
 import os
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
+
+from . import _native
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """How a run (or a resume) ended."""
+
+    state: str
+    """``done``, ``paused`` (a device fault its retries did not clear: ``resume`` it) or
+    ``aborted``."""
+    run_dir: str
+    """The run directory."""
+    summary: dict | None
+    """A finished run's summary: frames, sets, rejections, retries, timings, saturation."""
+    data: dict
+    """The command's whole JSON (``reason``, ``warnings``, ``forecast_warnings``, ...)."""
+
+    def open(self, **kwargs: Any) -> Any:
+        """The run as an xarray Dataset (``open_run``)."""
+        return open_run(self.run_dir, **kwargs)
+
+
+def _result(text: str) -> RunResult:
+    data = json.loads(text)
+    return RunResult(state=data.get("state", ""), run_dir=data.get("run_dir", ""),
+                     summary=data.get("summary"), data=data)
+
+
+def _events(on_event: Callable[[dict], Any] | None) -> Callable[[str], Any] | None:
+    if on_event is None:
+        return None
+    return lambda text: on_event(json.loads(text))
+
+
+def run(plan: str | os.PathLike, out: str | os.PathLike | None = None, *,
+        simulate: bool = False, rig: str | os.PathLike | None = None,
+        on_event: Callable[[dict], Any] | None = None) -> RunResult:
+    """Runs a plan file into ``out`` (a new or empty directory; default
+    ``./run-NAME-UNIXTIME``) on the simulated devices (``simulate=True``) or on the hardware
+    a rig file names (``rig=PATH``), as ``polarimeter acquire run``.
+
+    ``on_event`` is called with each event as a dict: ``{"kind": "progress", "done",
+    "planned", "label"}``, ``{"kind": "set", "set", "accepted", "reason", "mean_s0_dn",
+    "mean_dolp"}``, ``{"kind": "state", "state", "reason"}``, ``{"kind": "retry",
+    "message"}``, ``{"kind": "decision", ...}``. Ctrl-C (or an exception ``on_event`` raises)
+    pauses the run at its next safe point; then ``KeyboardInterrupt`` (or that exception) is
+    raised, and ``resume(run_dir)`` continues the run. The GIL is released while it runs.
+    """
+    return _result(_native.run_plan(os.fspath(plan), None if out is None else os.fspath(out),
+                                    simulate=simulate,
+                                    rig=None if rig is None else os.fspath(rig),
+                                    on_event=_events(on_event)))
+
+
+def resume(run_dir: str | os.PathLike, *,
+           on_event: Callable[[dict], Any] | None = None) -> RunResult:
+    """Continues a paused or interrupted run on the devices it was started on, as
+    ``polarimeter acquire resume`` (a finished run: nothing to do, state ``done``)."""
+    return _result(_native.resume_run(os.fspath(run_dir), on_event=_events(on_event)))
 
 #: Per-frame arrays that describe a frame rather than measure it: coordinates on ``frame``.
 FRAME_COORDS = ("angle_start_deg", "angle_end_deg", "angle_sigma_deg", "angle_source",
