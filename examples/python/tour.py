@@ -41,9 +41,10 @@ print("DoLP mean at true DoLP", dolp, "->", np.round(stats["mean"], 4))
 rows = pm.analyzer_rows([0, 45, 90, 135], camera=EXAMPLES / "cameras" / "cmos_modern.toml")
 y, x = np.mgrid[0:64, 0:64]
 truth = np.stack([np.full(y.shape, 2000.0), 400.0 * np.cos(x / 10.0), 400.0 * np.sin(y / 10.0)])
-noise = pm.camera_noise(EXAMPLES / "cameras" / "cmos_modern.toml")
+noise = pm.camera_noise(EXAMPLES / "cameras" / "cmos_modern.toml", exposure_us=2000.0)
 frames = np.rint(np.einsum("nk,kyx->nyx", rows, truth) + noise["dark_dn"]).astype(np.uint16)
-products = pm.stokes(frames, rows, camera=EXAMPLES / "cameras" / "cmos_modern.toml")
+products = pm.stokes(frames, rows, camera=EXAMPLES / "cameras" / "cmos_modern.toml",
+                     exposure_us=2000.0)
 err = np.max(np.abs(products.s1 - truth[1]))
 print(f"S1 recovered to {err:.2f} DN (rounding to whole DN); predicted sigma "
       f"{float(np.median(products.sigma_s1)):.1f} DN")
@@ -79,9 +80,17 @@ light = ds.isel(frame=(ds["frame_set"].values == last) & (ds["kind"].values == 0
 camera = ds.attrs["products_camera"]["model"]
 rows = pm.analyzer_rows(light["angle_start_deg"].values, light["angle_end_deg"].values,
                         camera=camera)
-dark = ds.attrs["dark_source"][str(int(last))]
-again = pm.stokes(light["pixels"].values, rows, camera=camera, dark_dn=dark.get("level_dn"),
-                  dark_map=None if "level_dn" in dark else ds["dark_mean"].values)
+# The dark each set subtracted: a level, or the mean of the first N dark frames at an exposure.
+source = ds.attrs["dark_source"][str(int(last))]
+if "level_dn" in source:
+    dark = {"dark_dn": source["level_dn"]}
+else:
+    darks = ds.isel(frame=(ds["kind"].values == 1)
+                    & (ds["exposure_us"].values == source["exposure_us"]))
+    mean = darks["pixels"].values[: source["dark_frames"]].astype(np.float64).mean(axis=0)
+    dark = {"dark_map": mean.astype(np.float32)}
+again = pm.stokes(light["pixels"].values, rows, camera=camera,
+                  gain_db=float(light["gain"].values[0]), **dark)
 stored = ds["dolp"].sel(set=last).values
 print(f"set {last}: DoLP recomputed in Python differs from the stored by at most "
       f"{np.nanmax(np.abs(again.dolp - stored)):.1e}")

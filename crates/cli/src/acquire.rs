@@ -24,13 +24,14 @@ fn err(e: impl std::fmt::Display) -> CommandError {
 }
 
 /// What a caller other than the terminal (the Python package) hears of a run and how it
-/// asks the run to stop: every event, and an interrupt polled every
-/// [`HOOK_POLL_MS`] ms in place of the terminal's Ctrl-C.
+/// asks the run to stop: every event, and its interrupts polled every [`HOOK_POLL_MS`] ms in
+/// place of the terminal's Ctrl-C.
 pub trait RunHooks {
     /// Called with each event of the run, in order.
     fn event(&self, event: &Event);
-    /// Whether the caller asks the run to pause at the next safe point (as one Ctrl-C).
-    fn interrupted(&self) -> bool;
+    /// How many times the caller has asked the run to stop so far; each new one acts as one
+    /// more Ctrl-C (pause at the next safe point, then at once, then leave the run).
+    fn interrupts(&self) -> u32;
 }
 
 /// How often a run polls [`RunHooks::interrupted`], milliseconds.
@@ -195,7 +196,13 @@ where
     drop(control);
     ctrl_c.abort();
     let _ = state.changed().await;
-    watcher.abort();
+    if ui.hooks.is_some() {
+        // The run is over: let the caller hear the events still queued (the watcher ends
+        // when the run's senders are gone; 2 s at most, should a device task hold one).
+        let _ = tokio::time::timeout(std::time::Duration::from_secs(2), watcher).await;
+    } else {
+        watcher.abort();
+    }
     if let Some(b) = bar {
         b.finish_and_clear();
     }
@@ -227,17 +234,27 @@ async fn ctrl_c_interrupts(ctrl: tokio::sync::mpsc::Sender<Control>) {
     }
 }
 
-/// A caller's interrupt, polled: the first pauses at the next safe point, which (without a
-/// terminal) leaves the run for `acquire resume`.
+/// A caller's interrupts, polled, as the terminal's Ctrl-C: the first pauses at the next safe
+/// point (which, without a terminal, leaves the run for `acquire resume`), the second at once,
+/// the third leaves the run.
 async fn hook_interrupts(
     hooks: std::rc::Rc<dyn RunHooks>,
     ctrl: tokio::sync::mpsc::Sender<Control>,
 ) {
+    let mut seen = 0u32;
     loop {
         tokio::time::sleep(std::time::Duration::from_millis(HOOK_POLL_MS)).await;
-        if hooks.interrupted() {
-            let _ = ctrl.send(Control::Pause).await;
-            return;
+        let now = hooks.interrupts();
+        while seen < now {
+            seen += 1;
+            let c = match seen {
+                1 => Control::Pause,
+                2 => Control::PauseNow,
+                _ => Control::Detach,
+            };
+            if ctrl.send(c).await.is_err() {
+                return;
+            }
         }
     }
 }

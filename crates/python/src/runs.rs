@@ -1,7 +1,8 @@
 //! Runs from Python: `acquire run` and `acquire resume` through the CLI's own functions, with
 //! the run's events passed to a Python callable and Python's Ctrl-C (a pending
-//! `KeyboardInterrupt`) pausing the run at its next safe point, after which the
-//! `KeyboardInterrupt` is raised with the run directory to resume.
+//! `KeyboardInterrupt`) pausing the run at its next safe point (a second: at once; a third:
+//! leaving it), after which the `KeyboardInterrupt` is raised with the run directory to
+//! resume. One run at a time per process.
 
 use crate::errors::value_error;
 use polar_cli::acquire::{resume_cmd, run_cmd, RunHooks, Ui};
@@ -10,16 +11,28 @@ use polar_rig::flags::HardwareFlags;
 use pyo3::exceptions::PyKeyboardInterrupt;
 use pyo3::prelude::*;
 use serde_json::{json, Value};
-use std::cell::RefCell;
+use std::cell::{Cell, RefCell};
 use std::path::PathBuf;
 use std::rc::Rc;
+use std::sync::atomic::{AtomicBool, Ordering};
 
-/// The hooks of one run: the caller's callable (given each event as JSON text) and the first
+/// The hooks of one run: the caller's callable (given each event as JSON text), the first
 /// Python exception seen (a `KeyboardInterrupt`, or what the callable raised), which asks
-/// the run to pause.
+/// the run to pause, and how many were seen (each more acts as one more Ctrl-C).
 struct PyHooks {
     on_event: Option<Py<PyAny>>,
     raised: RefCell<Option<PyErr>>,
+    interrupts: Cell<u32>,
+}
+
+impl PyHooks {
+    fn record(&self, e: PyErr) {
+        self.interrupts.set(self.interrupts.get() + 1);
+        let mut raised = self.raised.borrow_mut();
+        if raised.is_none() {
+            *raised = Some(e);
+        }
+    }
 }
 
 impl RunHooks for PyHooks {
@@ -33,21 +46,17 @@ impl RunHooks for PyHooks {
         let text = event_json(event).to_string();
         let result = Python::attach(|py| callable.call1(py, (text,)).map(|_| ()));
         if let Err(e) = result {
-            *self.raised.borrow_mut() = Some(e);
+            self.record(e);
         }
     }
 
-    fn interrupted(&self) -> bool {
-        if self.raised.borrow().is_some() {
-            return true;
+    fn interrupts(&self) -> u32 {
+        // Python runs its signal handlers here (this is the thread that called `run`; on the
+        // main thread a Ctrl-C becomes a KeyboardInterrupt).
+        if let Err(e) = Python::attach(|py| py.check_signals()) {
+            self.record(e);
         }
-        match Python::attach(|py| py.check_signals()) {
-            Ok(()) => false,
-            Err(e) => {
-                *self.raised.borrow_mut() = Some(e);
-                true
-            }
-        }
+        self.interrupts.get()
     }
 }
 
@@ -83,22 +92,67 @@ fn event_json(event: &Event) -> Value {
     }
 }
 
-/// What ran: the command's JSON, or the exception the caller raised meanwhile.
+/// What ran: the command's JSON, or the exception raised meanwhile (a `KeyboardInterrupt`
+/// saying where the run stands and how to continue it; the callable's own exception with the
+/// run directory as its `run_dir` attribute).
 fn finish(result: Result<(Value, i32), String>, raised: Option<PyErr>) -> PyResult<String> {
-    let (value, _) = result.map_err(value_error)?;
-    if let Some(e) = raised {
-        return Python::attach(|py| {
-            if e.is_instance_of::<PyKeyboardInterrupt>(py) {
-                let dir = value["run_dir"].as_str().unwrap_or("the run directory");
-                Err(PyKeyboardInterrupt::new_err(format!(
-                    "the run paused at a safe point; polarimeter.resume({dir:?}) continues it"
-                )))
-            } else {
+    let Some(e) = raised else {
+        return result.map(|(v, _)| v.to_string()).map_err(value_error);
+    };
+    let value = match result {
+        Ok((v, _)) => v,
+        // The run failed while the caller was interrupting it: the caller's exception, with
+        // the failure as its cause.
+        Err(message) => {
+            return Python::attach(|py| {
+                e.set_cause(py, Some(value_error(message)));
                 Err(e)
+            })
+        }
+    };
+    let dir = value["run_dir"].as_str().unwrap_or("").to_string();
+    Python::attach(|py| {
+        if !e.is_instance_of::<PyKeyboardInterrupt>(py) {
+            let _ = e.value(py).setattr("run_dir", &dir);
+            return Err(e);
+        }
+        let said = match value["state"].as_str() {
+            Some("paused") => {
+                format!("the run paused at a safe point; polarimeter.resume({dir:?}) continues it")
             }
-        });
+            Some("done") => format!("the run had finished before it could pause: {dir}"),
+            Some(other) => format!("the run ended {other}: {dir}"),
+            None => format!("the run stopped: {dir}"),
+        };
+        let err = PyKeyboardInterrupt::new_err(said);
+        let _ = err.value(py).setattr("run_dir", &dir);
+        Err(err)
+    })
+}
+
+/// Whether a run is going in this process: the run log (`run.log`) is one per process, so a
+/// second run at once is refused.
+static RUNNING: AtomicBool = AtomicBool::new(false);
+
+/// Clears [`RUNNING`] when the run ends, however it ends.
+struct Running;
+
+impl Running {
+    fn claim() -> PyResult<Running> {
+        if RUNNING.swap(true, Ordering::SeqCst) {
+            return Err(value_error(
+                "a run is already going in this process (one at a time: each run logs to its \
+                 own run.log); wait for it, or run the other in another process",
+            ));
+        }
+        Ok(Running)
     }
-    Ok(value.to_string())
+}
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        RUNNING.store(false, Ordering::SeqCst);
+    }
 }
 
 /// Runs `command` with an unattended UI whose hooks call `on_event` and watch for Ctrl-C (on
@@ -107,6 +161,7 @@ fn with_hooks<T>(on_event: Option<Py<PyAny>>, command: impl FnOnce(Ui) -> T) -> 
     let hooks = Rc::new(PyHooks {
         on_event,
         raised: RefCell::new(None),
+        interrupts: Cell::new(0),
     });
     let mut ui = Ui::unattended(0);
     ui.hooks = Some(hooks.clone() as Rc<dyn RunHooks>);
@@ -138,6 +193,7 @@ pub fn run_plan(
             "give either simulate=True or the hardware's rig file (rig=PATH)",
         ));
     }
+    let _running = Running::claim()?;
     polar_cli::logging::init(0);
     let (result, raised) = py.detach(|| {
         with_hooks(on_event, |ui| {
@@ -156,6 +212,7 @@ pub fn resume_run(
     run_dir: PathBuf,
     on_event: Option<Py<PyAny>>,
 ) -> PyResult<String> {
+    let _running = Running::claim()?;
     polar_cli::logging::init(0);
     let (result, raised) = py.detach(|| {
         with_hooks(on_event, |ui| {

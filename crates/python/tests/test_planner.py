@@ -59,11 +59,17 @@ def test_check_plan_from_a_path_and_from_text(tmp_path, monkeypatch) -> None:
 
 
 def test_planner_errors_name_the_python_argument() -> None:
-    with pytest.raises(ValueError, match="channels"):
+    """Errors name the Python keyword (``noise_var``), never the CLI's flag (``--noise-var``)."""
+    with pytest.raises(ValueError, match="channels") as e:
         pm.plan_angles(**{**ANGLES, "channels": 0})
-    with pytest.raises(ValueError, match="unexpected argument 'no_such_flag'"):
+    assert "--" not in str(e.value)
+    with pytest.raises(ValueError, match="noise_var") as e:
+        pm.plan_angles(**{**ANGLES, "noise_var": "lots"})
+    assert "--" not in str(e.value)
+    with pytest.raises(ValueError, match="unexpected argument 'no_such_flag'") as e:
         pm.plan_angles(**ANGLES, no_such_flag=1)
-    with pytest.raises(ValueError, match="target"):
+    assert "--" not in str(e.value)
+    with pytest.raises(ValueError, match="no-such-material"):
         pm.plan_scene(scene=EXAMPLES / "rooftop.toml",
                       camera=EXAMPLES / "cameras" / "cmos_modern.toml",
                       target="no-such-material", background="asphalt")

@@ -197,10 +197,12 @@ pub fn attributes(node: &str) -> Map<String, Value> {
     m
 }
 
-/// The per-frame arrays that describe a frame (its span, exposure, time, set, kind and
-/// whether it counts): the CF `coordinates` of `frames/pixels`.
+/// The per-frame arrays that describe a frame (every one but its hash: the analyzer span and
+/// angles, exposure, gain, times, set, step, kind, whether it counts, the camera's counter and
+/// the sun): the CF `coordinates` of `frames/pixels`.
 const FRAME_COORDINATES: &str = "angle_start_deg angle_end_deg angle_sigma_deg angle_source \
-     exposure_us host_time_unix_ns set step kind accepted status";
+     measured_angle_deg commanded_angle_deg exposure_us gain host_time_unix_ns \
+     device_timestamp_ns set step kind accepted status frame_id sun_zenith_deg sun_azimuth_deg";
 
 fn checksum() -> Vec<Arc<dyn BytesToBytesCodecTraits>> {
     vec![Arc::new(Crc32cCodec::new())]

@@ -19,7 +19,8 @@ Conventions (docs/MODEL.md): Stokes ``[S0, S1, S2]``, ``S1 > 0`` along the frame
 """
 
 from ._native import __version__
-from .estimator import Products, analyzer_rows, camera_noise, stokes
+from .estimator import (AOP_UNDEFINED, DOLP_UNDEFINED, SATURATED, Products, analyzer_rows,
+                        camera_noise, stokes)
 from .model import (Fresnel, Pbrdf, SunPosition, dolp_stats, fresnel, pbrdf, polarimeter, roc,
                     scene, sensor, sky, sun_position)
 from .planner import (AnglesPlan, ContinuousPlan, PlanCheck, ScenePlan, check_plan,
@@ -27,7 +28,7 @@ from .planner import (AnglesPlan, ContinuousPlan, PlanCheck, ScenePlan, check_pl
 from .runs import RunResult, open_run, resume, run
 
 __all__ = [
-    "__version__", "Products", "analyzer_rows", "camera_noise", "stokes", "Fresnel", "Pbrdf",
+    "__version__", "SATURATED", "DOLP_UNDEFINED", "AOP_UNDEFINED", "Products", "analyzer_rows", "camera_noise", "stokes", "Fresnel", "Pbrdf",
     "SunPosition", "dolp_stats", "fresnel", "pbrdf", "polarimeter", "roc", "scene", "sensor",
     "sky", "sun_position", "AnglesPlan", "ContinuousPlan", "PlanCheck", "ScenePlan",
     "check_plan", "plan_angles", "plan_continuous", "plan_scene", "RunResult", "open_run",

@@ -66,15 +66,23 @@ def _is_number(v: Any) -> bool:
 
 def _numeric(values: list) -> np.ndarray | None:
     """``values`` (numbers, or equal-shaped nested lists of numbers; ``None`` is NaN) as one
-    float array, or ``None`` when they are not all numeric."""
+    float array, or ``None`` when they are not all numeric or hold no number at all (a list of
+    warnings that happens to be empty stays a list)."""
+    numbers = 0
+
     def clean(v: Any) -> Any:
+        nonlocal numbers
         if isinstance(v, list):
             return [clean(x) for x in v]
         if not _is_number(v):
             raise TypeError
+        numbers += 1
         return math.nan if v is None else v
     try:
-        arr = np.asarray([clean(v) for v in values], dtype=np.float64)
+        cleaned = [clean(v) for v in values]
+        if numbers == 0:
+            return None
+        arr = np.asarray(cleaned, dtype=np.float64)
     except (TypeError, ValueError):
         return None
     return arr
@@ -89,7 +97,11 @@ def mapped(name: str, fixed: Mapping[str, Any], arrays: Mapping[str, Any],
     inner = dict(inner or {})
     shaped = {}
     for k, v in arrays.items():
-        a = np.asarray(v, dtype=np.float64)
+        try:
+            a = np.asarray(v, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{k} must be numeric (a number or an array of numbers), "
+                             f"got {type(v).__name__}") from None
         if k in inner:
             if a.ndim == 0 or a.shape[-1] != inner[k]:
                 raise ValueError(
@@ -107,6 +119,9 @@ def mapped(name: str, fixed: Mapping[str, Any], arrays: Mapping[str, Any],
         full = shape + ((inner[k],) if k in inner else ())
         flat[k] = np.broadcast_to(a, full).reshape((-1,) + full[len(shape):])
     count = int(np.prod(shape, dtype=np.int64))
+    if count == 0:
+        listed = ", ".join(f"{k} {s}" for k, s in shapes.items())
+        raise ValueError(f"the inputs broadcast to an empty shape {shape}: {listed}")
     results = []
     for i in range(count):
         call = dict(fixed)
@@ -115,14 +130,17 @@ def mapped(name: str, fixed: Mapping[str, Any], arrays: Mapping[str, Any],
         try:
             results.append(run(name, call))
         except ValueError as e:
-            where = f" (at index {np.unravel_index(i, shape)})" if count > 1 else ""
+            index = tuple(int(j) for j in np.unravel_index(i, shape))
+            where = f" (at element {index} of the broadcast inputs)" if count > 1 else ""
             raise ValueError(f"{e}{where}") from None
     out: dict = {}
     for key in (results[0] if results else {}):
         values = [r.get(key) for r in results]
         arr = _numeric(values)
         if arr is not None:
-            out[key] = arr.reshape(shape + arr.shape[1:])
+            arr = arr.reshape(shape + arr.shape[1:])
+            # One evaluation of a scalar field is a scalar, as the array functions give.
+            out[key] = arr[()] if arr.ndim == 0 else arr
         elif shape == ():
             out[key] = values[0]
         else:

@@ -13,11 +13,15 @@ import numpy as np
 
 from . import _native
 
-#: Flag bit 1: a frame saturated at the pixel (every product is NaN there).
+__all__ = ["SATURATED", "DOLP_UNDEFINED", "AOP_UNDEFINED", "Products", "analyzer_rows",
+           "camera_noise", "stokes"]
+
+#: Flag value 1 (bit 0): a frame saturated at the pixel (every product is NaN there).
 SATURATED = 1
-#: Flag bit 2: DoLP undefined (S0 <= 0 after the dark).
+#: Flag value 2 (bit 1): DoLP undefined (S0 <= 0 after the dark).
 DOLP_UNDEFINED = 2
-#: Flag bit 4: the AoP carries no information (undefined, or its sigma above pi/sqrt(12)).
+#: Flag value 4 (bit 2): the AoP carries no information (undefined, or its sigma above
+#: pi/sqrt(12)).
 AOP_UNDEFINED = 4
 
 
@@ -31,8 +35,16 @@ def analyzer_rows(start_deg: Any, end_deg: Any = None, *,
     offset, and its fore-optics, as a run's products take them), or an analyzer of
     ``extinction_ratio`` (default: ideal) whose axis is ``offset_deg`` (default 0) from the
     stage's angle. A run's ``angle_start_deg`` and ``angle_end_deg`` go here as they are."""
-    start = np.ascontiguousarray(np.ravel(start_deg), dtype=np.float64)
-    end = start if end_deg is None else np.ascontiguousarray(np.ravel(end_deg), dtype=np.float64)
+    if end_deg is None:
+        end_deg = start_deg
+    try:
+        start, end = np.broadcast_arrays(np.asarray(start_deg, dtype=np.float64),
+                                         np.asarray(end_deg, dtype=np.float64))
+    except ValueError:
+        raise ValueError(f"start_deg {np.shape(start_deg)} and end_deg {np.shape(end_deg)} do "
+                         "not broadcast to one shape") from None
+    start = np.ascontiguousarray(start).reshape(-1)
+    end = np.ascontiguousarray(end).reshape(-1)
     text = None if camera is None else _camera_text(camera)
     return _native.analyzer_rows(
         start, end, camera_toml=text,
@@ -89,7 +101,7 @@ class Products:
 
 
 def stokes(frames: np.ndarray, rows: Any, *, camera: Any = None,
-           gain_db: float = 0.0, exposure_us: float = 0.0, dark_dn: float | None = None,
+           gain_db: float = 0.0, exposure_us: float | None = None, dark_dn: float | None = None,
            dark_map: np.ndarray | None = None, gain_dn_per_e: float | None = None,
            offset_dn: float | None = None, read_var_dn2: float | None = None,
            saturation_dn: int | None = None, threads: int = 1) -> Products:
@@ -97,9 +109,10 @@ def stokes(frames: np.ndarray, rows: Any, *, camera: Any = None,
 
     frames: ``(count, height, width)`` uint16 (C-contiguous arrays are read in place); rows:
     ``(count, 3)`` measurement rows (``analyzer_rows``). The noise model comes from a
-    ``camera`` file (at ``gain_db``; its dark level at ``exposure_us`` unless ``dark_dn`` or
-    ``dark_map`` is given) or from ``gain_dn_per_e``, ``offset_dn``, ``read_var_dn2`` (DN^2)
-    and ``saturation_dn`` with a dark. ``threads`` caps the threads (0: all cores).
+    ``camera`` file or model (at ``gain_db``; the dark is its level after ``exposure_us``,
+    offset plus dark current, unless ``dark_dn`` or ``dark_map`` is given) or from
+    ``gain_dn_per_e``, ``offset_dn``, ``read_var_dn2`` (DN^2) and ``saturation_dn`` (DN, up
+    to 65535) with a dark. ``threads`` caps the threads (0: all cores).
     """
     frames = np.asarray(frames)
     if frames.dtype != np.uint16:
@@ -109,13 +122,19 @@ def stokes(frames: np.ndarray, rows: Any, *, camera: Any = None,
     noise = {"gain_dn_per_e": gain_dn_per_e, "offset_dn": offset_dn,
              "read_var_dn2": read_var_dn2, "saturation_dn": saturation_dn}
     if camera is not None:
-        model = camera_noise(camera, gain_db=gain_db, exposure_us=exposure_us)
+        if dark_dn is None and dark_map is None and exposure_us is None:
+            raise ValueError("give exposure_us (the camera's dark level depends on it), or "
+                             "dark_dn or dark_map")
+        model = camera_noise(camera, gain_db=gain_db, exposure_us=exposure_us or 0.0)
         noise = {k: (model[k] if v is None else v) for k, v in noise.items()}
         if dark_dn is None and dark_map is None:
             dark_dn = model["dark_dn"]
     missing = [k for k, v in noise.items() if v is None]
     if missing:
         raise ValueError(f"give camera=PATH or {', '.join(missing)}")
+    if not 0 <= int(noise["saturation_dn"]) <= 65535:
+        raise ValueError(f"saturation_dn = {noise['saturation_dn']} is out of range: allowed "
+                         "[0, 65535] DN")
     rows = np.ascontiguousarray(rows, dtype=np.float64)
     if rows.ndim != 2:
         raise ValueError(f"rows has shape {rows.shape}: allowed ({frames.shape[0]}, 3)")

@@ -19,6 +19,9 @@ import numpy as np
 from . import _commands, _native
 from ._arrays import broadcast, shaped
 
+__all__ = ["Fresnel", "Pbrdf", "SunPosition", "fresnel", "pbrdf", "sun_position", "sky", "scene",
+           "sensor", "dolp_stats", "roc", "polarimeter"]
+
 
 @dataclass(frozen=True)
 class Fresnel:
@@ -101,7 +104,12 @@ def _rfc3339(time: Any) -> tuple[tuple[int, ...], list[str]]:
     """Instants (numpy datetime64, datetime, or RFC 3339 text) as RFC 3339 UTC text."""
     arr = np.asarray(time)
     if arr.dtype.kind == "M":
-        text = np.datetime_as_string(arr.astype("datetime64[ns]"), unit="ns", timezone="UTC")
+        # Whole seconds at least (RFC 3339), finer units as they are: a cast to nanoseconds
+        # would wrap dates outside 1678-2262.
+        unit = np.datetime_data(arr.dtype)[0]
+        if unit in ("Y", "M", "W", "D", "h", "m", "generic"):
+            arr = arr.astype("datetime64[s]")
+        text = np.datetime_as_string(arr, timezone="UTC")
         return arr.shape, [str(t) for t in np.ravel(text)]
     if arr.dtype.kind == "O":
         import datetime as dt
@@ -128,7 +136,7 @@ def sun_position(time: Any, lat_deg: Any, lon_deg: Any, elevation_m: Any = 0.0, 
     is TT - UT (default: the Espenak-Meeus estimate).
     """
     tshape, times = _rfc3339(time)
-    shape, a = broadcast(t=np.zeros(tshape), lat_deg=lat_deg, lon_deg=lon_deg,
+    shape, a = broadcast(time=np.zeros(tshape), lat_deg=lat_deg, lon_deg=lon_deg,
                          elevation_m=elevation_m)
     times = list(np.broadcast_to(np.asarray(times, dtype=object).reshape(tshape), shape).ravel())
     zen, az = _native.sun_position(times, a["lat_deg"], a["lon_deg"], a["elevation_m"],

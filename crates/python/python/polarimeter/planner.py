@@ -14,6 +14,9 @@ from typing import Any
 
 from . import _commands
 
+__all__ = ["AnglesPlan", "ScenePlan", "ContinuousPlan", "PlanCheck", "plan_angles", "plan_scene",
+           "plan_continuous", "check_plan"]
+
 
 def _build(cls: type, data: dict) -> Any:
     named = {f.name: data.get(f.name) for f in fields(cls) if f.name != "data"}
@@ -112,16 +115,15 @@ def plan_continuous(**flags: Any) -> ContinuousPlan:
 
 def check_plan(plan: str | os.PathLike, *, rig: str | os.PathLike | None = None) -> PlanCheck:
     """A plan's forecast (``polarimeter plan check``): ``plan`` is a plan file's path, or the
-    plan's TOML text (relative paths in it are then relative to the working directory)."""
-    text = str(plan)
+    plan's TOML text (relative paths in it are then relative to the working directory, where
+    the text is written for a moment as a hidden ``.polarimeter-plan-*.toml``)."""
     if isinstance(plan, str) and "\n" in plan:
         import tempfile
-        with tempfile.NamedTemporaryFile("w", suffix=".toml", dir=os.getcwd(),
-                                         prefix=".polarimeter-plan-", delete=False) as f:
-            f.write(plan)
-            text = f.name
+        fd, name = tempfile.mkstemp(suffix=".toml", prefix=".polarimeter-plan-", dir=os.getcwd())
         try:
-            return _build(PlanCheck, _commands.run("plan_check", {"file": text, "rig": rig}))
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                f.write(plan)
+            return _build(PlanCheck, _commands.run("plan_check", {"file": name, "rig": rig}))
         finally:
-            os.unlink(text)
+            os.unlink(name)
     return _build(PlanCheck, _commands.run("plan_check", {"file": plan, "rig": rig}))

@@ -56,9 +56,11 @@ def run(plan: str | os.PathLike, out: str | os.PathLike | None = None, *,
     ``on_event`` is called with each event as a dict: ``{"kind": "progress", "done",
     "planned", "label"}``, ``{"kind": "set", "set", "accepted", "reason", "mean_s0_dn",
     "mean_dolp"}``, ``{"kind": "state", "state", "reason"}``, ``{"kind": "retry",
-    "message"}``, ``{"kind": "decision", ...}``. Ctrl-C (or an exception ``on_event`` raises)
-    pauses the run at its next safe point; then ``KeyboardInterrupt`` (or that exception) is
-    raised, and ``resume(run_dir)`` continues the run. The GIL is released while it runs.
+    "message"}``, ``{"kind": "decision", ...}``. Ctrl-C (on the main thread) or an exception
+    ``on_event`` raises pauses the run at its next safe point (a second Ctrl-C: at once; a
+    third leaves it); then ``KeyboardInterrupt`` (or that exception) is raised with the run
+    directory as its ``run_dir`` attribute, and ``resume(run_dir)`` continues the run. The GIL
+    is released while it runs; one run at a time per process.
     """
     return _result(_native.run_plan(os.fspath(plan), None if out is None else os.fspath(out),
                                     simulate=simulate,
@@ -72,7 +74,12 @@ def resume(run_dir: str | os.PathLike, *,
     ``polarimeter acquire resume`` (a finished run: nothing to do, state ``done``)."""
     return _result(_native.resume_run(os.fspath(run_dir), on_event=_events(on_event)))
 
-#: Per-frame arrays that describe a frame rather than measure it: coordinates on ``frame``.
+__all__ = ["RunResult", "run", "resume", "open_run", "FRAME_COORDS"]
+
+#: Per-frame arrays that describe a frame rather than measure it (every one but its hash),
+#: coordinates on ``frame``: the store's ``frames/pixels`` CF ``coordinates``, with the
+#: frame's ``set`` named ``frame_set`` (``set`` is the products' dimension). Runs written
+#: before the store named them get the same coordinates here.
 FRAME_COORDS = ("angle_start_deg", "angle_end_deg", "angle_sigma_deg", "angle_source",
                 "measured_angle_deg", "commanded_angle_deg", "exposure_us", "gain",
                 "host_time_unix_ns", "device_timestamp_ns", "frame_set", "step", "kind",
@@ -95,8 +102,8 @@ def open_run(path: str | os.PathLike, *, accepted_only: bool = True) -> Any:
     ``set`` (one per finished set: the products) and ``channel`` (its angles).
 
     Variables: ``pixels`` (frame, y, x; uint16 DN, read lazily), the ten products and
-    ``flags`` (set, y, x), ``angles_deg`` (set, channel) and ``dark_mean`` (y, x) when the run
-    took dark frames. Coordinates on ``frame``: the analyzer span (``angle_start_deg``,
+    ``flags`` (set, y, x), and ``dark_mean`` (y, x, the mean of every dark frame) when the run
+    took dark frames; ``angles_deg`` (set, channel) is a coordinate. Coordinates on ``frame``: the analyzer span (``angle_start_deg``,
     ``angle_end_deg``), ``exposure_us``, the host time ``host_time_unix_ns``
     (datetime64), ``frame_set`` (the set the frame belongs to), ``kind`` and the rest of
     ``FRAME_COORDS``. Attributes: the store's root attributes (``conventions``,
@@ -120,6 +127,8 @@ def open_run(path: str | os.PathLike, *, accepted_only: bool = True) -> Any:
     if "products" in groups:
         products = xr.open_zarr(str(store), group="products", consolidated=False)
         attrs.update({k: v for k, v in products.attrs.items() if k != "names"})
+        # Slots not written yet (a killed run's, set -1) hold no set's products.
+        products = products.isel(slot=products["set"].values >= 0)
         products = products.set_coords("set").swap_dims({"slot": "set"})
         parts.append(products)
     if "darks" in groups and "mean" in root["darks"].array_keys():
