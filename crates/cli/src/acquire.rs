@@ -34,7 +34,7 @@ pub trait RunHooks {
     fn interrupts(&self) -> u32;
 }
 
-/// How often a run polls [`RunHooks::interrupted`], milliseconds.
+/// How often a run polls [`RunHooks::interrupts`], milliseconds.
 pub const HOOK_POLL_MS: u64 = 50;
 
 /// How the terminal takes part in a run.
@@ -209,16 +209,22 @@ where
     outcome.map_err(err)
 }
 
+/// What the `n`th interrupt (from 1) asks of a run: pause at the next safe point, then at
+/// once, then leave the run.
+fn nth_interrupt(n: u32) -> Control {
+    match n {
+        1 => Control::Pause,
+        2 => Control::PauseNow,
+        _ => Control::Detach,
+    }
+}
+
 /// Ctrl-C on the terminal: pause at the next safe point, then at once, then detach.
 async fn ctrl_c_interrupts(ctrl: tokio::sync::mpsc::Sender<Control>) {
     let mut n = 0u32;
     while tokio::signal::ctrl_c().await.is_ok() {
         n += 1;
-        let c = match n {
-            1 => Control::Pause,
-            2 => Control::PauseNow,
-            _ => Control::Detach,
-        };
+        let c = nth_interrupt(n);
         eprintln!(
             "{}",
             match c {
@@ -247,11 +253,7 @@ async fn hook_interrupts(
         let now = hooks.interrupts();
         while seen < now {
             seen += 1;
-            let c = match seen {
-                1 => Control::Pause,
-                2 => Control::PauseNow,
-                _ => Control::Detach,
-            };
+            let c = nth_interrupt(seen);
             if ctrl.send(c).await.is_err() {
                 return;
             }

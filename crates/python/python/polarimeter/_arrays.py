@@ -8,18 +8,21 @@ from typing import Any
 import numpy as np
 
 
+def as_float(name: str, value: Any) -> np.ndarray:
+    """``value`` as a float64 array; a value that is not numeric is a ``ValueError`` naming
+    ``name``."""
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be numeric (a number or an array of numbers), "
+                         f"got {type(value).__name__}") from None
+
+
 def broadcast(**named: Any) -> tuple[tuple[int, ...], dict[str, np.ndarray]]:
     """The broadcast shape of the named inputs and each as a contiguous float64 vector of
     that many elements. A shape mismatch is a ``ValueError`` listing every input's shape;
     an input that is not numeric is one naming it."""
-    arrays = {}
-    for name, value in named.items():
-        try:
-            a = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"{name} must be numeric (a number or an array of numbers), "
-                             f"got {type(value).__name__}") from None
-        arrays[name] = a
+    arrays = {name: as_float(name, value) for name, value in named.items()}
     try:
         shape = np.broadcast_shapes(*(a.shape for a in arrays.values()))
     except ValueError:

@@ -16,6 +16,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from . import _native
+from ._arrays import as_float
 
 _FLAG = re.compile(r"--([a-z0-9][a-z0-9-]*)(?: <[A-Z0-9_]+>)?")
 
@@ -97,11 +98,7 @@ def mapped(name: str, fixed: Mapping[str, Any], arrays: Mapping[str, Any],
     inner = dict(inner or {})
     shaped = {}
     for k, v in arrays.items():
-        try:
-            a = np.asarray(v, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"{k} must be numeric (a number or an array of numbers), "
-                             f"got {type(v).__name__}") from None
+        a = as_float(k, v)
         if k in inner:
             if a.ndim == 0 or a.shape[-1] != inner[k]:
                 raise ValueError(
