@@ -16,7 +16,8 @@ its retries did not clear, such as a trigger missed on a loaded host) is resumed
 finishes it; the line says so. A command shown again (an example's header
 repeating a README line, up to its `--out DIR`) runs once and is listed as the same.
 
-`polarimeter simulate stage ... &` starts the simulator in the background, and the
+`polarimeter simulate stage ... &` (or `station serve ... &`) starts the simulator (or the
+station) in the background, and the
 `/tmp/polarimeter-sim-PID/...` placeholders of the lines after it become the link it prints;
 it is stopped (SIGTERM) at the end, and no `polarimeter-*` entry it or any other command made
 may be left in the temporary directory.
@@ -170,10 +171,13 @@ def main(argv):
                                  stderr=subprocess.PIPE, text=True)
             line = p.stdout.readline()
             try:
-                sim_port = json.loads(line)["port"]
+                # A simulator prints its port; a station, the URL it listens on.
+                printed = json.loads(line)
+                if "listening" not in printed:
+                    sim_port = printed["port"]
                 status = 0
             except (ValueError, KeyError):
-                status = "no port printed"
+                status = "no port or address printed"
             background.append(p)
             results.append({"where": where, "command": command, "status": status,
                             "seconds": 0.0})

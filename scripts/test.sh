@@ -15,9 +15,10 @@ cd "$(dirname "$0")/.."
 #   Mesa's software OpenGL; winit loads the X11 client libraries at run time.
 # * polar-camera-uvc (nokhwa) builds its Linux V4L2 bindings with bindgen, which loads libclang
 #   (libclang-dev); only that crate, and the CLI's `uvc` feature, need it.
+# * The station's TLS test makes a self-signed certificate with the openssl command.
 APT_PACKAGES=(libaravis-dev libusb-1.0-0-dev aravis-tools-cli aravis-tools libclang-dev
   xvfb xauth libgl1-mesa-dri libegl1 libgl1 libx11-xcb1 libxcursor1 libxrandr2 libxi6
-  libxkbcommon-x11-0)
+  libxkbcommon-x11-0 openssl)
 if ((${#APT_PACKAGES[@]})); then
   missing=()
   for p in "${APT_PACKAGES[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
@@ -65,6 +66,14 @@ rm -rf "$PKG_VENV" && python3 -m venv "$PKG_VENV"
 "$PKG_VENV/bin/python" -m pip install --quiet --disable-pip-version-check ./crates/python
 POLARIMETER_BIN="$PWD/target/release/polarimeter" timeout 900 \
   "$PKG_VENV/bin/python" -m pytest -q -p no:cacheprovider crates/python/tests </dev/null
+# The station from outside (tests/station): `station serve` on the simulated rig driven by
+# httpx (pinned in tests/station/requirements.txt, added to the same venv) and an SSE reader:
+# queue, run control, history, the security matrix, TLS, health, and the kill campaign (20
+# SIGKILLs, every run then checked by `acquire check` and zarr-python).
+"$PKG_VENV/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps \
+  -r tests/station/requirements.txt
+POLARIMETER_BIN="$PWD/target/release/polarimeter" timeout 900 \
+  "$PKG_VENV/bin/python" -m pytest -q -p no:cacheprovider tests/station </dev/null
 rm -rf target/python-tour && mkdir -p target/python-tour
 ROOT="$PWD"
 (cd target/python-tour && timeout 600 "$ROOT/$PKG_VENV/bin/python" "$ROOT/examples/python/tour.py" \

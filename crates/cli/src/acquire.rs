@@ -32,6 +32,44 @@ pub trait RunHooks {
     /// How many times the caller has asked the run to stop so far; each new one acts as one
     /// more Ctrl-C (pause at the next safe point, then at once, then leave the run).
     fn interrupts(&self) -> u32;
+    /// A control the caller asks for directly (a station's pause or abort), taken once;
+    /// polled with [`RunHooks::interrupts`].
+    fn control(&self) -> Option<Control> {
+        None
+    }
+}
+
+/// An event as callers outside the terminal read it (the Python package, the station):
+/// `{"kind": "state" | "progress" | "set" | "decision" | "retry", ...}`.
+pub fn event_json(event: &Event) -> Value {
+    match event {
+        Event::State(s) => {
+            let (state, reason) = match s {
+                RunState::Starting => ("starting", None),
+                RunState::Running => ("running", None),
+                RunState::Pausing => ("pausing", None),
+                RunState::Paused(r) => ("paused", Some(r)),
+                RunState::Aborting => ("aborting", None),
+                RunState::Done => ("done", None),
+                RunState::Aborted(r) => ("aborted", Some(r)),
+            };
+            json!({"kind": "state", "state": state, "reason": reason})
+        }
+        Event::Progress {
+            done,
+            planned,
+            label,
+        } => json!({"kind": "progress", "done": done, "planned": planned, "label": label}),
+        Event::Set {
+            set,
+            verdict,
+            mean_s0,
+            mean_dolp,
+        } => json!({"kind": "set", "set": set, "accepted": verdict.accepted,
+                    "reason": verdict.reason, "mean_s0_dn": mean_s0, "mean_dolp": mean_dolp}),
+        Event::Decision(v) => json!({"kind": "decision", "decision": v}),
+        Event::Retry(m) => json!({"kind": "retry", "message": m}),
+    }
 }
 
 /// How often a run polls [`RunHooks::interrupts`], milliseconds.
@@ -250,6 +288,11 @@ async fn hook_interrupts(
     let mut seen = 0u32;
     loop {
         tokio::time::sleep(std::time::Duration::from_millis(HOOK_POLL_MS)).await;
+        while let Some(c) = hooks.control() {
+            if ctrl.send(c).await.is_err() {
+                return;
+            }
+        }
         let now = hooks.interrupts();
         while seen < now {
             seen += 1;

@@ -21,6 +21,7 @@ pub mod plan_continuous;
 pub mod plan_load;
 mod plot;
 pub mod rig;
+pub mod station_runner;
 pub mod study;
 pub mod study_aptd;
 pub mod study_files;

@@ -11,6 +11,7 @@
 //! * `analyze`: offline analysis of a recorded image stack (APTD);
 //! * `calibrate`: the camera's noise from frames (EMVA 1288);
 //! * `report`: figures, the validation report and Meng (2012)'s trade studies;
+//! * `station`: an unattended station (`station serve`), its keys and its client;
 //! * `bench`: speed against error of the model, the planner, the device links and the runs, and
 //!   the fault and crash campaigns.
 //!
@@ -24,7 +25,7 @@ mod tree;
 use clap::error::ErrorKind;
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
-use tree::{acquire, analyze, bench, calibrate, devices, model, plan, report, simulate};
+use tree::{acquire, analyze, bench, calibrate, devices, model, plan, report, simulate, station};
 
 /// Rotating-analyzer polarimetry: model, plan and run a division-of-time polarimeter.
 #[derive(Debug, Parser)]
@@ -69,6 +70,10 @@ enum Command {
     /// Benchmarks and campaigns: speed against error of the model, the planner, the device links
     /// and the runs; the seeded fault and crash campaigns.
     Bench(bench::BenchGroup),
+    /// An unattended station: a persistent plan queue on a rig file, a secure HTTP API, a
+    /// history, health, and the run a power cut interrupted resumed on start; its keys and
+    /// its client.
+    Station(station::StationGroup),
     /// The same as `acquire run`.
     #[command(hide = true)]
     Run(acquire::RunArgs),
@@ -105,6 +110,7 @@ impl Command {
             Command::Calibrate(g) => g.run(),
             Command::Report(g) => g.run(),
             Command::Bench(g) => g.run(),
+            Command::Station(g) => g.run(),
             Command::Run(a) => a.run(),
             Command::Resume(a) => a.run(),
             Command::Check(a) => a.run(),

@@ -5,12 +5,12 @@
 //! resume. One run at a time per process.
 
 use crate::errors::value_error;
-use polar_cli::acquire::{resume_cmd, run_cmd, RunHooks, Ui};
-use polar_engine::run::{Event, RunState};
+use polar_cli::acquire::{event_json, resume_cmd, run_cmd, RunHooks, Ui};
+use polar_engine::run::Event;
 use polar_rig::flags::HardwareFlags;
 use pyo3::exceptions::PyKeyboardInterrupt;
 use pyo3::prelude::*;
-use serde_json::{json, Value};
+use serde_json::Value;
 use std::cell::{Cell, RefCell};
 use std::path::PathBuf;
 use std::rc::Rc;
@@ -57,38 +57,6 @@ impl RunHooks for PyHooks {
             self.record(e);
         }
         self.interrupts.get()
-    }
-}
-
-/// An event as the Python layer reads it: `{"kind": ..., ...}`.
-fn event_json(event: &Event) -> Value {
-    match event {
-        Event::State(s) => {
-            let (state, reason) = match s {
-                RunState::Starting => ("starting", None),
-                RunState::Running => ("running", None),
-                RunState::Pausing => ("pausing", None),
-                RunState::Paused(r) => ("paused", Some(r)),
-                RunState::Aborting => ("aborting", None),
-                RunState::Done => ("done", None),
-                RunState::Aborted(r) => ("aborted", Some(r)),
-            };
-            json!({"kind": "state", "state": state, "reason": reason})
-        }
-        Event::Progress {
-            done,
-            planned,
-            label,
-        } => json!({"kind": "progress", "done": done, "planned": planned, "label": label}),
-        Event::Set {
-            set,
-            verdict,
-            mean_s0,
-            mean_dolp,
-        } => json!({"kind": "set", "set": set, "accepted": verdict.accepted,
-                    "reason": verdict.reason, "mean_s0_dn": mean_s0, "mean_dolp": mean_dolp}),
-        Event::Decision(v) => json!({"kind": "decision", "decision": v}),
-        Event::Retry(m) => json!({"kind": "retry", "message": m}),
     }
 }
 

@@ -12,3 +12,4 @@ pub mod output;
 pub mod plan;
 pub mod report;
 pub mod simulate;
+pub mod station;

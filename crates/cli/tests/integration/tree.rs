@@ -64,6 +64,7 @@ fn root_help_lists_only_the_groups() {
             "calibrate",
             "report",
             "bench",
+            "station",
             "help"
         ]
     );
@@ -71,8 +72,16 @@ fn root_help_lists_only_the_groups() {
 
 #[test]
 fn every_group_lists_its_subcommands() {
-    let groups: [(&[&str], &[&str]); 10] = [
+    let groups: [(&[&str], &[&str]); 12] = [
         (&["plan"], &["scene", "angles", "check", "continuous"]),
+        (
+            &["station"],
+            &[
+                "serve", "key", "status", "health", "submit", "validate", "queue", "remove",
+                "move", "start", "stop", "pause", "resume", "abort", "history",
+            ],
+        ),
+        (&["station", "key"], &["create", "revoke", "list"]),
         (&["acquire"], &["run", "resume", "check", "demo", "export"]),
         (&["acquire", "export"], &["tiff"]),
         (&["devices"], &["list", "stage", "camera"]),

@@ -1,0 +1,160 @@
+//! The station's instrument: [`polar_station::Runner`] with the command line's own `plan
+//! check --rig`, `acquire run --rig` and `acquire resume`, so a station's run is exactly the
+//! run a person would start on the same rig file.
+
+use crate::acquire::{event_json, plan_check, resume_cmd, run_cmd, RunHooks, Ui};
+use polar_engine::plan::Plan;
+use polar_engine::products::Products;
+use polar_engine::run::{Control, Event};
+use polar_rig::flags::HardwareFlags;
+use polar_rig::{Hardware, Rig, SIM_PORT};
+use polar_station::{Request, RunControl, RunEnd, Runner};
+use serde_json::{json, Value};
+use std::path::Path;
+use std::sync::Arc;
+
+/// The rig a station runs on.
+pub struct CliRunner {
+    hardware: Hardware,
+    rig: Rig,
+    auto_resume: u32,
+}
+
+impl CliRunner {
+    /// The rig file's devices (checked as `acquire run --rig` checks them); `auto_resume`
+    /// device-error pauses are resumed before an item waits for a person.
+    pub fn new(rig_file: &Path, auto_resume: u32) -> Result<CliRunner, String> {
+        let flags = HardwareFlags {
+            rig: Some(rig_file.to_path_buf()),
+            ..HardwareFlags::default()
+        };
+        let (hardware, rig) = flags.hardware().map_err(|e| e.to_string())?;
+        match (hardware, rig) {
+            (Some(hardware), Some(rig)) => Ok(CliRunner {
+                hardware,
+                rig,
+                auto_resume,
+            }),
+            _ => Err(format!(
+                "rig {}: the station's rig file names no devices",
+                rig_file.display()
+            )),
+        }
+    }
+
+    fn ui(&self, control: &Arc<RunControl>) -> Ui {
+        let mut ui = Ui::unattended(self.auto_resume);
+        ui.hooks = Some(std::rc::Rc::new(Hooks(control.clone())));
+        ui
+    }
+}
+
+/// A run's hooks: events to the station, its requests as controls.
+struct Hooks(Arc<RunControl>);
+
+impl RunHooks for Hooks {
+    fn event(&self, event: &Event) {
+        self.0.event(event_json(event));
+    }
+
+    fn interrupts(&self) -> u32 {
+        0
+    }
+
+    fn control(&self) -> Option<Control> {
+        self.0.take().map(|r| match r {
+            Request::Pause => Control::Pause,
+            Request::Abort => Control::Abort,
+        })
+    }
+}
+
+fn end((v, _code): (Value, i32)) -> RunEnd {
+    RunEnd {
+        state: v["state"].as_str().unwrap_or("failed").to_string(),
+        reason: v["reason"].as_str().map(str::to_string),
+        result: v,
+    }
+}
+
+/// Bytes a run of `plan` stores (upper bound, before compression): its uint16 frames, the
+/// product images of each set (float32, and the flags plane) and the mean dark.
+fn store_bytes(frames: u64, sets: u64, width: u32, height: u32) -> u64 {
+    let pixels = u64::from(width) * u64::from(height);
+    let planes = Products::names().len() as u64 + 1;
+    frames * pixels * 2 + sets * planes * pixels * 4 + pixels * 4
+}
+
+impl Runner for CliRunner {
+    fn check(&self, plan_file: &Path) -> Result<Value, String> {
+        let plan = Plan::from_path(plan_file).map_err(|e| e.to_string())?;
+        // A plan sent to a station may not read the station's files.
+        for (key, v) in [
+            ("simulation.scene", &plan.simulation.scene),
+            ("simulation.camera", &plan.simulation.camera),
+        ] {
+            if v.is_some() {
+                return Err(format!(
+                    "{key}: a station's plans name no files (the station's rig file names \
+                     its camera; the simulated camera renders its built-in scene)"
+                ));
+            }
+        }
+        let mut v = plan_check(plan_file, Some(&self.rig)).map_err(|e| e.to_string())?;
+        let f = &v["forecast"];
+        let (frames, sets) = (
+            f["frames"].as_u64().unwrap_or(0),
+            f["sets"].as_u64().unwrap_or(0),
+        );
+        let (w, h) = (plan.simulation.width, plan.simulation.height);
+        v["bytes"] = json!(store_bytes(frames, sets, w, h));
+        v["bytes_note"] = json!(format!(
+            "frames of {w}x{h} pixels (the plan's [simulation] size; a real camera's frames \
+             may differ), uncompressed"
+        ));
+        Ok(v)
+    }
+
+    fn run(
+        &self,
+        plan_file: &Path,
+        run_dir: &Path,
+        control: &Arc<RunControl>,
+    ) -> Result<RunEnd, String> {
+        let ui = self.ui(control);
+        run_cmd(
+            plan_file,
+            Some(self.hardware.clone()),
+            Some(&self.rig),
+            Some(run_dir.to_path_buf()),
+            ui,
+        )
+        .map(end)
+        .map_err(|e| e.to_string())
+    }
+
+    fn resume(&self, run_dir: &Path, control: &Arc<RunControl>) -> Result<RunEnd, String> {
+        // The rig the run recorded: a changed analyzer or camera file is refused, by name.
+        resume_cmd(run_dir, None, None, self.ui(control))
+            .map(end)
+            .map_err(|e| e.to_string())
+    }
+
+    fn has_started(&self, run_dir: &Path) -> bool {
+        polar_engine::run::plan_of(run_dir).is_ok()
+    }
+
+    fn devices(&self) -> Value {
+        let port = &self.hardware.port;
+        let stage_ok = port == SIM_PORT || Path::new(port).exists();
+        json!({
+            "ok": stage_ok,
+            "stage": {"port": port, "dialect": self.hardware.dialect.name, "ok": stage_ok,
+                      "note": if port == SIM_PORT { "simulated: started with each run" }
+                              else if stage_ok { "the serial port is present" }
+                              else { "the serial port is gone (unplugged, or the adapter died)" }},
+            "camera": {"camera": self.hardware.camera},
+            "rig": self.rig.path.display().to_string(),
+        })
+    }
+}

@@ -1,0 +1,157 @@
+//! The station as the API and the worker share it: its settings, its state (saved on every
+//! edit), the link to the going run, the keys, the event hub and what health knows.
+
+use crate::audit::Audit;
+use crate::config::Config;
+use crate::error::StationError;
+use crate::events::Hub;
+use crate::keys::KeyStore;
+use crate::runner::{RunControl, Runner};
+use crate::state::State;
+use serde_json::{json, Value};
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::SystemTime;
+
+/// The keys as last read, reloaded when `station key create` or `revoke` changes the file.
+pub struct KeyCache {
+    /// The keys.
+    pub store: KeyStore,
+    seen: Option<(SystemTime, u64)>,
+}
+
+/// What the station knows of its health beyond the state.
+#[derive(Debug, Default, Clone)]
+pub struct Health {
+    /// The last error (a failed item, a device that did not answer), with its time.
+    pub last_error: Option<(u64, String)>,
+    /// The devices as last found (`Runner::devices`, or a run that could not connect).
+    pub devices: Value,
+}
+
+/// The station (module docs).
+pub struct Station {
+    /// Its settings.
+    pub config: Config,
+    state: Mutex<State>,
+    /// Wakes the worker after an edit.
+    pub wake: Condvar,
+    /// Status and log events.
+    pub hub: Hub,
+    /// The instrument.
+    pub runner: Arc<dyn Runner>,
+    /// The going run's link, while one goes.
+    pub control: Mutex<Option<Arc<RunControl>>>,
+    /// The keys.
+    pub keys: Mutex<KeyCache>,
+    /// The audit log.
+    pub audit: Audit,
+    /// Health beyond the state.
+    pub health: Mutex<Health>,
+    /// The going run's latest progress and set (`{"progress": ..., "set": ...}`).
+    pub live: Mutex<Value>,
+    /// Set when the station is stopping: the worker takes nothing new.
+    pub stopping: AtomicBool,
+}
+
+impl Station {
+    /// Opens the station's data directory (made if missing), its state and keys.
+    pub fn open(config: Config, runner: Arc<dyn Runner>) -> Result<Arc<Station>, StationError> {
+        for d in [
+            config.data_dir.clone(),
+            config.items_dir(),
+            config.runs_dir(),
+        ] {
+            std::fs::create_dir_all(&d).map_err(|e| StationError::io(&d, e))?;
+        }
+        let state = State::load(&config.state_file(), config.autostart)?;
+        let store = KeyStore::load(&config.keys_file())?;
+        Ok(Arc::new(Station {
+            audit: Audit::new(config.audit_file()),
+            state: Mutex::new(state),
+            wake: Condvar::new(),
+            hub: Hub::new(),
+            runner,
+            control: Mutex::new(None),
+            keys: Mutex::new(KeyCache { store, seen: None }),
+            health: Mutex::new(Health::default()),
+            live: Mutex::new(json!({})),
+            stopping: AtomicBool::new(false),
+            config,
+        }))
+    }
+
+    /// The state, locked (for the worker's waits; edits go through [`Station::edit`]).
+    pub fn lock(&self) -> MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// A copy of the state.
+    pub fn snapshot(&self) -> State {
+        self.lock().clone()
+    }
+
+    /// Applies `f` to a copy of the state, saves the copy, and only then makes it the state
+    /// (a save that fails changes nothing); wakes the worker and publishes a `queue` event.
+    pub fn edit<T, E>(
+        &self,
+        f: impl FnOnce(&mut State) -> Result<T, E>,
+    ) -> Result<T, EditError<E>> {
+        let mut guard = self.lock();
+        let mut next = guard.clone();
+        let out = f(&mut next).map_err(EditError::Refused)?;
+        if next != *guard {
+            next.save(&self.config.state_file())
+                .map_err(EditError::Save)?;
+            *guard = next;
+            let summary = queue_summary(&guard);
+            drop(guard);
+            self.wake.notify_all();
+            self.hub.publish("queue", summary);
+        }
+        Ok(out)
+    }
+
+    /// The keys, reloaded if their file changed since last read.
+    pub fn key_store(&self) -> Result<MutexGuard<'_, KeyCache>, StationError> {
+        let mut cache = self.keys.lock().unwrap_or_else(|p| p.into_inner());
+        let path = self.config.keys_file();
+        let seen = std::fs::metadata(&path)
+            .ok()
+            .and_then(|m| Some((m.modified().ok()?, m.len())));
+        if seen != cache.seen {
+            cache.store = KeyStore::load(&path)?;
+            cache.seen = seen;
+        }
+        Ok(cache)
+    }
+
+    /// Records an error for `/healthz` and the event stream.
+    pub fn note_error(&self, message: &str) {
+        tracing::warn!("{message}");
+        if let Ok(mut h) = self.health.lock() {
+            h.last_error = Some((crate::now_unix(), message.to_string()));
+        }
+        self.hub
+            .publish("log", json!({"level": "error", "message": message}));
+    }
+}
+
+/// Why [`Station::edit`] changed nothing.
+#[derive(Debug)]
+pub enum EditError<E> {
+    /// `f` refused the edit.
+    Refused(E),
+    /// The new state could not be saved.
+    Save(StationError),
+}
+
+/// The queue in brief, for events.
+pub fn queue_summary(s: &State) -> Value {
+    json!({
+        "queue_running": s.queue_running,
+        "queued": s.queue.iter().map(|i| i.id).collect::<Vec<_>>(),
+        "current": s.current.as_ref().map(|c| json!({"id": c.item.id, "phase": c.phase})),
+        "history": s.history.len(),
+    })
+}
