@@ -15,10 +15,11 @@ cd "$(dirname "$0")/.."
 #   Mesa's software OpenGL; winit loads the X11 client libraries at run time.
 # * polar-camera-uvc (nokhwa) builds its Linux V4L2 bindings with bindgen, which loads libclang
 #   (libclang-dev); only that crate, and the CLI's `uvc` feature, need it.
-# * The station's TLS test makes a self-signed certificate with the openssl command.
+# * The station's TLS test makes a self-signed certificate with the openssl command; its status
+#   page is tested in headless Chromium (Debian's chromium).
 APT_PACKAGES=(libaravis-dev libusb-1.0-0-dev aravis-tools-cli aravis-tools libclang-dev
   xvfb xauth libgl1-mesa-dri libegl1 libgl1 libx11-xcb1 libxcursor1 libxrandr2 libxi6
-  libxkbcommon-x11-0 openssl)
+  libxkbcommon-x11-0 openssl chromium)
 if ((${#APT_PACKAGES[@]})); then
   missing=()
   for p in "${APT_PACKAGES[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done

@@ -6,9 +6,11 @@ use crate::acquire::{event_json, plan_check, resume_cmd, run_cmd, RunHooks, Ui};
 use polar_engine::plan::Plan;
 use polar_engine::products::Products;
 use polar_engine::run::{Control, Event};
+use polar_engine::store::RunStore;
 use polar_rig::flags::HardwareFlags;
 use polar_rig::{Hardware, Rig, SIM_PORT};
-use polar_station::{Request, RunControl, RunEnd, Runner};
+use polar_station::schedule::SunSite;
+use polar_station::{Plane, Request, RunControl, RunEnd, Runner};
 use serde_json::{json, Value};
 use std::path::Path;
 use std::sync::Arc;
@@ -142,6 +144,38 @@ impl Runner for CliRunner {
 
     fn has_started(&self, run_dir: &Path) -> bool {
         polar_engine::run::plan_of(run_dir).is_ok()
+    }
+
+    fn latest_product(&self, run_dir: &Path, name: &str) -> Result<Plane, String> {
+        let store = RunStore::open(run_dir).map_err(|e| e.to_string())?;
+        let slot = store
+            .product_slots()
+            .map_err(|e| e.to_string())?
+            .into_iter()
+            .filter_map(|s| s.set.map(|set| (s.slot, set)))
+            .next_back()
+            .ok_or("no set written yet")?;
+        let values = store
+            .read_product(name, slot.0)
+            .map_err(|e| e.to_string())?;
+        Ok(Plane {
+            width: store.width(),
+            height: store.height(),
+            set: slot.1,
+            values,
+        })
+    }
+
+    fn site(&self) -> Option<SunSite> {
+        self.rig.file.site.as_ref().map(|s| SunSite {
+            latitude_deg: s.latitude_deg,
+            longitude_deg: s.longitude_deg,
+            elevation_m: s.elevation_m,
+        })
+    }
+
+    fn simulated(&self) -> bool {
+        self.hardware.port == SIM_PORT && self.hardware.camera == "sim"
     }
 
     fn devices(&self) -> Value {

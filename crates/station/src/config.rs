@@ -9,9 +9,13 @@
 //! reserve_mb = 1024         # free space kept on the data directory's disk
 //! max_body_kb = 256         # request bodies larger than this are refused (413)
 //! auto_resume = 3           # resumes of a device-error pause before the item waits
+//! utc_offset_h = -5         # local time for schedules' local_from / local_to
 //! [tls]                     # required to listen on anything but loopback
 //! cert = "cert.pem"
 //! key = "key.pem"
+//! [simulation]              # a fast clock for schedules (a simulated rig only)
+//! clock_start = "2026-06-21T04:00:00Z"
+//! clock_speed = 600
 //! ```
 
 use crate::error::StationError;
@@ -37,6 +41,21 @@ struct ConfigFile {
     #[serde(default = "default_auto_resume")]
     auto_resume: u32,
     tls: Option<TlsFile>,
+    #[serde(default)]
+    utc_offset_h: f64,
+    simulation: Option<SimulationFile>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SimulationFile {
+    clock_start: String,
+    #[serde(default = "default_speed")]
+    clock_speed: f64,
+}
+
+fn default_speed() -> f64 {
+    1.0
 }
 
 fn default_true() -> bool {
@@ -89,6 +108,10 @@ pub struct Config {
     pub auto_resume: u32,
     /// TLS, when configured.
     pub tls: Option<Tls>,
+    /// Local time's offset from UTC, seconds (schedules' `local_from`, `local_to`).
+    pub utc_offset_s: i64,
+    /// A simulated clock: its start (Unix seconds) and speed (simulated rigs only).
+    pub sim_clock: Option<(u64, f64)>,
 }
 
 impl Config {
@@ -123,8 +146,43 @@ impl Config {
                 format!("{} is out of range: 0 to 100", raw.auto_resume),
             ));
         }
+        if !(-14.0..=14.0).contains(&raw.utc_offset_h) {
+            return Err(bad(
+                "utc_offset_h",
+                format!("{} is out of range: -14 to 14 (hours)", raw.utc_offset_h),
+            ));
+        }
+        let sim_clock = match raw.simulation {
+            None => None,
+            Some(s) => {
+                let start = humantime::parse_rfc3339_weak(&s.clock_start).map_err(|_| {
+                    bad(
+                        "simulation.clock_start",
+                        format!(
+                            "{:?} is not a time: write e.g. 2026-06-21T04:00:00Z",
+                            s.clock_start
+                        ),
+                    )
+                })?;
+                if !(s.clock_speed.is_finite() && (1.0..=100_000.0).contains(&s.clock_speed)) {
+                    return Err(bad(
+                        "simulation.clock_speed",
+                        format!(
+                            "{} is out of range: 1 to 100000 (times real time)",
+                            s.clock_speed
+                        ),
+                    ));
+                }
+                let start = start
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0, |d| d.as_secs());
+                Some((start, s.clock_speed))
+            }
+        };
         Ok(Config {
             path: path.to_path_buf(),
+            utc_offset_s: (raw.utc_offset_h * 3600.0).round() as i64,
+            sim_clock,
             listen,
             data_dir: dir.join(raw.data_dir),
             rig: dir.join(raw.rig),

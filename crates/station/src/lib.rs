@@ -5,6 +5,8 @@
 //! * [`keys`]: scoped API keys, shown once and stored only as SHA-256 hashes.
 //! * [`state`]: the queue, the running item and the history, saved atomically on every change.
 //! * [`queue`]: the queue's edits (add, move, remove, clear) and which item runs next.
+//! * [`schedule`], [`clock`]: when an item may run (sun, local time, intervals) on the
+//!   station's clock (the system's, or a fast one in simulation).
 //! * [`runner`]: what the station asks of the instrument (check, run, resume a plan); the
 //!   command line implements it with `acquire run` and `acquire resume`.
 //! * [`worker`]: the thread that takes items one at a time and survives restarts.
@@ -12,6 +14,7 @@
 //! * [`auth`], [`reply`], [`routes`], [`api`], [`openapi`]: the HTTP API (who asks, how it
 //!   answers, its endpoints) and its description.
 //! * [`serve`]: binding (loopback unless TLS), start-up recovery and shutdown.
+//! * [`picture`], [`page`]: the latest products as PNG and the status page at `/`.
 //! * [`client`]: the command line's client of a station.
 //!
 //! Bluesky's queue server, DLS blueapi and all-sky camera stations (indi-allsky) are the
@@ -23,16 +26,20 @@ pub mod atomic;
 pub mod audit;
 pub mod auth;
 pub mod client;
+pub mod clock;
 pub mod config;
 pub mod disk;
 pub mod error;
 pub mod events;
 pub mod keys;
 pub mod openapi;
+pub mod page;
+pub mod picture;
 pub mod queue;
 pub mod reply;
 pub mod routes;
 pub mod runner;
+pub mod schedule;
 pub mod serve;
 pub mod shared;
 pub mod state;
@@ -40,7 +47,7 @@ pub mod worker;
 
 pub use config::Config;
 pub use error::StationError;
-pub use runner::{Request, RunControl, RunEnd, Runner};
+pub use runner::{Plane, Request, RunControl, RunEnd, Runner};
 
 /// Seconds since the Unix epoch, now.
 pub fn now_unix() -> u64 {

@@ -25,6 +25,10 @@ pub fn document() -> Value {
             }
             None => op["security"] = json!([]),
         }
+        if r.path.contains("{name}") {
+            op["parameters"] = json!([{"name": "name", "in": "path", "required": true,
+                "schema": {"enum": ["s0", "dolp", "aop"]}}]);
+        }
         if r.path.contains("{id}") {
             op["parameters"] = json!([{"name": "id", "in": "path", "required": true,
                 "schema": {"type": "integer", "minimum": 1}}]);
@@ -75,7 +79,11 @@ fn operation_id(method: &str, path: &str) -> String {
 
 fn responses(path: &str) -> Value {
     let error = json!({"content": {"application/json": {"schema": {"$ref": "#/components/schemas/Error"}}}});
-    let ok = if path.ends_with("/events") {
+    let ok = if path == "/" {
+        json!({"description": "The status page.", "content": {"text/html": {"schema": {"type": "string"}}}})
+    } else if path.contains("/products/") {
+        json!({"description": "A PNG image.", "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}})
+    } else if path.ends_with("/events") {
         json!({"description": "A stream of server-sent events.", "content": {"text/event-stream": {"schema": {"type": "string"}}}})
     } else {
         json!({"description": "OK", "content": {"application/json": {"schema": {"type": "object"}}}})

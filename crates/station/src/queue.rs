@@ -63,11 +63,12 @@ pub fn index_of(state: &State, id: u64) -> Result<usize, QueueError> {
         .ok_or(QueueError::NoItem(id))
 }
 
-/// The index of the item to run next: the highest priority, the first of equals.
-pub fn next(state: &State) -> Option<usize> {
+/// The index of the item to run next among those `ready` allows (their schedule's window
+/// is open): the highest priority, the first of equals.
+pub fn next(state: &State, ready: impl Fn(&Item) -> bool) -> Option<usize> {
     let mut best: Option<usize> = None;
     for (i, item) in state.queue.iter().enumerate() {
-        if best.is_none_or(|b| item.priority > state.queue[b].priority) {
+        if ready(item) && best.is_none_or(|b| item.priority > state.queue[b].priority) {
             best = Some(i);
         }
     }
@@ -87,6 +88,9 @@ mod tests {
             plan_file: String::new(),
             added_unix: 0,
             forecast: serde_json::Value::Null,
+            schedule: None,
+            runs_done: 0,
+            last_start_unix: None,
         }
     }
 
@@ -95,7 +99,7 @@ mod tests {
         let mut s = State::new(true);
         assert_eq!(add(&mut s, vec![item(0), item(5), item(5)]), vec![1, 2, 3]);
         assert_eq!(
-            s.queue[next(&s).unwrap()].id,
+            s.queue[next(&s, |_| true).unwrap()].id,
             2,
             "the first of the highest priority"
         );
@@ -110,7 +114,7 @@ mod tests {
             s.queue.iter().map(|i| i.id).collect::<Vec<_>>(),
             vec![4, 1, 3]
         );
-        assert_eq!(s.queue[next(&s).unwrap()].id, 3);
+        assert_eq!(s.queue[next(&s, |_| true).unwrap()].id, 3);
         assert_eq!(
             move_to(&mut s, 4, 3).unwrap_err(),
             QueueError::Position {

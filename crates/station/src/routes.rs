@@ -34,6 +34,12 @@ const fn r(
 pub const ROUTES: &[Route] = &[
     r(
         "GET",
+        "/",
+        None,
+        "The status page (HTML; it reads the API with a key the user gives).",
+    ),
+    r(
+        "GET",
         "/healthz",
         None,
         "Health: devices reachable, disk, clock, queue, last error (503 when unhealthy).",

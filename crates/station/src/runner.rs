@@ -60,6 +60,19 @@ pub struct RunEnd {
     pub result: Value,
 }
 
+/// One product image of a run: row-major values, NaN where undefined.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Plane {
+    /// Pixels per row.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+    /// The angle set it was computed from.
+    pub set: u64,
+    /// The values (DN for S0, 0..1 for DoLP, radians for AoP).
+    pub values: Vec<f32>,
+}
+
 /// The instrument, as the station uses it. Calls block; the station makes them from its
 /// worker thread (runs) or a blocking task (checks).
 pub trait Runner: Send + Sync + 'static {
@@ -78,6 +91,13 @@ pub trait Runner: Send + Sync + 'static {
     /// Whether a run in `run_dir` got far enough to be resumed (its start was recorded); a
     /// run dir without that holds nothing acquired.
     fn has_started(&self, run_dir: &Path) -> bool;
+    /// The rig's site, for schedules' sun windows (`None`: the rig file has no `[site]`).
+    fn site(&self) -> Option<crate::schedule::SunSite>;
+    /// Whether the rig is simulated (a simulated clock is allowed only then).
+    fn simulated(&self) -> bool;
+    /// The latest written product image `name` (`s0`, `dolp`, `aop_rad`) of the run in
+    /// `run_dir`.
+    fn latest_product(&self, run_dir: &Path, name: &str) -> Result<Plane, String>;
     /// The devices: `{"ok": bool, ...}` with what was found (for `/healthz`). Called only
     /// while no run holds them.
     fn devices(&self) -> Value;

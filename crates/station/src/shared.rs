@@ -2,11 +2,14 @@
 //! edit), the link to the going run, the keys, the event hub and what health knows.
 
 use crate::audit::Audit;
+use crate::clock::Clock;
 use crate::config::Config;
 use crate::error::StationError;
 use crate::events::Hub;
 use crate::keys::KeyStore;
 use crate::runner::{RunControl, Runner};
+use crate::schedule::SunSite;
+use crate::state::Item;
 use crate::state::State;
 use serde_json::{json, Value};
 use std::sync::atomic::AtomicBool;
@@ -52,6 +55,10 @@ pub struct Station {
     pub live: Mutex<Value>,
     /// Set when the station is stopping: the worker takes nothing new.
     pub stopping: AtomicBool,
+    /// Station time for schedules and the history.
+    pub clock: Clock,
+    /// The rig's site, for sun windows.
+    pub site: Option<SunSite>,
 }
 
 impl Station {
@@ -65,6 +72,20 @@ impl Station {
             std::fs::create_dir_all(&d).map_err(|e| StationError::io(&d, e))?;
         }
         let state = State::load(&config.state_file(), config.autostart)?;
+        let clock = match config.sim_clock {
+            None => Clock::system(),
+            Some(_) if !runner.simulated() => {
+                return Err(StationError::Config {
+                    file: config.path.display().to_string(),
+                    key: "simulation".into(),
+                    message: "a simulated clock needs a simulated rig (the rig file's stage \
+                              port \"sim\"): a real instrument runs on the real clock"
+                        .into(),
+                })
+            }
+            Some((start, speed)) => Clock::simulated(start, speed),
+        };
+        let site = runner.site();
         let store = KeyStore::load(&config.keys_file())?;
         Ok(Arc::new(Station {
             audit: Audit::new(config.audit_file()),
@@ -77,6 +98,8 @@ impl Station {
             health: Mutex::new(Health::default()),
             live: Mutex::new(json!({})),
             stopping: AtomicBool::new(false),
+            clock,
+            site,
             config,
         }))
     }
@@ -84,6 +107,41 @@ impl Station {
     /// The state, locked (for the worker's waits; edits go through [`Station::edit`]).
     pub fn lock(&self) -> MutexGuard<'_, State> {
         self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Station time, Unix seconds.
+    pub fn now(&self) -> u64 {
+        self.clock.now_unix()
+    }
+
+    /// When `item` may next start (station time; `None`: never again, or not within the
+    /// schedule's horizon).
+    pub fn next_start(&self, item: &Item, now: u64) -> Option<u64> {
+        match &item.schedule {
+            None => Some(now),
+            Some(s) => s.next_start(
+                now,
+                item.last_start_unix,
+                item.runs_done,
+                self.site.as_ref(),
+                self.config.utc_offset_s,
+            ),
+        }
+    }
+
+    /// Whether `item` may start now.
+    pub fn ready(&self, item: &Item, now: u64) -> bool {
+        match &item.schedule {
+            None => true,
+            Some(s) => {
+                s.total_runs().is_none_or(|n| item.runs_done < n)
+                    && item
+                        .last_start_unix
+                        .zip(s.every_s)
+                        .is_none_or(|(l, e)| now >= l + e)
+                    && s.open_at(now, self.site.as_ref(), self.config.utc_offset_s)
+            }
+        }
     }
 
     /// A copy of the state.

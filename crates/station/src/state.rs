@@ -25,6 +25,15 @@ pub struct Item {
     pub added_unix: u64,
     /// The forecast made when it was added: duration, frames, DoLP sigma, bytes.
     pub forecast: Value,
+    /// When it may run (none: as soon as it is next).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub schedule: Option<crate::schedule::Schedule>,
+    /// Runs started so far (a repeating item stays queued until its runs are used up).
+    #[serde(default)]
+    pub runs_done: u32,
+    /// When its last run started, station time (Unix seconds).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub last_start_unix: Option<u64>,
 }
 
 /// Where the current item is.
@@ -185,6 +194,9 @@ mod tests {
             plan_file: "items/1.toml".into(),
             added_unix: 5,
             forecast: Value::Null,
+            schedule: None,
+            runs_done: 0,
+            last_start_unix: None,
         });
         s.next_id = 2;
         s.save(&p).unwrap();

@@ -28,13 +28,13 @@ enum Job {
     AbortPaused,
 }
 
-fn next_job(s: &State) -> Option<Job> {
+fn next_job(s: &State, ready: impl Fn(&crate::state::Item) -> bool) -> Option<Job> {
     match &s.current {
         Some(c) if c.phase == Phase::Running => Some(Job::Resume { crashed: true }),
         Some(c) if c.abort_requested => Some(Job::AbortPaused),
         Some(c) if c.resume_requested || c.resume_on_start => Some(Job::Resume { crashed: false }),
         Some(_) => None,
-        None if s.queue_running => queue::next(s).map(Job::Start),
+        None if s.queue_running => queue::next(s, ready).map(Job::Start),
         None => None,
     }
 }
@@ -54,12 +54,15 @@ fn work(st: &Arc<Station>) {
                 if st.stopping.load(Ordering::SeqCst) {
                     return;
                 }
-                if let Some(j) = next_job(&g) {
+                let now = st.now();
+                if let Some(j) = next_job(&g, |i| st.ready(i, now)) {
                     break j;
                 }
+                // A minute of station time at most (schedules open to the minute), 1 s at most.
+                let poll = Duration::from_secs_f64((60.0 / st.clock.speed()).clamp(0.02, 1.0));
                 g = st
                     .wake
-                    .wait_timeout(g, Duration::from_secs(1))
+                    .wait_timeout(g, poll)
                     .map_or_else(|p| p.into_inner().0, |r| r.0);
             }
         };
@@ -103,12 +106,24 @@ fn save_err<E: std::fmt::Display>(e: EditError<E>) -> String {
 }
 
 fn take(st: &Arc<Station>, job: Job) -> Result<(), String> {
-    let now = crate::now_unix();
+    let now = st.now();
     let (current, fresh) = st
         .edit(|s| -> Result<(Current, bool), String> {
             let fresh = match job {
                 Job::Start(i) => {
-                    let item = s.queue.remove(i);
+                    // A repeating item stays queued until its runs are used up.
+                    let queued = &mut s.queue[i];
+                    queued.runs_done += 1;
+                    queued.last_start_unix = Some(now);
+                    let more = queued
+                        .schedule
+                        .as_ref()
+                        .is_some_and(|sc| sc.total_runs().is_none_or(|n| queued.runs_done < n));
+                    let item = if more {
+                        queued.clone()
+                    } else {
+                        s.queue.remove(i)
+                    };
                     let run_dir = run_dir_for(st, item.id, &item.name);
                     s.current = Some(Current::new(item, run_dir, now));
                     true
@@ -224,7 +239,7 @@ fn conclude(
     st: &Arc<Station>,
     (end, disk_full): (Result<RunEnd, String>, bool),
 ) -> Result<(), String> {
-    let now = crate::now_unix();
+    let now = st.now();
     let stopping = st.stopping.load(Ordering::SeqCst);
     if let Err(e) = &end {
         st.note_error(&format!("the item's run failed: {e}"));
@@ -284,6 +299,9 @@ mod tests {
             plan_file: String::new(),
             added_unix: 0,
             forecast: Value::Null,
+            schedule: None,
+            runs_done: 0,
+            last_start_unix: None,
         }
     }
 
@@ -291,20 +309,24 @@ mod tests {
     fn a_run_going_at_start_is_resumed_before_anything_is_taken() {
         let mut s = State::new(true);
         s.queue.push(item(2));
-        assert_eq!(next_job(&s), Some(Job::Start(0)));
+        assert_eq!(next_job(&s, |_| true), Some(Job::Start(0)));
         s.current = Some(Current::new(item(1), "runs/1-n".into(), 0));
-        assert_eq!(next_job(&s), Some(Job::Resume { crashed: true }));
+        assert_eq!(next_job(&s, |_| true), Some(Job::Resume { crashed: true }));
         let c = s.current.as_mut().unwrap();
         c.phase = Phase::Paused;
         assert_eq!(
-            next_job(&s),
+            next_job(&s, |_| true),
             None,
             "a paused item waits; the queue does not pass it"
         );
         s.current.as_mut().unwrap().abort_requested = true;
-        assert_eq!(next_job(&s), Some(Job::AbortPaused));
+        assert_eq!(next_job(&s, |_| true), Some(Job::AbortPaused));
         s.current = None;
         s.queue_running = false;
-        assert_eq!(next_job(&s), None, "a stopped queue takes nothing");
+        assert_eq!(
+            next_job(&s, |_| true),
+            None,
+            "a stopped queue takes nothing"
+        );
     }
 }

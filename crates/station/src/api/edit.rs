@@ -7,6 +7,7 @@ use crate::auth::AppState;
 use crate::keys::{KeyRecord, Scope};
 use crate::queue;
 use crate::reply::{audited, body, parse_body, ApiError};
+use crate::schedule::Schedule;
 use crate::shared::{EditError, Station};
 use crate::state::{ExitState, Item, Phase};
 use axum::body::Bytes;
@@ -36,6 +37,9 @@ struct NewItem {
     /// Higher runs first.
     #[serde(default)]
     priority: i32,
+    /// When it may run.
+    #[serde(default)]
+    schedule: Option<Schedule>,
 }
 
 /// One item or `{"items": [...]}`, with the field path of what is wrong.
@@ -67,6 +71,7 @@ struct Checked {
     ext: &'static str,
     name: String,
     priority: i32,
+    schedule: Option<Schedule>,
     forecast: Value,
 }
 
@@ -94,6 +99,10 @@ fn check_one(st: &Station, n: &NewItem, at: &str) -> Result<Checked, ApiError> {
             format!("{} is out of range: -1000 to 1000", n.priority),
         ));
     }
+    if let Some(s) = &n.schedule {
+        s.validate(st.site.as_ref())
+            .map_err(|(field, m)| ApiError::field(format!("{at}{field}"), m))?;
+    }
     let pending = st
         .config
         .items_dir()
@@ -112,6 +121,7 @@ fn check_one(st: &Station, n: &NewItem, at: &str) -> Result<Checked, ApiError> {
         ext,
         name: forecast["plan"].as_str().unwrap_or("plan").to_string(),
         priority: n.priority,
+        schedule: n.schedule.clone(),
         forecast: summary(&forecast),
     })
 }
@@ -211,7 +221,7 @@ fn add_checked(
     checked: Vec<Checked>,
     owner: &str,
 ) -> Result<Vec<u64>, ApiError> {
-    let now = crate::now_unix();
+    let now = st.now();
     let outcome = st.edit(|s| -> Result<Vec<u64>, std::io::Error> {
         let ids = queue::peek_ids(s, checked.len());
         let mut items = Vec::new();
@@ -226,6 +236,9 @@ fn add_checked(
                 plan_file: file,
                 added_unix: now,
                 forecast: c.forecast.clone(),
+                schedule: c.schedule.clone(),
+                runs_done: 0,
+                last_start_unix: None,
             });
         }
         Ok(queue::add(s, items))
@@ -304,7 +317,7 @@ pub async fn remove(
                 ));
             }
             let message = "removed while paused; the run stays resumable".to_string();
-            s.finish_current(ExitState::Stopped, message, Value::Null, crate::now_unix());
+            s.finish_current(ExitState::Stopped, message, Value::Null, app.st.now());
             return Ok(());
         }
         may_edit_queued(s, &key, id)?;

@@ -27,7 +27,9 @@ pub fn router(st: Arc<Station>) -> Router {
         throttle: Arc::new(Throttle::default()),
     };
     Router::new()
+        .route("/", get(crate::page::index))
         .route("/healthz", get(read::healthz))
+        .route("/api/v1/products/latest/{name}", get(read::product))
         .route("/api/v1/openapi.json", get(read::openapi))
         .route("/api/v1/status", get(read::status))
         .route(

@@ -66,7 +66,8 @@ fn health(st: &Station) -> Value {
     })
 }
 
-/// `GET /api/v1/status`.
+/// `GET /api/v1/status`: the queue in brief, the current item and its live progress, the
+/// next scheduled start, the station's time and the sun's elevation at the rig's site.
 pub async fn status(
     State(app): State<AppState>,
     headers: HeaderMap,
@@ -74,7 +75,18 @@ pub async fn status(
     app.key(&headers, Scope::Read, "status").await?;
     let st = &app.st;
     let s = st.snapshot();
+    let now = st.now();
+    // The queue's next start: the earliest of its items' (the queue's order breaks ties).
+    let next = s
+        .queue
+        .iter()
+        .filter_map(|i| st.next_start(i, now).map(|t| (i.id, t)))
+        .min_by_key(|(_, t)| *t);
     let live = st.live.lock().map(|l| l.clone()).unwrap_or(Value::Null);
+    let sun = st
+        .site
+        .as_ref()
+        .and_then(|site| crate::schedule::sun_elevation_deg(site, now));
     Ok(Json(json!({
         "change_id": st.hub.last_id(),
         "queue_running": s.queue_running,
@@ -83,19 +95,33 @@ pub async fn status(
         "live": live,
         "history": s.history.len(),
         "disk_free_bytes": crate::disk::free_bytes(&st.config.data_dir),
-        "time": crate::rfc3339(crate::now_unix()),
+        "time": crate::rfc3339(now),
+        "clock": {"simulated": !st.clock.is_system(), "speed": st.clock.speed()},
+        "next_start": next.map(|(id, t)| json!({"id": id, "time": crate::rfc3339(t)})),
+        "sun_elevation_deg": sun,
     })))
 }
 
-/// `GET /api/v1/queue`.
+/// `GET /api/v1/queue`: the items in order, each with its next start (station time).
 pub async fn queue(
     State(app): State<AppState>,
     headers: HeaderMap,
 ) -> Result<Json<Value>, ApiError> {
     app.key(&headers, Scope::Read, "queue").await?;
     let s = app.st.snapshot();
+    let now = app.st.now();
+    let items: Vec<Value> = s
+        .queue
+        .iter()
+        .map(|i| {
+            let mut v = json!(i);
+            v["next_start"] = json!(app.st.next_start(i, now).map(crate::rfc3339));
+            v
+        })
+        .collect();
     Ok(Json(
-        json!({"queue_running": s.queue_running, "items": s.queue, "current": s.current}),
+        json!({"queue_running": s.queue_running, "items": items,
+                   "current": s.current, "time": crate::rfc3339(now)}),
     ))
 }
 
@@ -152,6 +178,49 @@ pub async fn events(
         )
     });
     Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
+}
+
+/// `GET /api/v1/products/latest/{name}`: a PNG of the latest set's `s0`, `dolp` or `aop`, from
+/// the current item's run, else the last finished one's (404 while none has a set).
+pub async fn product(
+    State(app): State<AppState>,
+    headers: HeaderMap,
+    axum::extract::Path(name): axum::extract::Path<String>,
+) -> Result<impl IntoResponse, ApiError> {
+    app.key(&headers, Scope::Read, "product").await?;
+    let stem = name.strip_suffix(".png").unwrap_or(&name).to_string();
+    let Some((_, stored)) = crate::picture::PRODUCTS.iter().find(|(n, _)| *n == stem) else {
+        return Err(ApiError::field(
+            "name",
+            format!("{name:?} is not a product: s0, dolp or aop"),
+        ));
+    };
+    let st = app.st.clone();
+    let png = tokio::task::spawn_blocking(move || {
+        let s = st.snapshot();
+        let dirs = s.current.iter().map(|c| c.run_dir.clone()).chain(
+            s.history
+                .iter()
+                .rev()
+                .map(|h| h.run_dir.clone())
+                .filter(|d| !d.is_empty()),
+        );
+        for dir in dirs.take(3) {
+            if let Ok(plane) = st
+                .runner
+                .latest_product(&st.config.data_dir.join(&dir), stored)
+            {
+                return crate::picture::render(&stem, &plane).map_err(ApiError::internal);
+            }
+        }
+        Err(ApiError::new(
+            StatusCode::NOT_FOUND,
+            "no run has a product image yet",
+        ))
+    })
+    .await
+    .map_err(ApiError::internal)??;
+    Ok(([(axum::http::header::CONTENT_TYPE, "image/png")], png))
 }
 
 /// `GET /api/v1/openapi.json`.
