@@ -95,8 +95,9 @@ def test_pause_resume_and_abort_with_the_event_stream(station):
         assert entry["item"]["id"] == item and entry["exit"] == "aborted", entry
     time.sleep(0.5)
     stop.set()
-    ids = [e["id"] for e in events]
-    assert ids == sorted(ids) and len(set(ids[1:])) == len(ids) - 1, "change ids increase"
+    assert events[0]["kind"] == "hello" and "id" not in events[0]
+    ids = [e["id"] for e in events[1:]]
+    assert ids == sorted(ids) and len(set(ids)) == len(ids), "change ids increase"
     states = [e["data"].get("state") for e in events if e["kind"] == "run.state"]
     for s in ("running", "paused", "aborted"):
         assert s in states, (s, states)
@@ -128,3 +129,25 @@ def test_health_tells_the_truth(station):
     assert r.status_code == 200 and h["ok"], h
     assert h["devices"]["ok"] and h["disk"]["free_bytes"] > h["disk"]["reserve_bytes"]
     assert h["clock"]["ok"]
+
+
+def test_sigterm_pauses_the_run_and_the_next_start_resumes_it(station):
+    """systemctl stop with an event stream open: the going run pauses at a safe point, the
+    station exits promptly, and the next start resumes the run to the end."""
+    events, stop = [], threading.Event()
+    threading.Thread(target=collect_events, args=(station, stop, events), daemon=True).start()
+    with station.client("queue") as mine:
+        (item,) = mine.post("/api/v1/queue", json={"plan": timelapse(count=5)}).json()["ids"]
+    station.wait(lambda s: (s["live"].get("progress") or {}).get("done", 0) >= 1, "frames")
+    t0 = time.monotonic()
+    station.stop()
+    assert time.monotonic() - t0 < 30, "the stop waited for the event stream"
+    state = json.loads((station.dir / "data" / "state.json").read_text())
+    assert state["current"]["phase"] == "paused" and state["current"]["resume_on_start"], state
+    station.start()
+    (entry,) = station.wait_history(1)
+    assert entry["item"]["id"] == item and entry["exit"] == "done", entry
+    assert entry["crash_resumes"] == 0, "a clean stop is not a crash"
+    check = json.loads(cli("acquire", "check", station.dir / "data" / entry["run_dir"]).stdout)
+    assert check["ok"] and check["frames_recorded"] >= 15, check
+    stop.set()

@@ -52,4 +52,5 @@ def test_the_status_page_shows_the_station_in_chromium(station):
     assert p.returncode == 0 and shot.stat().st_size > 10_000, p.stderr[-2000:]
     # Without a key the page still loads and shows only health.
     dom = chromium("--dump-dom", station.url + "/")
+    assert dom.returncode == 0 and re.search(r'id="health" class="ok">healthy<', dom.stdout)
     assert 'data-loaded="yes"' not in dom.stdout

@@ -1,7 +1,7 @@
 """Schedules from the model, judged by pvlib: a daily time-lapse from sun elevation 10 deg
 rising to 10 deg setting, every 30 minutes, run through a whole December day at the rig's
 site on the station's fast simulated clock. Every run starts with the sun above 10 deg (by
-pvlib's SPA), none outside, the first within minutes of the window opening, and the station
+pvlib's SPA), none outside, the first within a poll of the window opening, and the station
 names the next day's opening as the next start."""
 
 import datetime as dt
@@ -69,7 +69,8 @@ def test_a_day_of_a_sun_driven_time_lapse(tmp_path):
                 assert h["exit"] == "done", h
                 e = elevation(h["started_unix"])
                 assert e > 9.9, f"a run started with the sun at {e:.2f} deg"
-            assert starts[0] - opening <= 180, "the first run starts within 3 min of the opening"
+            # One worker poll is a minute of station time; the margin is one real second.
+            assert starts[0] - opening <= 60 + SPEED, "the first run starts at the opening"
             gaps = [b - a for a, b in zip(starts, starts[1:])]
             assert min(gaps) >= 1800, f"every_s is honoured: {gaps}"
             # The next start is tomorrow's opening.
@@ -78,5 +79,8 @@ def test_a_day_of_a_sun_driven_time_lapse(tmp_path):
             tomorrow = crossing(end)
             assert abs(said.timestamp() - tomorrow) <= 120, (said, tomorrow)
             assert q["items"][0]["runs_done"] == len(history)
+            print(f"{len(starts)} runs; first {starts[0] - opening} s after pvlib's opening; "
+                  f"elevations at start {[round(elevation(t), 2) for t in starts]}; next start "
+                  f"{said.timestamp() - tomorrow:+.0f} s from pvlib's next opening")
     finally:
         st.stop()

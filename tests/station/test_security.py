@@ -47,6 +47,12 @@ def test_the_matrix_refuses_every_bad_request(station):
         assert r.status_code == 400 and r.json()["field"] == "plan" and "exposure_us" in r.json()["error"], r.text
         r = c.post("/api/v1/queue", json={"plan": timelapse() + '[simulation]\nscene = "/etc/passwd"\n'})
         assert r.status_code == 400 and "simulation.scene" in r.json()["error"], r.text
+        cal = (ROOT / "examples" / "plans" / "calibrate_analyzer.toml").read_text()
+        r = c.post("/api/v1/queue", json={"plan": cal})
+        assert r.status_code == 400 and "rig file" in r.json()["error"], "calibrations stay local"
+        r = c.post("/api/v1/queue", json={"plan": timelapse(),
+                                          "schedule": {"sun_above_deg": 80}})
+        assert r.status_code == 400 and r.json()["field"] == "schedule", "a window that never opens"
         r = c.post("/api/v1/queue", json={"plan": timelapse(), "priority": 5000})
         assert r.status_code == 400 and r.json()["field"] == "priority", r.text
         r = c.post("/api/v1/queue", json={"plan": timelapse(), "colour": 1})
@@ -109,3 +115,9 @@ def test_tls_serves_with_the_configured_certificate(tmp_path):
             httpx.get(url.replace("https://", "http://") + "/healthz", timeout=5)
     finally:
         st.stop()
+
+
+def test_one_station_per_data_directory(station):
+    p = cli("station", "serve", "--config", station.config, check=False, timeout=30)
+    assert p.returncode == 2 and "data_dir" in p.stderr and "in use" in p.stderr, p.stderr
+    assert httpx.get(station.url + "/healthz").status_code == 200, "the first one is unharmed"

@@ -102,6 +102,15 @@ impl Runner for CliRunner {
                 ));
             }
         }
+        // A calibration writes its result back into the rig file: that is a lab's decision,
+        // made with `acquire run --rig` at the instrument, not a remote queue's.
+        let kind = plan.kind().name();
+        if kind.starts_with("calibrate") {
+            return Err(format!(
+                "kind: a {kind} plan writes the rig file; run it at the instrument with \
+                 `polarimeter acquire run --rig RIG PLAN`, not on a station"
+            ));
+        }
         let mut v = plan_check(plan_file, Some(&self.rig)).map_err(|e| e.to_string())?;
         let f = &v["forecast"];
         let (frames, sets) = (

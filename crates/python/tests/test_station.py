@@ -32,8 +32,12 @@ def station(tmp_path):
     url = json.loads(p.stdout.readline())["listening"]
     yield Station(url, key_file=tmp_path / "key"), tmp_path
     p.terminate()
-    p.wait(timeout=60)
-    p.stdout.close()
+    try:
+        p.wait(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+        p.stdout.close()
 
 
 def test_submit_wait_and_the_event_stream(station):

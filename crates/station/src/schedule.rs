@@ -119,6 +119,14 @@ impl Schedule {
                 }
             }
         }
+        if let (Some(a), Some(b)) = (self.sun_above_deg, self.sun_below_deg) {
+            if a >= b {
+                return bad(
+                    "sun_below_deg",
+                    format!("{b} is not above sun_above_deg {a}: the window would be empty"),
+                );
+            }
+        }
         if self.sun_phase.is_some() && self.sun_above_deg.is_none() && self.sun_below_deg.is_none()
         {
             return bad("sun_phase", "needs sun_above_deg or sun_below_deg".into());
@@ -136,8 +144,16 @@ impl Schedule {
                 }
             }
         }
-        if self.local_from.is_some() != self.local_to.is_some() {
-            return bad("local_from", "give both local_from and local_to".into());
+        match (&self.local_from, &self.local_to) {
+            (Some(_), None) => return bad("local_to", "give local_to with local_from".into()),
+            (None, Some(_)) => return bad("local_from", "give local_from with local_to".into()),
+            (Some(f), Some(t)) if f == t => {
+                return bad(
+                    "local_to",
+                    format!("{t:?} equals local_from: the window would be empty"),
+                )
+            }
+            _ => {}
         }
         if let Some(e) = self.every_s {
             if !(1..=30 * 86_400).contains(&e) {
@@ -224,10 +240,17 @@ impl Schedule {
         if self.total_runs().is_some_and(|n| runs_done >= n) {
             return None;
         }
+        let not_before = self
+            .not_before
+            .as_deref()
+            .and_then(|s| humantime::parse_rfc3339_weak(s).ok())
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+            .map_or(0, |d| d.as_secs());
         let earliest = match (last_start, self.every_s) {
             (Some(l), Some(e)) => now.max(l + e),
             _ => now,
-        };
+        }
+        .max(not_before);
         let mut t = earliest;
         while t <= earliest + HORIZON_S {
             if self.open_at(t, site, utc_offset_s) {

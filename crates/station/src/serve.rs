@@ -1,6 +1,7 @@
-//! The long-lived process: binds (loopback, or anything with TLS), starts the worker (which
-//! first resumes the run a crash or power cut interrupted), serves the API until SIGTERM or
-//! Ctrl-C, then pauses the going run at its next safe point so the next start resumes it.
+//! The long-lived process: binds (loopback, or anything with TLS), then starts the worker
+//! (which first resumes the run a crash or power cut interrupted), serves the API until
+//! SIGTERM or Ctrl-C, then pauses the going run at its next safe point so the next start
+//! resumes it. One station per data directory (a lock on `data_dir/.lock`).
 
 use crate::config::Config;
 use crate::error::StationError;
@@ -13,6 +14,8 @@ use std::time::Duration;
 
 /// How long a stop waits for the going run to reach a safe point.
 const STOP_WAIT: Duration = Duration::from_secs(60);
+/// How long open connections may take to finish once the station stops.
+const DRAIN: Duration = Duration::from_secs(5);
 
 /// Runs the station until it is told to stop. `on_listening` hears the bound address (with
 /// port 0 in the file, the one the system picked) before the first request is taken.
@@ -23,6 +26,11 @@ pub fn serve(
 ) -> Result<(), StationError> {
     config.check_bind()?;
     let st = Station::open(config, runner)?;
+    let addr = st.config.listen;
+    let listener = std::net::TcpListener::bind(addr)
+        .and_then(|l| l.set_nonblocking(true).map(|()| l))
+        .map_err(|e| StationError::Serve(format!("cannot listen on {addr}: {e}")))?;
+    let bound = listener.local_addr().unwrap_or(addr);
     if let Some(c) = st.snapshot().current {
         tracing::info!(
             "item {} ({}) was {:?} when the station stopped: taking it up again",
@@ -38,60 +46,67 @@ pub fn serve(
         .map_err(|e| StationError::Serve(format!("cannot start the async runtime: {e}")))?;
     let worker = crate::worker::spawn(st.clone())
         .map_err(|e| StationError::Serve(format!("cannot start the worker: {e}")))?;
-    let served = rt.block_on(listen(st.clone(), on_listening));
+    on_listening(bound, &st.config);
+    let served = rt.block_on(listen(st.clone(), listener));
+    begin_stop(&st);
     stop(&st, worker);
     served
 }
 
-async fn listen(
-    st: Arc<Station>,
-    on_listening: impl FnOnce(SocketAddr, &Config),
-) -> Result<(), StationError> {
+async fn listen(st: Arc<Station>, listener: std::net::TcpListener) -> Result<(), StationError> {
     let app = crate::api::router(st.clone()).into_make_service_with_connect_info::<SocketAddr>();
-    let addr = st.config.listen;
-    match st.config.tls.clone() {
-        None => {
-            let listener = tokio::net::TcpListener::bind(addr)
-                .await
-                .map_err(|e| StationError::Serve(format!("cannot listen on {addr}: {e}")))?;
-            let bound = listener.local_addr().unwrap_or(addr);
-            on_listening(bound, &st.config);
-            axum::serve(listener, app)
-                .with_graceful_shutdown(shutdown_signal())
-                .await
-                .map_err(|e| StationError::Serve(e.to_string()))
+    let signal = shutdown_signal(st.clone());
+    let served = async {
+        match st.config.tls.clone() {
+            None => {
+                let listener = tokio::net::TcpListener::from_std(listener)
+                    .map_err(|e| StationError::Serve(e.to_string()))?;
+                axum::serve(listener, app)
+                    .with_graceful_shutdown(signal)
+                    .await
+                    .map_err(|e| StationError::Serve(e.to_string()))
+            }
+            Some(tls) => {
+                let _ = rustls::crypto::aws_lc_rs::default_provider().install_default();
+                let rustls =
+                    axum_server::tls_rustls::RustlsConfig::from_pem_file(&tls.cert, &tls.key)
+                        .await
+                        .map_err(|e| {
+                            StationError::Serve(format!(
+                                "[tls] cert {} / key {}: {e}",
+                                tls.cert.display(),
+                                tls.key.display()
+                            ))
+                        })?;
+                let handle = axum_server::Handle::new();
+                let h = handle.clone();
+                tokio::spawn(async move {
+                    signal.await;
+                    h.graceful_shutdown(Some(DRAIN));
+                });
+                axum_server::from_tcp_rustls(listener, rustls)
+                    .handle(handle)
+                    .serve(app)
+                    .await
+                    .map_err(|e| StationError::Serve(e.to_string()))
+            }
         }
-        Some(tls) => {
-            let _ = rustls::crypto::aws_lc_rs::default_provider().install_default();
-            let rustls = axum_server::tls_rustls::RustlsConfig::from_pem_file(&tls.cert, &tls.key)
-                .await
-                .map_err(|e| {
-                    StationError::Serve(format!(
-                        "[tls] cert {} / key {}: {e}",
-                        tls.cert.display(),
-                        tls.key.display()
-                    ))
-                })?;
-            let listener = std::net::TcpListener::bind(addr)
-                .map_err(|e| StationError::Serve(format!("cannot listen on {addr}: {e}")))?;
-            let bound = listener.local_addr().unwrap_or(addr);
-            on_listening(bound, &st.config);
-            let handle = axum_server::Handle::new();
-            let h = handle.clone();
-            tokio::spawn(async move {
-                shutdown_signal().await;
-                h.graceful_shutdown(Some(Duration::from_secs(5)));
-            });
-            axum_server::from_tcp_rustls(listener, rustls)
-                .handle(handle)
-                .serve(app)
-                .await
-                .map_err(|e| StationError::Serve(e.to_string()))
-        }
+    };
+    // Connections that do not finish (an event stream a client holds) get DRAIN after the
+    // stop, not forever.
+    let mut stopped = st.shutdown.subscribe();
+    tokio::select! {
+        r = served => r,
+        _ = async {
+            let _ = stopped.wait_for(|s| *s).await;
+            tokio::time::sleep(DRAIN).await;
+        } => Ok(()),
     }
 }
 
-async fn shutdown_signal() {
+/// Resolves at SIGTERM or Ctrl-C, after starting the stop (the going run asked to pause, the
+/// event streams ended).
+async fn shutdown_signal(st: Arc<Station>) {
     let term = async {
         match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
             Ok(mut s) => {
@@ -105,15 +120,24 @@ async fn shutdown_signal() {
         _ = term => {},
     }
     tracing::info!("stopping: the going run pauses at its next safe point");
+    begin_stop(&st);
 }
 
-/// Stops the worker: the going run pauses at its next safe point (resumed at the next start).
-fn stop(st: &Arc<Station>, worker: std::thread::JoinHandle<()>) {
-    st.stopping.store(true, Ordering::SeqCst);
-    if let Some(link) = st.control.lock().ok().and_then(|c| c.clone()) {
+/// The worker takes nothing new, the going run pauses at its next safe point, the event
+/// streams end.
+fn begin_stop(st: &Station) {
+    if st.stopping.swap(true, Ordering::SeqCst) {
+        return;
+    }
+    if let Some((_, link)) = st.control.lock().ok().and_then(|c| c.clone()) {
         link.request(Request::Pause);
     }
     st.wake.notify_all();
+    let _ = st.shutdown.send(true);
+}
+
+/// Waits for the worker (the going run's pause; resumed at the next start).
+fn stop(st: &Arc<Station>, worker: std::thread::JoinHandle<()>) {
     let deadline = std::time::Instant::now() + STOP_WAIT;
     while !worker.is_finished() && std::time::Instant::now() < deadline {
         std::thread::sleep(Duration::from_millis(50));
@@ -123,4 +147,5 @@ fn stop(st: &Arc<Station>, worker: std::thread::JoinHandle<()>) {
     } else {
         tracing::warn!("the run did not reach a safe point in {STOP_WAIT:?}: the next start resumes it as after a crash");
     }
+    drop(st.clone());
 }

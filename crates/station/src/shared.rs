@@ -43,8 +43,8 @@ pub struct Station {
     pub hub: Hub,
     /// The instrument.
     pub runner: Arc<dyn Runner>,
-    /// The going run's link, while one goes.
-    pub control: Mutex<Option<Arc<RunControl>>>,
+    /// The going run's link and its item's id, while one goes.
+    pub control: Mutex<Option<(u64, Arc<RunControl>)>>,
     /// The keys.
     pub keys: Mutex<KeyCache>,
     /// The audit log.
@@ -59,6 +59,10 @@ pub struct Station {
     pub clock: Clock,
     /// The rig's site, for sun windows.
     pub site: Option<SunSite>,
+    /// Becomes true when the station stops (ends the event streams).
+    pub shutdown: tokio::sync::watch::Sender<bool>,
+    /// The data directory's lock, held while the station lives: one station per directory.
+    _lock: std::fs::File,
 }
 
 impl Station {
@@ -70,6 +74,23 @@ impl Station {
             config.runs_dir(),
         ] {
             std::fs::create_dir_all(&d).map_err(|e| StationError::io(&d, e))?;
+        }
+        let lock_path = config.data_dir.join(".lock");
+        let lock = std::fs::OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(&lock_path)
+            .map_err(|e| StationError::io(&lock_path, e))?;
+        if lock.try_lock().is_err() {
+            return Err(StationError::Config {
+                file: config.path.display().to_string(),
+                key: "data_dir".into(),
+                message: format!(
+                    "{} is in use by another station (one station per data directory)",
+                    config.data_dir.display()
+                ),
+            });
         }
         let state = State::load(&config.state_file(), config.autostart)?;
         let clock = match config.sim_clock {
@@ -100,6 +121,8 @@ impl Station {
             stopping: AtomicBool::new(false),
             clock,
             site,
+            shutdown: tokio::sync::watch::channel(false).0,
+            _lock: lock,
             config,
         }))
     }
@@ -162,10 +185,11 @@ impl Station {
             next.save(&self.config.state_file())
                 .map_err(EditError::Save)?;
             *guard = next;
-            let summary = queue_summary(&guard);
+            // Published under the state lock, so the events' order is the edits' (the hub
+            // takes no other lock).
+            self.hub.publish("queue", queue_summary(&guard));
             drop(guard);
             self.wake.notify_all();
-            self.hub.publish("queue", summary);
         }
         Ok(out)
     }

@@ -20,8 +20,9 @@ const DISK_POLL: Duration = Duration::from_secs(1);
 /// What the worker does next.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Job {
-    /// Start the queued item at this index.
-    Start(usize),
+    /// Start the queued item with this id (looked up again when taken: the queue may have
+    /// changed since it was chosen).
+    Start(u64),
     /// Resume the current item's run (`crashed`: it was going when the station died).
     Resume { crashed: bool },
     /// Abort the paused current item's run.
@@ -34,7 +35,7 @@ fn next_job(s: &State, ready: impl Fn(&crate::state::Item) -> bool) -> Option<Jo
         Some(c) if c.abort_requested => Some(Job::AbortPaused),
         Some(c) if c.resume_requested || c.resume_on_start => Some(Job::Resume { crashed: false }),
         Some(_) => None,
-        None if s.queue_running => queue::next(s, ready).map(Job::Start),
+        None if s.queue_running => queue::next(s, ready).map(|i| Job::Start(s.queue[i].id)),
         None => None,
     }
 }
@@ -105,46 +106,53 @@ fn save_err<E: std::fmt::Display>(e: EditError<E>) -> String {
     }
 }
 
+/// The state change that begins `job`, made and saved before any run call: the current item
+/// and whether its run starts fresh; `None` when an edit since the job was chosen took it away
+/// (the item removed, or no longer ready).
+fn begin(st: &Station, s: &mut State, job: Job, now: u64) -> Option<(Current, bool)> {
+    let fresh = match job {
+        Job::Start(id) => {
+            let i = queue::index_of(s, id).ok()?;
+            if s.current.is_some() || !st.ready(&s.queue[i], now) {
+                return None;
+            }
+            // A repeating item stays queued until its runs are used up.
+            let queued = &mut s.queue[i];
+            queued.runs_done += 1;
+            queued.last_start_unix = Some(now);
+            let more = queued
+                .schedule
+                .as_ref()
+                .is_some_and(|sc| sc.total_runs().is_none_or(|n| queued.runs_done < n));
+            let item = if more {
+                queued.clone()
+            } else {
+                s.queue.remove(i)
+            };
+            let run_dir = run_dir_for(st, item.id, &item.name);
+            s.current = Some(Current::new(item, run_dir, now));
+            true
+        }
+        Job::Resume { .. } | Job::AbortPaused => {
+            let c = s.current.as_mut()?;
+            c.phase = Phase::Running;
+            c.pause_reason = None;
+            c.resume_requested = false;
+            c.resume_on_start = false;
+            false
+        }
+    };
+    Some((s.current.clone()?, fresh))
+}
+
 fn take(st: &Arc<Station>, job: Job) -> Result<(), String> {
     let now = st.now();
-    let (current, fresh) = st
-        .edit(|s| -> Result<(Current, bool), String> {
-            let fresh = match job {
-                Job::Start(i) => {
-                    // A repeating item stays queued until its runs are used up.
-                    let queued = &mut s.queue[i];
-                    queued.runs_done += 1;
-                    queued.last_start_unix = Some(now);
-                    let more = queued
-                        .schedule
-                        .as_ref()
-                        .is_some_and(|sc| sc.total_runs().is_none_or(|n| queued.runs_done < n));
-                    let item = if more {
-                        queued.clone()
-                    } else {
-                        s.queue.remove(i)
-                    };
-                    let run_dir = run_dir_for(st, item.id, &item.name);
-                    s.current = Some(Current::new(item, run_dir, now));
-                    true
-                }
-                Job::Resume { crashed } => {
-                    let c = s.current.as_mut().ok_or("no current item")?;
-                    if crashed {
-                        c.crash_resumes += 1;
-                    }
-                    c.phase = Phase::Running;
-                    c.pause_reason = None;
-                    c.resume_requested = false;
-                    c.resume_on_start = false;
-                    false
-                }
-                Job::AbortPaused => false,
-            };
-            let c = s.current.clone().ok_or("no current item")?;
-            Ok((c, fresh))
-        })
+    let begun = st
+        .edit(|s| -> Result<_, String> { Ok(begin(st, s, job, now)) })
         .map_err(save_err)?;
+    let Some((current, fresh)) = begun else {
+        return Ok(());
+    };
     let run_dir = st.config.data_dir.join(&current.run_dir);
     let plan_file = st.config.data_dir.join(&current.item.plan_file);
     // A run whose start a crash interrupted holds nothing: it starts again, in a new directory.
@@ -154,10 +162,26 @@ fn take(st: &Arc<Station>, job: Job) -> Result<(), String> {
     } else {
         run_dir
     };
-    let fresh = !started;
+    if started && job == (Job::Resume { crashed: true }) {
+        st.edit(|s| -> Result<(), String> {
+            if let Some(c) = s.current.as_mut() {
+                c.crash_resumes += 1;
+            }
+            Ok(())
+        })
+        .map_err(save_err)?;
+    }
     let abort_first = job == Job::AbortPaused;
-    let end = execute(st, &plan_file, &run_dir, fresh, abort_first);
-    conclude(st, end)
+    let end = execute(
+        st,
+        current.item.id,
+        &plan_file,
+        &run_dir,
+        !started,
+        abort_first,
+    );
+    conclude(st, end)?;
+    archive_history(st)
 }
 
 /// A new run directory for an item whose first one never started; saved as the item's.
@@ -177,6 +201,7 @@ fn restart_dir(st: &Arc<Station>, current: &Current) -> Result<PathBuf, String> 
 /// whether the disk watch paused it.
 fn execute(
     st: &Arc<Station>,
+    item_id: u64,
     plan_file: &std::path::Path,
     run_dir: &std::path::Path,
     fresh: bool,
@@ -188,7 +213,7 @@ fn execute(
         control.request(Request::Abort);
     }
     if let Ok(mut c) = st.control.lock() {
-        *c = Some(control.clone());
+        *c = Some((item_id, control.clone()));
     }
     // An abort asked before the link existed.
     if !abort_first && st.snapshot().current.is_some_and(|c| c.abort_requested) {
@@ -220,6 +245,44 @@ fn execute(
         *c = None;
     }
     (end, disk_full.load(Ordering::SeqCst))
+}
+
+/// History entries kept in the state (each edit saves the whole state); older ones move to
+/// `history-archive.jsonl` in the data directory, one JSON line each.
+const HISTORY_KEPT: usize = 1000;
+
+/// Moves the history's oldest entries beyond [`HISTORY_KEPT`] to the archive (appended and
+/// flushed before the state drops them: a crash between leaves them in both, never neither).
+fn archive_history(st: &Station) -> Result<(), String> {
+    let old: Vec<_> = {
+        let s = st.lock();
+        let excess = s.history.len().saturating_sub(HISTORY_KEPT);
+        s.history[..excess].to_vec()
+    };
+    if old.is_empty() {
+        return Ok(());
+    }
+    let path = st.config.data_dir.join("history-archive.jsonl");
+    let mut text = String::new();
+    for e in &old {
+        text.push_str(&serde_json::to_string(e).map_err(|e| e.to_string())?);
+        text.push('\n');
+    }
+    use std::io::Write;
+    std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&path)
+        .and_then(|mut f| {
+            f.write_all(text.as_bytes())?;
+            f.sync_data()
+        })
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    st.edit(|s| -> Result<(), String> {
+        s.history.drain(..old.len().min(s.history.len()));
+        Ok(())
+    })
+    .map_err(save_err)
 }
 
 /// A run's event: published, and kept as the latest progress or set.
@@ -309,7 +372,7 @@ mod tests {
     fn a_run_going_at_start_is_resumed_before_anything_is_taken() {
         let mut s = State::new(true);
         s.queue.push(item(2));
-        assert_eq!(next_job(&s, |_| true), Some(Job::Start(0)));
+        assert_eq!(next_job(&s, |_| true), Some(Job::Start(2)));
         s.current = Some(Current::new(item(1), "runs/1-n".into(), 0));
         assert_eq!(next_job(&s, |_| true), Some(Job::Resume { crashed: true }));
         let c = s.current.as_mut().unwrap();

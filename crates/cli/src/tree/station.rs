@@ -356,6 +356,25 @@ fn wait_for(client: &Client, added: &Value) -> Result<Vec<Value>, StationError> 
         if entries.len() == ids.len() {
             return Ok(entries);
         }
+        // An item removed from the queue never reaches the history: say so, do not wait on.
+        let queue = client.get("/api/v1/queue")?;
+        let at_station = |id: u64| {
+            queue["items"]
+                .as_array()
+                .is_some_and(|a| a.iter().any(|i| i["id"].as_u64() == Some(id)))
+                || queue["current"]["item"]["id"].as_u64() == Some(id)
+        };
+        let history_now = client.get("/api/v1/history")?;
+        let done = |id: u64| {
+            history_now["items"]
+                .as_array()
+                .is_some_and(|a| a.iter().any(|e| e["item"]["id"].as_u64() == Some(id)))
+        };
+        if let Some(gone) = ids.iter().find(|&&id| !at_station(id) && !done(id)) {
+            return Err(StationError::Client(format!(
+                "item {gone} left the queue without running (removed): nothing to wait for"
+            )));
+        }
         std::thread::sleep(std::time::Duration::from_millis(500));
     }
 }

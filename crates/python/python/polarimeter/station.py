@@ -173,6 +173,14 @@ class Station:
             found = {e["item"]["id"]: e for e in self.history() if e["item"]["id"] in want}
             if len(found) == len(set(want)):
                 return [found[i] for i in want]
+            q = self._request("GET", "/api/v1/queue")
+            here = {i["id"] for i in q["items"]}
+            if q.get("current"):
+                here.add(q["current"]["item"]["id"])
+            later = {e["item"]["id"] for e in self.history()}
+            gone = [i for i in want if i not in here and i not in later]
+            if gone:
+                raise StationError(404, f"items {gone} left the queue without running (removed)")
             if deadline is not None and time.monotonic() > deadline:
                 raise TimeoutError(f"items {sorted(set(want) - set(found))} still at the station")
             time.sleep(poll_s)

@@ -25,9 +25,16 @@ fn nothing() -> ApiError {
     ApiError::conflict("no item is running or paused (GET /api/v1/status)")
 }
 
-fn send(app: &AppState, r: Request) -> bool {
+/// Sends `r` to item `id`'s going run; whether it was going.
+fn send(app: &AppState, id: u64, r: Request) -> bool {
     let link = app.st.control.lock().ok().and_then(|c| c.clone());
-    link.map(|l| l.request(r)).is_some()
+    match link {
+        Some((going, l)) if going == id => {
+            l.request(r);
+            true
+        }
+        _ => false,
+    }
 }
 
 /// `POST /api/v1/run/pause`: the running item pauses at its next set boundary (its run stays
@@ -40,7 +47,7 @@ pub async fn pause(
     let s = app.st.snapshot();
     let r = match &s.current {
         Some(c) if c.phase == Phase::Running => {
-            if send(&app, Request::Pause) {
+            if send(&app, c.item.id, Request::Pause) {
                 Ok(c.item.id)
             } else {
                 Err(EditError::Refused(ApiError::conflict(
@@ -95,9 +102,10 @@ pub async fn abort(
         c.abort_requested = true;
         Ok((c.item.id, c.phase == Phase::Running))
     });
+    // A run that is not going yet takes the abort from the state when its link is made.
     let r = r.map(|(id, running)| {
         if running {
-            send(&app, Request::Abort);
+            send(&app, id, Request::Abort);
         }
         id
     });

@@ -24,6 +24,8 @@ use std::sync::Arc;
 const PRIORITY: std::ops::RangeInclusive<i32> = -1000..=1000;
 /// Items in one batch.
 const MAX_BATCH: usize = 100;
+/// Items the queue holds (each edit saves the whole queue).
+const MAX_QUEUE: usize = 1000;
 
 /// One plan to queue.
 #[derive(Debug, Deserialize)]
@@ -102,17 +104,29 @@ fn check_one(st: &Station, n: &NewItem, at: &str) -> Result<Checked, ApiError> {
     if let Some(s) = &n.schedule {
         s.validate(st.site.as_ref())
             .map_err(|(field, m)| ApiError::field(format!("{at}{field}"), m))?;
+        let now = st.now();
+        if s.next_start(now, None, 0, st.site.as_ref(), st.config.utc_offset_s)
+            .is_none()
+        {
+            return Err(ApiError::field(
+                format!("{at}schedule"),
+                "the window does not open within 3 days of its start: it could never run as \
+                 written (check the sun limits against the site's latitude and the season)",
+            ));
+        }
     }
     let pending = st
         .config
         .items_dir()
         .join(format!(".pending-{}.{ext}", random_hex()));
-    std::fs::write(&pending, &n.plan).map_err(ApiError::internal)?;
+    crate::atomic::write(&pending, n.plan.as_bytes(), false).map_err(ApiError::internal)?;
     let checked = st.runner.check(&pending);
     let forecast = match checked {
         Ok(f) => f,
         Err(e) => {
             let _ = std::fs::remove_file(&pending);
+            // The pending file's path means nothing to the client and shows the data directory.
+            let e = e.replace(&pending.display().to_string(), "the plan");
             return Err(ApiError::field(format!("{at}plan"), e));
         }
     };
@@ -176,15 +190,6 @@ fn discard(checked: &[Checked]) {
     }
 }
 
-fn saved<E: std::fmt::Display>(e: EditError<E>) -> ApiError {
-    match e {
-        EditError::Refused(e) => ApiError::field("id", e.to_string()),
-        EditError::Save(e) => {
-            ApiError::internal(format!("the station's state could not be saved: {e}"))
-        }
-    }
-}
-
 async fn blocking<T: Send + 'static>(
     f: impl FnOnce() -> Result<T, ApiError> + Send + 'static,
 ) -> Result<T, ApiError> {
@@ -222,12 +227,24 @@ fn add_checked(
     owner: &str,
 ) -> Result<Vec<u64>, ApiError> {
     let now = st.now();
-    let outcome = st.edit(|s| -> Result<Vec<u64>, std::io::Error> {
+    let outcome = st.edit(|s| -> Result<Vec<u64>, ApiError> {
+        if s.queue.len() + checked.len() > MAX_QUEUE {
+            return Err(ApiError::field(
+                "items",
+                format!(
+                    "the queue holds {} items and takes at most {MAX_QUEUE}: remove some first",
+                    s.queue.len()
+                ),
+            ));
+        }
         let ids = queue::peek_ids(s, checked.len());
         let mut items = Vec::new();
         for (id, c) in ids.zip(&checked) {
             let file = format!("items/{id}.{}", c.ext);
-            std::fs::rename(&c.pending, st.config.data_dir.join(&file))?;
+            let to = st.config.data_dir.join(&file);
+            std::fs::rename(&c.pending, &to).map_err(|e| {
+                ApiError::internal(format!("cannot keep the plan as {}: {e}", to.display()))
+            })?;
             items.push(Item {
                 id,
                 name: c.name.clone(),
@@ -241,12 +258,22 @@ fn add_checked(
                 last_start_unix: None,
             });
         }
+        // The renames reach the disk before the state that names the files.
+        let dir = st.config.items_dir();
+        std::fs::File::open(&dir)
+            .and_then(|d| d.sync_all())
+            .map_err(|e| ApiError::internal(format!("{}: {e}", dir.display())))?;
         Ok(queue::add(s, items))
     });
     if outcome.is_err() {
         discard(&checked);
     }
-    outcome.map_err(saved)
+    outcome.map_err(|e| match e {
+        EditError::Refused(e) => e,
+        EditError::Save(e) => {
+            ApiError::internal(format!("the station's state could not be saved: {e}"))
+        }
+    })
 }
 
 /// `POST /api/v1/queue/validate`: the same body as adding; answers each item's forecast and
@@ -299,8 +326,9 @@ fn may_edit_queued(s: &crate::state::State, key: &KeyRecord, id: u64) -> Result<
     may_edit(key, &s.queue[i].owner)
 }
 
-/// `DELETE /api/v1/queue/{id}`: a queued item, or the current item while paused (it leaves as
-/// `stopped`, its run resumable with `polarimeter acquire resume`).
+/// `DELETE /api/v1/queue/{id}`: a queued item (a repeating one: its later runs), or the
+/// current item while paused (it leaves as `stopped`, its run resumable with `polarimeter
+/// acquire resume`).
 pub async fn remove(
     State(app): State<AppState>,
     headers: HeaderMap,
@@ -309,6 +337,14 @@ pub async fn remove(
     let key = app.key(&headers, Scope::Queue, "queue.remove").await?;
     let id = parse_id(&id)?;
     let r = app.st.edit(|s| -> Result<(), ApiError> {
+        // A repeating item is queued while one of its runs is current: removing it ends its
+        // repeats and lets the current run go on.
+        if queue::index_of(s, id).is_ok() {
+            may_edit_queued(s, &key, id)?;
+            return queue::remove(s, id)
+                .map(|_| ())
+                .map_err(|e| ApiError::field("id", e.to_string()));
+        }
         if let Some(c) = s.current.as_ref().filter(|c| c.item.id == id) {
             may_edit(&key, &c.item.owner)?;
             if c.phase != Phase::Paused {
@@ -320,10 +356,10 @@ pub async fn remove(
             s.finish_current(ExitState::Stopped, message, Value::Null, app.st.now());
             return Ok(());
         }
-        may_edit_queued(s, &key, id)?;
-        queue::remove(s, id)
-            .map(|_| ())
-            .map_err(|e| ApiError::field("id", e.to_string()))
+        Err(ApiError::new(
+            StatusCode::NOT_FOUND,
+            queue::QueueError::NoItem(id).to_string(),
+        ))
     });
     finish_edit(&app.st, &key, "queue.remove", &id.to_string(), r)
 }

@@ -156,27 +156,32 @@ pub async fn events(
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.trim().parse::<u64>().ok());
     let (rx, missed) = app.st.hub.subscribe(after);
-    let hello = app.st.hub.last_id();
-    let first = tokio_stream::iter(
-        std::iter::once(crate::events::StationEvent {
-            id: hello,
-            kind: "hello".into(),
-            time: crate::rfc3339(crate::now_unix()),
-            data: queue_summary(&app.st.snapshot()),
-        })
-        .chain(missed),
+    // `hello` carries no id: a client that reconnects after it asks from the id it last saw.
+    let hello = Event::default().event("hello").data(
+        json!({"kind": "hello", "time": crate::rfc3339(crate::now_unix()),
+               "data": queue_summary(&app.st.snapshot())})
+        .to_string(),
     );
-    let live = tokio_stream::wrappers::BroadcastStream::new(rx).filter_map(Result::ok);
-    let stream = first.chain(live).map(|e| {
-        Ok::<_, std::convert::Infallible>(
+    let events = tokio_stream::iter(missed)
+        .chain(tokio_stream::wrappers::BroadcastStream::new(rx).filter_map(Result::ok))
+        .map(|e| {
             Event::default()
                 .id(e.id.to_string())
                 .event(e.kind.clone())
                 .data(
                     json!({"id": e.id, "kind": e.kind, "time": e.time, "data": e.data}).to_string(),
-                ),
-        )
-    });
+                )
+        });
+    // The stream ends when the station stops.
+    let ended = tokio_stream::wrappers::WatchStream::new(app.st.shutdown.subscribe())
+        .filter(|stopping| *stopping)
+        .map(|_| None);
+    let stream = tokio_stream::once(hello)
+        .chain(events)
+        .map(Some)
+        .merge(ended)
+        .take_while(Option::is_some)
+        .filter_map(|e| e.map(Ok::<_, std::convert::Infallible>));
     Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
 }
 
