@@ -96,10 +96,18 @@ def test_a_station_whose_devices_are_gone_is_not_healthy(tmp_path):
 
 
 def test_tls_serves_with_the_configured_certificate(tmp_path):
-    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
-    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
-                    "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1",
-                    "-keyout", str(key), "-out", str(cert)], check=True, capture_output=True)
+    # A station's own CA and the station's certificate signed by it (rustls, like browsers,
+    # refuses a CA certificate presented as the server's own).
+    ca, ca_key = tmp_path / "ca.pem", tmp_path / "ca.key"
+    cert, key, csr, ext = (tmp_path / n for n in ("cert.pem", "key.pem", "leaf.csr", "ext.cnf"))
+    ext.write_text("subjectAltName=IP:127.0.0.1\nbasicConstraints=CA:FALSE\n")
+    for args in (["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj",
+                  "/CN=station test CA", "-keyout", ca_key, "-out", ca],
+                 ["req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=127.0.0.1",
+                  "-keyout", key, "-out", csr],
+                 ["x509", "-req", "-in", csr, "-CA", ca, "-CAkey", ca_key, "-CAcreateserial",
+                  "-days", "1", "-extfile", ext, "-out", cert]):
+        subprocess.run(["openssl", *map(str, args)], check=True, capture_output=True)
     st = Station(tmp_path, f'[tls]\ncert = "{cert}"\nkey = "{key}"\n')
     st.config.write_text(st.config.read_text().replace("127.0.0.1:0", "0.0.0.0:0"))
     st.key("admin", "admin")
@@ -107,12 +115,21 @@ def test_tls_serves_with_the_configured_certificate(tmp_path):
     try:
         assert st.url.startswith("https://")
         url = st.url.replace("0.0.0.0", "127.0.0.1")
-        r = httpx.get(url + "/api/v1/status", verify=ssl.create_default_context(cafile=str(cert)),
+        r = httpx.get(url + "/api/v1/status", verify=ssl.create_default_context(cafile=str(ca)),
                       timeout=30,
                       headers={"Authorization": f"Bearer {st.keys['admin']['key']}"})
         assert r.status_code == 200 and "change_id" in r.json()
         with pytest.raises(httpx.HTTPError):
             httpx.get(url.replace("https://", "http://") + "/healthz", timeout=5)
+        # The command line's client trusts the station's certificate given by --ca-file, and
+        # refuses the station without it (not in Mozilla's roots).
+        key_file = tmp_path / "admin.key"
+        key_file.write_text(st.keys["admin"]["key"] + "\n")
+        ok = cli("station", "status", "--url", url, "--key-file", key_file, "--ca-file", ca,
+                 check=False)
+        assert ok.returncode == 0 and "change_id" in ok.stdout, ok.stderr
+        refused = cli("station", "status", "--url", url, "--key-file", key_file, check=False)
+        assert refused.returncode == 2 and "certificate" in refused.stderr.lower(), refused.stderr
     finally:
         st.stop()
 

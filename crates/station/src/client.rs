@@ -1,5 +1,6 @@
-//! The command line's client of a station: JSON over HTTP (or HTTPS) with the key from a file
-//! (never from the command line, where other users' `ps` would see it).
+//! The command line's client of a station: JSON over HTTP or HTTPS (rustls; the station's CA
+//! from `--ca-file`, else Mozilla's roots) with the key from a file (never from the command
+//! line, where other users' `ps` would see it).
 
 use crate::error::StationError;
 use serde_json::Value;
@@ -13,10 +14,46 @@ pub struct Client {
     agent: ureq::Agent,
 }
 
+/// rustls with aws-lc-rs, trusting `ca_file`'s certificates or Mozilla's roots.
+fn tls(ca_file: Option<&Path>) -> Result<ureq::tls::TlsConfig, StationError> {
+    use ureq::tls::{PemItem, RootCerts, TlsConfig, TlsProvider};
+    let roots = match ca_file {
+        None => RootCerts::WebPki,
+        Some(p) => {
+            let pem = std::fs::read(p).map_err(|e| StationError::io(p, e))?;
+            let certs: Vec<_> = ureq::tls::parse_pem(&pem)
+                .filter_map(|item| match item {
+                    Ok(PemItem::Certificate(c)) => Some(c),
+                    _ => None,
+                })
+                .collect();
+            if certs.is_empty() {
+                return Err(StationError::Client(format!(
+                    "--ca-file {}: no PEM certificate in it",
+                    p.display()
+                )));
+            }
+            RootCerts::Specific(std::sync::Arc::new(certs))
+        }
+    };
+    Ok(TlsConfig::builder()
+        .provider(TlsProvider::Rustls)
+        .root_certs(roots)
+        .unversioned_rustls_crypto_provider(std::sync::Arc::new(
+            rustls::crypto::aws_lc_rs::default_provider(),
+        ))
+        .build())
+}
+
 impl Client {
     /// A client of the station at `url` (e.g. `http://127.0.0.1:8750`), with the key in
-    /// `key_file` (its first line).
-    pub fn new(url: &str, key_file: Option<&Path>) -> Result<Client, StationError> {
+    /// `key_file` (its first line); HTTPS trusts the certificates in `ca_file` (PEM), else
+    /// Mozilla's roots.
+    pub fn new(
+        url: &str,
+        key_file: Option<&Path>,
+        ca_file: Option<&Path>,
+    ) -> Result<Client, StationError> {
         if !(url.starts_with("http://") || url.starts_with("https://")) {
             return Err(StationError::Client(format!(
                 "--url {url:?}: write the station's address as http://HOST:PORT (or https://)"
@@ -37,6 +74,7 @@ impl Client {
             }
         };
         let agent = ureq::Agent::config_builder()
+            .tls_config(tls(ca_file)?)
             .http_status_as_error(false)
             .timeout_global(Some(Duration::from_secs(60)))
             .build()

@@ -259,14 +259,18 @@ pub struct ClientArgs {
     /// A file holding the API key (`station key create` prints it once).
     #[arg(long)]
     key_file: Option<PathBuf>,
+    /// For an https:// station: the certificate (PEM) to trust, e.g. its self-signed one;
+    /// default Mozilla's roots.
+    #[arg(long)]
+    ca_file: Option<PathBuf>,
 }
 
 fn call(a: &ClientArgs, f: impl FnOnce(&Client) -> Result<Value, StationError>) -> ExitCode {
-    print_json(Client::new(&a.url, a.key_file.as_deref()).and_then(|c| f(&c)))
+    print_json(Client::new(&a.url, a.key_file.as_deref(), a.ca_file.as_deref()).and_then(|c| f(&c)))
 }
 
 fn health(a: &ClientArgs) -> ExitCode {
-    match Client::new(&a.url, None).and_then(|c| c.get("/healthz")) {
+    match Client::new(&a.url, None, a.ca_file.as_deref()).and_then(|c| c.get("/healthz")) {
         Ok(v) => {
             let healthy = v["ok"].as_bool() == Some(true);
             let printed = print_json(Ok::<_, StationError>(v));
@@ -314,7 +318,11 @@ impl SubmitArgs {
         if !self.wait || path.ends_with("/validate") {
             return call(&self.client, |c| c.post(path, &body?));
         }
-        let client = match Client::new(&self.client.url, self.client.key_file.as_deref()) {
+        let client = match Client::new(
+            &self.client.url,
+            self.client.key_file.as_deref(),
+            self.client.ca_file.as_deref(),
+        ) {
             Ok(c) => c,
             Err(e) => return refused(e),
         };
