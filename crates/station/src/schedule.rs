@@ -178,6 +178,26 @@ impl Schedule {
         }
     }
 
+    /// Whether runs are left after `runs_done`.
+    pub fn runs_left(&self, runs_done: u32) -> bool {
+        self.total_runs().is_none_or(|n| runs_done < n)
+    }
+
+    /// Whether a run may start at `t`: runs left, the interval since the last start passed,
+    /// the window open.
+    pub fn ready_at(
+        &self,
+        t: u64,
+        last_start: Option<u64>,
+        runs_done: u32,
+        site: Option<&SunSite>,
+        utc_offset_s: i64,
+    ) -> bool {
+        self.runs_left(runs_done)
+            && last_start.zip(self.every_s).is_none_or(|(l, e)| t >= l + e)
+            && self.open_at(t, site, utc_offset_s)
+    }
+
     /// Whether the window is open at `t` (sun, local time, not before).
     pub fn open_at(&self, t: u64, site: Option<&SunSite>, utc_offset_s: i64) -> bool {
         if let Some(nb) = self
@@ -237,7 +257,7 @@ impl Schedule {
         site: Option<&SunSite>,
         utc_offset_s: i64,
     ) -> Option<u64> {
-        if self.total_runs().is_some_and(|n| runs_done >= n) {
+        if !self.runs_left(runs_done) {
             return None;
         }
         let not_before = self

@@ -49,7 +49,7 @@ pub fn serve(
     on_listening(bound, &st.config);
     let served = rt.block_on(listen(st.clone(), listener));
     begin_stop(&st);
-    stop(&st, worker);
+    stop(worker);
     served
 }
 
@@ -137,7 +137,7 @@ fn begin_stop(st: &Station) {
 }
 
 /// Waits for the worker (the going run's pause; resumed at the next start).
-fn stop(st: &Arc<Station>, worker: std::thread::JoinHandle<()>) {
+fn stop(worker: std::thread::JoinHandle<()>) {
     let deadline = std::time::Instant::now() + STOP_WAIT;
     while !worker.is_finished() && std::time::Instant::now() < deadline {
         std::thread::sleep(Duration::from_millis(50));
@@ -147,5 +147,4 @@ fn stop(st: &Arc<Station>, worker: std::thread::JoinHandle<()>) {
     } else {
         tracing::warn!("the run did not reach a safe point in {STOP_WAIT:?}: the next start resumes it as after a crash");
     }
-    drop(st.clone());
 }

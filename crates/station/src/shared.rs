@@ -23,15 +23,6 @@ pub struct KeyCache {
     seen: Option<(SystemTime, u64)>,
 }
 
-/// What the station knows of its health beyond the state.
-#[derive(Debug, Default, Clone)]
-pub struct Health {
-    /// The last error (a failed item, a device that did not answer), with its time.
-    pub last_error: Option<(u64, String)>,
-    /// The devices as last found (`Runner::devices`, or a run that could not connect).
-    pub devices: Value,
-}
-
 /// The station (module docs).
 pub struct Station {
     /// Its settings.
@@ -49,8 +40,8 @@ pub struct Station {
     pub keys: Mutex<KeyCache>,
     /// The audit log.
     pub audit: Audit,
-    /// Health beyond the state.
-    pub health: Mutex<Health>,
+    /// The last error (a failed item, a full disk), with its time, for `/healthz`.
+    pub last_error: Mutex<Option<(u64, String)>>,
     /// The going run's latest progress and set (`{"progress": ..., "set": ...}`).
     pub live: Mutex<Value>,
     /// Set when the station is stopping: the worker takes nothing new.
@@ -116,7 +107,7 @@ impl Station {
             runner,
             control: Mutex::new(None),
             keys: Mutex::new(KeyCache { store, seen: None }),
-            health: Mutex::new(Health::default()),
+            last_error: Mutex::new(None),
             live: Mutex::new(json!({})),
             stopping: AtomicBool::new(false),
             clock,
@@ -154,17 +145,15 @@ impl Station {
 
     /// Whether `item` may start now.
     pub fn ready(&self, item: &Item, now: u64) -> bool {
-        match &item.schedule {
-            None => true,
-            Some(s) => {
-                s.total_runs().is_none_or(|n| item.runs_done < n)
-                    && item
-                        .last_start_unix
-                        .zip(s.every_s)
-                        .is_none_or(|(l, e)| now >= l + e)
-                    && s.open_at(now, self.site.as_ref(), self.config.utc_offset_s)
-            }
-        }
+        item.schedule.as_ref().is_none_or(|s| {
+            s.ready_at(
+                now,
+                item.last_start_unix,
+                item.runs_done,
+                self.site.as_ref(),
+                self.config.utc_offset_s,
+            )
+        })
     }
 
     /// A copy of the state.
@@ -211,8 +200,8 @@ impl Station {
     /// Records an error for `/healthz` and the event stream.
     pub fn note_error(&self, message: &str) {
         tracing::warn!("{message}");
-        if let Ok(mut h) = self.health.lock() {
-            h.last_error = Some((crate::now_unix(), message.to_string()));
+        if let Ok(mut e) = self.last_error.lock() {
+            *e = Some((crate::now_unix(), message.to_string()));
         }
         self.hub
             .publish("log", json!({"level": "error", "message": message}));

@@ -123,7 +123,7 @@ fn begin(st: &Station, s: &mut State, job: Job, now: u64) -> Option<(Current, bo
             let more = queued
                 .schedule
                 .as_ref()
-                .is_some_and(|sc| sc.total_runs().is_none_or(|n| queued.runs_done < n));
+                .is_some_and(|sc| sc.runs_left(queued.runs_done));
             let item = if more {
                 queued.clone()
             } else {

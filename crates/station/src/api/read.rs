@@ -40,17 +40,13 @@ fn health(st: &Station) -> Value {
     let devices = if going {
         json!({"ok": true, "note": "a run holds the devices and is going"})
     } else {
-        let d = st.runner.devices();
-        if let Ok(mut h) = st.health.lock() {
-            h.devices = d.clone();
-        }
-        d
+        st.runner.devices()
     };
     let free = crate::disk::free_bytes(&st.config.data_dir);
     let disk_ok = free.is_some_and(|f| f >= st.config.reserve_bytes);
     let now = crate::now_unix();
     let clock_ok = now >= CLOCK_FLOOR_UNIX;
-    let last_error = st.health.lock().ok().and_then(|h| h.last_error.clone());
+    let last_error = st.last_error.lock().ok().and_then(|e| e.clone());
     let recent_error = last_error
         .as_ref()
         .is_some_and(|(t, _)| now.saturating_sub(*t) < 3600);
