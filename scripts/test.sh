@@ -70,11 +70,17 @@ POLARIMETER_BIN="$PWD/target/release/polarimeter" timeout 900 \
 # The station from outside (tests/station): `station serve` on the simulated rig driven by
 # httpx (pinned in tests/station/requirements.txt, added to the same venv) and an SSE reader:
 # queue, run control, history, the security matrix, TLS, health, and the kill campaign (20
-# SIGKILLs, every run then checked by `acquire check` and zarr-python).
+# SIGKILLs, every run then checked by `acquire check` and zarr-python), and uploads to moto's
+# S3 server (pinned in tests/station/moto-requirements.txt, in a venv of its own: botocore
+# wants an older python-dateutil than the test venv's) read back by zarr-python via obstore.
 "$PKG_VENV/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps \
   -r tests/station/requirements.txt
-POLARIMETER_BIN="$PWD/target/release/polarimeter" timeout 900 \
-  "$PKG_VENV/bin/python" -m pytest -q -p no:cacheprovider tests/station </dev/null
+MOTO_VENV=target/moto-venv
+rm -rf "$MOTO_VENV" && python3 -m venv "$MOTO_VENV"
+"$MOTO_VENV/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps \
+  -r tests/station/moto-requirements.txt
+POLARIMETER_BIN="$PWD/target/release/polarimeter" MOTO_SERVER="$PWD/$MOTO_VENV/bin/moto_server" \
+  timeout 900 "$PKG_VENV/bin/python" -m pytest -q -p no:cacheprovider tests/station </dev/null
 rm -rf target/python-tour && mkdir -p target/python-tour
 ROOT="$PWD"
 (cd target/python-tour && timeout 600 "$ROOT/$PKG_VENV/bin/python" "$ROOT/examples/python/tour.py" \

@@ -5,8 +5,10 @@ httpx only over loopback."""
 import json
 import os
 import signal
+import socket
 import subprocess
 import time
+import urllib.request
 from pathlib import Path
 
 import httpx
@@ -15,6 +17,52 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 BIN = os.environ.get("POLARIMETER_BIN", str(ROOT / "target" / "release" / "polarimeter"))
 SIM_RIG = ROOT / "examples" / "rigs" / "sim.toml"
+
+
+# moto's S3 server (tests/station/moto-requirements.txt, in its own venv).
+MOTO = os.environ.get("MOTO_SERVER", str(ROOT / "target" / "moto-venv" / "bin" / "moto_server"))
+BUCKET, PREFIX = "runs", "roof-1"
+
+
+def free_port():
+    """A free loopback port."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_moto(port, log):
+    """moto's S3 server on loopback at `port`, once it answers, with the test bucket made."""
+    proc = subprocess.Popen([MOTO, "-H", "127.0.0.1", "-p", str(port)], stdout=log,
+                            stderr=log, stdin=subprocess.DEVNULL)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        try:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/moto-api/", timeout=1)
+            break
+        except OSError:
+            time.sleep(0.2)
+    else:
+        proc.kill()
+        raise AssertionError("moto_server did not start")
+    urllib.request.urlopen(urllib.request.Request(f"http://127.0.0.1:{port}/{BUCKET}",
+                                                  method="PUT"), timeout=5)
+    return proc
+
+
+def bucket(port, prefix):
+    """The test bucket on moto's server at `port`, under `prefix`, as obstore sees it."""
+    from obstore.store import S3Store
+
+    return S3Store(BUCKET, prefix=prefix, endpoint=f"http://127.0.0.1:{port}",
+                   region="us-east-1", access_key_id="testing", secret_access_key="testing",
+                   virtual_hosted_style_request=False, client_options={"allow_http": True})
+
+
+def upload_config(port):
+    """The station file's [upload] for the test bucket (the secret in s3.secret beside it)."""
+    return (f'[upload]\nurl = "s3://{BUCKET}/{PREFIX}"\nendpoint = "http://127.0.0.1:{port}"\n'
+            'access_key_id = "testing"\nsecret_access_key_file = "s3.secret"\n')
 
 
 def cli(*args, check=True, timeout=60):

@@ -389,7 +389,10 @@ pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandEr
     }
     let timing = polar_rig::sim_stage::timing(&plan).map_err(err)?;
     let f = polar_engine::forecast::forecast(&plan, &scene, &camera, &timing).map_err(err)?;
-    let mut v = json!({ "plan": plan.name, "kind": plan.kind().name(), "forecast": f });
+    let store = store_forecast(&plan, &dir, f.frames, f.sets)?;
+    let mut v = json!({
+        "plan": plan.name, "kind": plan.kind().name(), "forecast": f, "store": store,
+    });
     if let Some(c) = chosen {
         v["continuous_from_planner"] = c;
     }
@@ -397,6 +400,33 @@ pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandEr
         v["rig"] = json!(r.path.display().to_string());
     }
     Ok(v)
+}
+
+/// The disk the run's store will take ([`polar_rig::store_forecast`]): `bytes` in all,
+/// `bytes_per_set` (a set's frames and products), the parts, and the raw frames' bytes beside.
+fn store_forecast(plan: &Plan, dir: &Path, frames: u64, sets: u64) -> Result<Value, CommandError> {
+    let b = polar_rig::store_forecast::forecast(plan, dir).map_err(err)?;
+    let (w, h) = (plan.simulation.width, plan.simulation.height);
+    let raw = frames * u64::from(w) * u64::from(h) * 2;
+    let total = b.total(frames, sets);
+    let per_set = if sets > 0 {
+        (total - b.fixed).div_ceil(sets)
+    } else {
+        0
+    };
+    Ok(json!({
+        "bytes": total,
+        "bytes_per_set": per_set,
+        "parts": b,
+        "raw_frame_bytes": raw,
+        "store_over_raw": if raw > 0 { total as f64 / raw as f64 } else { 0.0 },
+        "storage": plan.storage,
+        "note": format!(
+            "measured on one set of the plan's frames ({w}x{h}, its [simulation] size) \
+             rendered from its scene and stored as the run stores them; a real camera's \
+             frames and sky may differ"
+        ),
+    }))
 }
 
 /// The forecast's saturation warnings for a run of `plan` on the simulated camera (its scene
@@ -637,6 +667,9 @@ width = 160
 height = 120
 seed = 7
 stage_deg_per_s = 720
+
+[storage]
+products = "all"   # the report compares S0, S1, S2 and their sigmas with the scene's truth
 "#;
 
 /// The `demo --stage` values: the default simulated stage's dialect (`native`, our firmware's

@@ -4,7 +4,6 @@
 
 use crate::acquire::{event_json, plan_check, resume_cmd, run_cmd, RunHooks, Ui};
 use polar_engine::plan::Plan;
-use polar_engine::products::Products;
 use polar_engine::run::{Control, Event};
 use polar_engine::store::RunStore;
 use polar_rig::flags::HardwareFlags;
@@ -79,14 +78,6 @@ fn end((v, _code): (Value, i32)) -> RunEnd {
     }
 }
 
-/// Bytes a run of `plan` stores (upper bound, before compression): its uint16 frames, the
-/// product images of each set (float32, and the flags plane) and the mean dark.
-fn store_bytes(frames: u64, sets: u64, width: u32, height: u32) -> u64 {
-    let pixels = u64::from(width) * u64::from(height);
-    let planes = Products::names().len() as u64 + 1;
-    frames * pixels * 2 + sets * planes * pixels * 4 + pixels * 4
-}
-
 impl Runner for CliRunner {
     fn check(&self, plan_file: &Path) -> Result<Value, String> {
         let plan = Plan::from_path(plan_file).map_err(|e| e.to_string())?;
@@ -112,17 +103,9 @@ impl Runner for CliRunner {
             ));
         }
         let mut v = plan_check(plan_file, Some(&self.rig)).map_err(|e| e.to_string())?;
-        let f = &v["forecast"];
-        let (frames, sets) = (
-            f["frames"].as_u64().unwrap_or(0),
-            f["sets"].as_u64().unwrap_or(0),
-        );
-        let (w, h) = (plan.simulation.width, plan.simulation.height);
-        v["bytes"] = json!(store_bytes(frames, sets, w, h));
-        v["bytes_note"] = json!(format!(
-            "frames of {w}x{h} pixels (the plan's [simulation] size; a real camera's frames \
-             may differ), uncompressed"
-        ));
+        // The store's forecast bytes (`plan check`'s `store`): what the disk budget uses.
+        v["bytes"] = v["store"]["bytes"].clone();
+        v["bytes_note"] = v["store"]["note"].clone();
         Ok(v)
     }
 

@@ -23,6 +23,7 @@
 //! [`Plan::resolve_angles`]); a continuous plan's `from_planner` asks the continuous planner
 //! for its frames, exposure and speed ([`crate::continuous_planner::resolve`]).
 
+use crate::store::Storage;
 use crate::FrameKind;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -476,6 +477,13 @@ struct PlanFile {
     /// The simulated devices.
     #[serde(default)]
     simulation: Simulation,
+    /// How the run's store keeps its images.
+    #[serde(default, skip_serializing_if = "is_default_storage")]
+    storage: Storage,
+}
+
+fn is_default_storage(s: &Storage) -> bool {
+    *s == Storage::default()
 }
 
 /// What a plan acquires: its kind with exactly that kind's section, so a plan without its
@@ -528,6 +536,9 @@ pub struct Plan {
     pub site: Option<Site>,
     /// The simulated devices.
     pub simulation: Simulation,
+    /// How the run's store keeps its images (`[storage]`: `products = "essential"` or
+    /// `"all"`, `precision = "sigma"` or `"float32"`, `compression = "zstd"` or `"none"`).
+    pub storage: Storage,
 }
 
 impl TryFrom<PlanFile> for Plan {
@@ -584,6 +595,7 @@ impl TryFrom<PlanFile> for Plan {
             suspender: f.suspender,
             site: f.site,
             simulation: f.simulation,
+            storage: f.storage,
         })
     }
 }
@@ -603,6 +615,7 @@ impl From<Plan> for PlanFile {
             suspender: p.suspender,
             site: p.site,
             simulation: p.simulation,
+            storage: p.storage,
         };
         match p.acquisition {
             Acquisition::Capture(c) => f.capture = Some(c),

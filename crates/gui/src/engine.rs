@@ -320,6 +320,19 @@ fn read_latest(run_dir: &Path) -> Result<LiveProducts, String> {
             .read_product(name, last.slot)
             .map_err(|e| e.to_string())
     };
+    // A plane the run's `[storage]` did not keep (the essential set leaves out the sigmas of
+    // S1, S2 and AoP) shows as NaN: not known from this store, rather than an error.
+    let names = store.product_names().map_err(|e| e.to_string())?;
+    let optional = |name: &str| {
+        if names.iter().any(|n| n == name) {
+            read(name)
+        } else {
+            Ok(vec![
+                f32::NAN;
+                store.width() as usize * store.height() as usize
+            ])
+        }
+    };
     let products = Products {
         width: store.width(),
         height: store.height(),
@@ -329,10 +342,10 @@ fn read_latest(run_dir: &Path) -> Result<LiveProducts, String> {
         dolp: read("dolp")?,
         aop_rad: read("aop_rad")?,
         sigma_s0: read("sigma_s0")?,
-        sigma_s1: read("sigma_s1")?,
-        sigma_s2: read("sigma_s2")?,
+        sigma_s1: optional("sigma_s1")?,
+        sigma_s2: optional("sigma_s2")?,
         sigma_dolp: read("sigma_dolp")?,
-        sigma_aop_rad: read("sigma_aop_rad")?,
+        sigma_aop_rad: optional("sigma_aop_rad")?,
         saturated: 0,
     };
     let n = store.frame_count();

@@ -23,6 +23,7 @@ mod live_worker;
 pub mod messages;
 pub mod planner_panel;
 pub mod rooftop;
+pub mod station_panel;
 pub mod view;
 
 pub(crate) use view::{colour_bar, finite_mean, histogram};
@@ -103,11 +104,19 @@ pub enum Tab {
     Planner,
     /// The rooftop: the sun and the sky's polarisation for a site and time.
     Rooftop,
+    /// An unattended station, attached over its API.
+    Station,
 }
 
 impl Tab {
     /// Every tab, in the selector's order.
-    pub const ALL: [Tab; 4] = [Tab::Live, Tab::Devices, Tab::Planner, Tab::Rooftop];
+    pub const ALL: [Tab; 5] = [
+        Tab::Live,
+        Tab::Devices,
+        Tab::Planner,
+        Tab::Rooftop,
+        Tab::Station,
+    ];
 
     /// The selector's label.
     pub fn label(self) -> &'static str {
@@ -116,6 +125,7 @@ impl Tab {
             Tab::Devices => "Devices",
             Tab::Planner => "Planner",
             Tab::Rooftop => "Rooftop",
+            Tab::Station => "Station",
         }
     }
 }
@@ -168,6 +178,8 @@ pub struct App {
     planner: planner_panel::PlannerPanel,
     rooftop: rooftop::RooftopPanel,
     live_panel: live::LivePanel,
+    /// The station tab (public: `--station` attaches it at start).
+    pub station: station_panel::StationPanel,
 }
 
 impl App {
@@ -222,6 +234,7 @@ impl App {
             planner: planner_panel::PlannerPanel::new(),
             rooftop: rooftop::RooftopPanel::new(),
             live_panel: live::LivePanel::new(),
+            station: station_panel::StationPanel::new(),
         })
     }
 
@@ -621,6 +634,11 @@ impl App {
                     egui::ScrollArea::vertical()
                         .id_salt("rooftop")
                         .show(ui, |ui| self.rooftop.show(ui));
+                }
+                Tab::Station => {
+                    egui::ScrollArea::vertical()
+                        .id_salt("station")
+                        .show(ui, |ui| self.station.show(ui));
                 }
             }
         });

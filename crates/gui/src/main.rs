@@ -36,6 +36,13 @@ struct GuiArgs {
     /// quit (CI runs this under Xvfb).
     #[arg(long)]
     screenshots: Option<PathBuf>,
+    /// Attach the Station tab to the station at this URL (e.g. http://127.0.0.1:8750) and
+    /// open it; the key is read from --key-file.
+    #[arg(long, requires = "key_file")]
+    station: Option<String>,
+    /// The station key's file (`polarimeter station key create --key-out FILE`).
+    #[arg(long)]
+    key_file: Option<PathBuf>,
 }
 
 /// How long the screenshot tour may take before it gives up.
@@ -59,6 +66,7 @@ fn main() -> std::process::ExitCode {
         }
     }
     let (out, plan, shots) = (args.out, args.plan, args.screenshots);
+    let station = args.station.zip(args.key_file);
     if let Some(d) = &shots {
         if let Err(e) = std::fs::create_dir_all(d) {
             return usage(&format!("--screenshots {}: {e}", d.display()));
@@ -81,6 +89,12 @@ fn main() -> std::process::ExitCode {
                 // As the Open button: TOML or YAML, and its folder for relative paths.
                 app.plan_path = p.display().to_string();
                 app.open_plan();
+            }
+            if let Some((url, key)) = &station {
+                app.station
+                    .attach(url, &key.display().to_string())
+                    .map_err(|e| format!("--station {url}: {e}"))?;
+                app.set_tab(Tab::Station);
             }
             let tour = shots.map(|dir| Tour::new(dir, tour_report));
             Ok(Box::new(Gui { app, tour }))

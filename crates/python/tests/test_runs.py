@@ -18,11 +18,20 @@ import polarimeter as pm
 from conftest import BIN, EXAMPLES, cli
 
 
+# A stored product is rounded to a multiple of a power of two at most half its pixel's sigma:
+# within a quarter sigma, and the stored sigma is within 3.1 % (docs/DATASET.md): 0.258, plus
+# float32 rounding (about 1e-4 sigma).
+WITHIN_SIGMA = 0.26
+
+
 def recompute_and_compare(ds) -> float:
     """Recomputes every set's products from the dataset's own frames, spans, camera and dark
     with ``pm.stokes``; the largest difference from the stored products in units of their
-    predicted sigma. Both are the engine's kernel on the same inputs, so any difference is
-    the dark map's float32 rounding."""
+    predicted sigma. Both are the engine's kernel on the same inputs, so the difference is the
+    store's rounding to the precision the sigma warrants (at most a quarter of the pixel's
+    sigma, and the stored sigma is itself within 3.1 %) plus the dark map's float32 rounding.
+    Planes the run did not store (S1 and S2 derived on read, or without a stored sigma) are
+    not compared."""
     camera = ds.attrs["products_camera"]["model"]
     worst = 0.0
     for s in ds["set"].values:
@@ -43,6 +52,8 @@ def recompute_and_compare(ds) -> float:
                         gain_db=float(light["gain"].values[0]), threads=0, **dark)
         stored = ds.sel(set=s)
         for name in ["s0", "s1", "s2", "dolp"]:
+            if "derived" in stored[name].attrs or "sigma_" + name not in stored:
+                continue
             a, b = getattr(got, name), stored[name].values
             assert np.array_equal(np.isnan(a), np.isnan(b)), name
             sigma = stored["sigma_" + name].values
@@ -62,8 +73,9 @@ def test_step_and_shoot_run_opens_whole(step_run: Path) -> None:
     # capture.toml: 4 darks and 3 sets of 4 angles, every frame counting.
     assert ds.sizes["frame"] == 16 and ds.sizes["set"] == 3
     assert list(ds["set"].values) == [0, 1, 2]
-    # Products within 1e-3 of their own predicted sigma of a recomputation (float32).
-    assert recompute_and_compare(ds) < 1e-3
+    # Products within a quarter of their own predicted sigma of a recomputation (the store's
+    # rounding, docs/DATASET.md), plus 1e-3 sigma of float32.
+    assert recompute_and_compare(ds) < WITHIN_SIGMA
 
 
 def test_continuous_run_opens_whole(continuous_run: Path) -> None:
@@ -74,7 +86,7 @@ def test_continuous_run_opens_whole(continuous_run: Path) -> None:
     every = pm.open_run(continuous_run, accepted_only=False)
     superseded = int((every["accepted"].values == 0).sum())
     assert every.sizes["frame"] == ds.sizes["frame"] + superseded
-    assert recompute_and_compare(ds) < 1e-3
+    assert recompute_and_compare(ds) < WITHIN_SIGMA
 
 
 def test_killed_run_opens_before_and_after_resume(tmp_path: Path) -> None:
@@ -101,7 +113,7 @@ def test_killed_run_opens_before_and_after_resume(tmp_path: Path) -> None:
     assert before.sizes["frame"] >= 6
     hashes = set(before["hash"].values.tolist())
     if "set" in before.dims and before.sizes["set"]:
-        assert recompute_and_compare(pm.open_run(out)) < 1e-3
+        assert recompute_and_compare(pm.open_run(out)) < WITHIN_SIGMA
     p = cli("acquire", "resume", str(out))
     assert p.returncode == 0, p.stderr
     after = pm.open_run(out, accepted_only=False)
@@ -109,7 +121,7 @@ def test_killed_run_opens_before_and_after_resume(tmp_path: Path) -> None:
     assert hashes <= set(after["hash"].values.tolist())
     ds = pm.open_run(out)
     assert list(ds["set"].values) == [0, 1, 2], "every set of the plan, once"
-    assert recompute_and_compare(ds) < 1e-3
+    assert recompute_and_compare(ds) < WITHIN_SIGMA
 
 
 def test_not_a_run_is_a_clear_error(tmp_path: Path) -> None:
@@ -138,7 +150,7 @@ def test_a_simulated_run_driven_from_python(tmp_path: Path) -> None:
     assert [e["done"] for e in progress] == list(range(1, len(progress) + 1))
     assert progress[-1]["done"] == progress[-1]["planned"] == result.summary["frames_accepted"]
     assert events[-1] == {"kind": "state", "state": "done", "reason": None}
-    assert recompute_and_compare(result.open()) < 1e-3
+    assert recompute_and_compare(result.open()) < WITHIN_SIGMA
     with pytest.raises(ValueError, match="give either simulate=True or the hardware"):
         pm.run(EXAMPLES / "plans" / "capture.toml", tmp_path / "neither")
 
@@ -184,4 +196,4 @@ def test_ctrl_c_pauses_the_run_and_raises_keyboard_interrupt(tmp_path: Path) -> 
     assert result.state == "done", result.data
     after = pm.open_run(out, accepted_only=False)
     assert hashes <= set(after["hash"].values.tolist())
-    assert recompute_and_compare(pm.open_run(out)) < 1e-3
+    assert recompute_and_compare(pm.open_run(out)) < WITHIN_SIGMA

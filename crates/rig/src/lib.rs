@@ -12,6 +12,8 @@
 //!   on a pseudo-terminal driven by its dialect's real driver, the camera rendering through
 //!   the stage's true angle), [`sim_stage`] the plan's choice of its stage and that stage's
 //!   limits, and [`sim_run`] a plan run on it.
+//! * [`store_forecast`]: the disk a run's store will take, measured on one set of the plan's
+//!   frames rendered by the simulated camera and stored as the run stores them.
 //! * [`flags`]: the hardware flags (`--rig`, `--port`, `--dialect`, ...) the CLI and the GUI
 //!   both parse, defined once.
 //! * [`file`]: the rig file (TOML) that names a lab's stage, camera, site and analyzer once,
@@ -28,6 +30,7 @@ pub mod hardware;
 pub mod sim_run;
 pub mod sim_stage;
 pub mod simulated;
+pub mod store_forecast;
 
 pub use file::{Overrides, Rig};
 pub use hardware::{

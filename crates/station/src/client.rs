@@ -95,6 +95,33 @@ impl Client {
         Self::answer(path, req.call())
     }
 
+    /// `GET path` of a binary answer (a product's PNG), at most 64 MiB.
+    pub fn get_bytes(&self, path: &str) -> Result<Vec<u8>, StationError> {
+        let mut req = self.agent.get(format!("{}{path}", self.base));
+        if let Some(k) = &self.key {
+            req = req.header("Authorization", format!("Bearer {k}"));
+        }
+        let mut resp = req
+            .call()
+            .map_err(|e| StationError::Client(format!("{path}: cannot reach the station: {e}")))?;
+        let status = resp.status();
+        let bytes = resp
+            .body_mut()
+            .with_config()
+            .limit(64 << 20)
+            .read_to_vec()
+            .map_err(|e| StationError::Client(format!("{path}: {e}")))?;
+        if status.is_success() {
+            Ok(bytes)
+        } else {
+            let text = String::from_utf8_lossy(&bytes);
+            Err(StationError::Client(format!(
+                "{path}: {} {text}",
+                status.as_u16()
+            )))
+        }
+    }
+
     /// `POST path` with a JSON body.
     pub fn post(&self, path: &str, body: &Value) -> Result<Value, StationError> {
         let mut req = self

@@ -16,9 +16,19 @@
 //! [simulation]              # a fast clock for schedules (a simulated rig only)
 //! clock_start = "2026-06-21T04:00:00Z"
 //! clock_speed = 600
+//! [upload]                  # finished runs to an S3-compatible bucket
+//! url = "s3://bucket/station-1"          # bucket and prefix (one prefix per station)
+//! endpoint = "https://s3.example.org"    # omit for AWS
+//! region = "us-east-1"
+//! access_key_id = "..."                  # or AWS_ACCESS_KEY_ID in the environment
+//! secret_access_key_file = "s3.secret"   # or AWS_SECRET_ACCESS_KEY
+//! [retention]               # days after a run ended (uploaded runs only, with [upload])
+//! frames_days = 7
+//! runs_days = 30
 //! ```
 
 use crate::error::StationError;
+use crate::retention::RetentionConfig;
 use serde::Deserialize;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -44,6 +54,109 @@ struct ConfigFile {
     #[serde(default)]
     utc_offset_h: f64,
     simulation: Option<SimulationFile>,
+    upload: Option<UploadFile>,
+    #[serde(default)]
+    retention: RetentionConfig,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct UploadFile {
+    url: String,
+    endpoint: Option<String>,
+    #[serde(default = "default_region")]
+    region: String,
+    access_key_id: Option<String>,
+    secret_access_key_file: Option<PathBuf>,
+}
+
+fn default_region() -> String {
+    "us-east-1".into()
+}
+
+/// Where finished runs go (`[upload]`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct UploadConfig {
+    /// The bucket.
+    pub bucket: String,
+    /// The key prefix runs go under (`PREFIX/RUN/...`), without slashes at its ends.
+    pub prefix: String,
+    /// An S3-compatible server's URL (`None`: AWS).
+    pub endpoint: Option<String>,
+    /// The bucket's region.
+    pub region: String,
+    /// Plain HTTP to the endpoint: allowed for a loopback endpoint only.
+    pub allow_http: bool,
+    /// The access key id (else from the environment).
+    pub access_key_id: Option<String>,
+    /// A file holding the secret access key (else from the environment).
+    pub secret_access_key_file: Option<PathBuf>,
+}
+
+impl UploadFile {
+    /// Checks the URL and endpoint: `s3://BUCKET/PREFIX`, and plain HTTP only to loopback (a
+    /// run's data must not cross a network in clear, nor the request signatures).
+    fn resolve(self, dir: &Path) -> Result<UploadConfig, (&'static str, String)> {
+        let rest = self.url.strip_prefix("s3://").ok_or((
+            "upload.url",
+            format!(
+                "{:?} is not an s3:// URL: write s3://BUCKET/PREFIX",
+                self.url
+            ),
+        ))?;
+        let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+        let prefix = prefix.trim_matches('/').to_string();
+        let bucket_ok = (3..=63).contains(&bucket.len())
+            && bucket
+                .chars()
+                .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-' || c == '.');
+        if !bucket_ok || prefix.is_empty() || prefix.split('/').any(|p| p.is_empty() || p == "..") {
+            return Err((
+                "upload.url",
+                format!(
+                    "{:?}: write s3://BUCKET/PREFIX, a bucket of 3 to 63 of [a-z0-9.-] and a \
+                     prefix (one per station, e.g. its name)",
+                    self.url
+                ),
+            ));
+        }
+        let mut allow_http = false;
+        if let Some(e) = &self.endpoint {
+            let host = e
+                .strip_prefix("http://")
+                .map(|h| h.split(['/', ':']).next().unwrap_or(""));
+            match host {
+                Some(h) if ["127.0.0.1", "localhost", "[::1]", "::1"].contains(&h) => {
+                    allow_http = true;
+                }
+                Some(_) => {
+                    return Err((
+                        "upload.endpoint",
+                        format!(
+                            "{e:?} is plain HTTP to another machine: use https:// (plain \
+                             HTTP only to 127.0.0.1)"
+                        ),
+                    ))
+                }
+                None if e.starts_with("https://") => {}
+                None => {
+                    return Err((
+                        "upload.endpoint",
+                        format!("{e:?} is not a URL: write https://HOST[:PORT]"),
+                    ))
+                }
+            }
+        }
+        Ok(UploadConfig {
+            bucket: bucket.to_string(),
+            prefix,
+            endpoint: self.endpoint,
+            region: self.region,
+            allow_http,
+            access_key_id: self.access_key_id,
+            secret_access_key_file: self.secret_access_key_file.map(|f| dir.join(f)),
+        })
+    }
 }
 
 #[derive(Debug, Deserialize)]
@@ -112,6 +225,10 @@ pub struct Config {
     pub utc_offset_s: i64,
     /// A simulated clock: its start (Unix seconds) and speed (simulated rigs only).
     pub sim_clock: Option<(u64, f64)>,
+    /// Where finished runs are uploaded, if anywhere.
+    pub upload: Option<UploadConfig>,
+    /// What of a finished run is removed, and when.
+    pub retention: RetentionConfig,
 }
 
 impl Config {
@@ -179,7 +296,14 @@ impl Config {
                 Some((start, s.clock_speed))
             }
         };
+        let upload = match raw.upload {
+            Some(u) => Some(u.resolve(dir).map_err(|(k, m)| bad(k, m))?),
+            None => None,
+        };
+        raw.retention.check().map_err(|m| bad("retention", m))?;
         Ok(Config {
+            upload,
+            retention: raw.retention,
             path: path.to_path_buf(),
             utc_offset_s: (raw.utc_offset_h * 3600.0).round() as i64,
             sim_clock,
@@ -289,5 +413,30 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("colour"), "{e}");
+    }
+
+    #[test]
+    fn uploads_need_a_bucket_a_prefix_and_tls_beyond_loopback() {
+        let base = "data_dir = \"d\"\nrig = \"r\"\n[upload]\n";
+        let c = load(&format!(
+            "{base}url = \"s3://runs/roof-1/\"\nendpoint = \"http://127.0.0.1:9000\"\n"
+        ))
+        .unwrap();
+        let u = c.upload.unwrap();
+        assert_eq!((u.bucket.as_str(), u.prefix.as_str()), ("runs", "roof-1"));
+        assert!(u.allow_http);
+        for (text, key) in [
+            ("url = \"runs/roof\"", "upload.url"),
+            ("url = \"s3://runs\"", "upload.url"),
+            ("url = \"s3://Runs/x\"", "upload.url"),
+            ("url = \"s3://runs/../x\"", "upload.url"),
+            (
+                "url = \"s3://runs/x\"\nendpoint = \"http://10.0.0.5:9000\"",
+                "upload.endpoint",
+            ),
+        ] {
+            let e = load(&format!("{base}{text}\n")).unwrap_err().to_string();
+            assert!(e.contains(key), "{text}: {e}");
+        }
     }
 }

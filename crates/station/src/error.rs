@@ -40,6 +40,9 @@ pub enum StationError {
     /// The station answered a client with an error, or could not be reached.
     #[error("{0}")]
     Client(String),
+    /// An upload to the bucket failed (the object or file, and why).
+    #[error("upload: {0}")]
+    Upload(String),
 }
 
 impl StationError {

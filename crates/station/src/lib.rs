@@ -16,6 +16,8 @@
 //! * [`serve`]: binding (loopback unless TLS), start-up recovery and shutdown.
 //! * [`picture`], [`page`]: the latest products as PNG and the status page at `/`.
 //! * [`client`]: the command line's client of a station.
+//! * [`upload`], [`retention`], [`upkeep`]: finished runs pushed to an S3-compatible bucket
+//!   (`object_store`), what of them is removed and when, and the task that does both.
 //!
 //! Bluesky's queue server, DLS blueapi and all-sky camera stations (indi-allsky) are the
 //! anchors: item ids, a history with exit states, queue control apart from run control,
@@ -37,12 +39,15 @@ pub mod page;
 pub mod picture;
 pub mod queue;
 pub mod reply;
+pub mod retention;
 pub mod routes;
 pub mod runner;
 pub mod schedule;
 pub mod serve;
 pub mod shared;
 pub mod state;
+pub mod upkeep;
+pub mod upload;
 pub mod worker;
 
 pub use config::Config;

@@ -47,7 +47,10 @@ pub fn serve(
     let worker = crate::worker::spawn(st.clone())
         .map_err(|e| StationError::Serve(format!("cannot start the worker: {e}")))?;
     on_listening(bound, &st.config);
+    // Uploads and retention; ends with the shutdown signal.
+    let upkeep = rt.spawn(crate::upkeep::run(st.clone()));
     let served = rt.block_on(listen(st.clone(), listener));
+    upkeep.abort();
     begin_stop(&st);
     stop(worker);
     served

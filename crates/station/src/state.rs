@@ -121,6 +121,69 @@ pub struct HistoryEntry {
     pub message: String,
     /// The run's result, as `acquire run` prints it.
     pub result: Value,
+    /// Its upload to the bucket (`None`: the station uploads nothing, or no run started).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub upload: Option<UploadState>,
+    /// What retention removed of its run.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub removed: Option<Removed>,
+}
+
+/// Where a finished run's upload stands.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct UploadState {
+    /// `pending` (waiting or being retried), `done`, or `failed` (no run directory to upload).
+    pub state: String,
+    /// Attempts so far.
+    pub attempts: u32,
+    /// The last attempt's error.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// Where it went (`s3://bucket/prefix/run`), once done.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub url: Option<String>,
+    /// When it completed, Unix seconds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub done_unix: Option<u64>,
+}
+
+impl UploadState {
+    /// Waiting for its first attempt.
+    pub fn pending() -> UploadState {
+        UploadState {
+            state: "pending".into(),
+            attempts: 0,
+            error: None,
+            url: None,
+            done_unix: None,
+        }
+    }
+
+    /// Completed at `url` at `now`.
+    pub fn done_now(url: String, now: u64) -> UploadState {
+        UploadState {
+            state: "done".into(),
+            attempts: 1,
+            error: None,
+            url: Some(url),
+            done_unix: Some(now),
+        }
+    }
+
+    /// Whether the run is whole in the bucket (its completion marker written).
+    pub fn done(&self) -> bool {
+        self.state == "done"
+    }
+}
+
+/// What retention removed of a finished run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Removed {
+    /// Its raw frames (`run.zarr/frames/pixels`).
+    Frames,
+    /// The whole run directory.
+    Run,
 }
 
 /// Everything the station keeps across restarts.
@@ -160,10 +223,20 @@ impl State {
         crate::atomic::write_json(path, self, false)
     }
 
-    /// The current item leaves the station for the history.
-    pub fn finish_current(&mut self, exit: ExitState, message: String, result: Value, now: u64) {
+    /// The current item leaves the station for the history (its run then waits for its
+    /// upload when `uploads`).
+    pub fn finish_current(
+        &mut self,
+        (exit, message): (ExitState, String),
+        result: Value,
+        now: u64,
+        uploads: bool,
+    ) {
         if let Some(c) = self.current.take() {
+            let upload = (uploads && !c.run_dir.is_empty()).then(UploadState::pending);
             self.history.push(HistoryEntry {
+                upload,
+                removed: None,
                 item: c.item,
                 exit,
                 run_dir: c.run_dir,

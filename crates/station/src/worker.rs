@@ -303,6 +303,7 @@ fn conclude(
     (end, disk_full): (Result<RunEnd, String>, bool),
 ) -> Result<(), String> {
     let now = st.now();
+    let uploads = st.config.upload.is_some();
     let stopping = st.stopping.load(Ordering::SeqCst);
     if let Err(e) = &end {
         st.note_error(&format!("the item's run failed: {e}"));
@@ -324,10 +325,11 @@ fn conclude(
                             .collect::<Vec<_>>()
                             .join("; ")
                     });
-                    s.finish_current(ExitState::Done, warnings, result, now)
+                    s.finish_current((ExitState::Done, warnings), result, now, uploads)
                 }
                 "aborted" => {
-                    s.finish_current(ExitState::Aborted, reason.unwrap_or_default(), result, now)
+                    let why = reason.unwrap_or_default();
+                    s.finish_current((ExitState::Aborted, why), result, now, uploads)
                 }
                 _ => {
                     if let Some(c) = s.current.as_mut() {
@@ -341,7 +343,7 @@ fn conclude(
                     }
                 }
             },
-            Err(e) => s.finish_current(ExitState::Failed, e, Value::Null, now),
+            Err(e) => s.finish_current((ExitState::Failed, e), Value::Null, now, uploads),
         }
         Ok(())
     })

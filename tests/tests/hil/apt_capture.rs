@@ -35,6 +35,8 @@ darks_after = 1
 width = 96
 height = 72
 seed = 3
+[storage]
+products = "all"   # S1, S2 and their sigmas are judged against the truth
 "#;
 
 /// Runs the capture with the analyzer on `model`; returns the share of Stokes values within

@@ -24,6 +24,8 @@ exposure_us = [300]
 repeats = 3
 darks_before = 1
 darks_after = 1
+[storage]
+products = "all"   # S1, S2 and their sigmas are judged against the truth
 [simulation]
 width = 96
 height = 72

@@ -11,6 +11,7 @@ mod demo;
 mod faults;
 mod plan_aptd;
 mod plan_check;
+mod store_size;
 mod study;
 mod study_aptd;
 mod study_fov;

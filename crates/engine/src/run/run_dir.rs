@@ -118,6 +118,10 @@ pub(super) fn open_run(
         attrs.insert("software".into(), crate::software_version());
         attrs.insert("devices".into(), devices.clone());
         attrs.insert("state".into(), json!("running"));
+        attrs.insert(
+            "storage".into(),
+            serde_json::to_value(plan.storage).unwrap_or(Value::Null),
+        );
         let store = RunStore::create(run_dir, width, height, attrs)?;
         std::fs::write(
             run_dir.join("plan.toml"),

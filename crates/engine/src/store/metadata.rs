@@ -295,7 +295,7 @@ impl RunStore {
 
         // frames/pixels last: its shape on disk is what readers take as the frame count.
         let mut array = lock(&self.pixels);
-        let resized = pixels_array(&self.store, n, self.width, self.height)
+        let resized = pixels_array(&self.store, n, (self.width, self.height), &self.storage)
             .map_err(zarr_err(self.node(PIXELS), "resizing"))?;
         resized
             .store_metadata()
@@ -335,6 +335,7 @@ impl RunStore {
             data_type,
             fill,
             dims,
+            self.storage.compressed(),
         )
         .map_err(zarr_err(self.node(node), "creating the array"))?;
         let store_metadata = || {

@@ -47,7 +47,8 @@
 //!   products/               group (one slot per processed angle set); attributes: "names"
 //!                             (json array of the product names written so far)
 //!     <name>                float32 [M, H, W], chunk [1, H, W], fill NaN, for each product
-//!                             name (e.g. s0 s1 s2 dolp aop_rad sigma_s0 ...)
+//!                             name the storage keeps (essential: s0 dolp aop_rad sigma_s0
+//!                             sigma_dolp; all: every plane); flags uint8
 //!     set                   int64   [M]    the angle set of each slot, -1: slot not written
 //!     angles_deg            float64 [M, K] the analyzer angles of each slot's frames, K the
 //!                             largest number of angles of any slot, NaN padded
@@ -55,8 +56,11 @@
 //!     mean                  float32 [H, W] the mean dark frame (written at the end, if any)
 //! ```
 //!
-//! Every chunk carries a `crc32c` checksum (a core Zarr v3 codec; no compression), so a
-//! damaged chunk fails to read instead of returning wrong numbers. The per-frame metadata
+//! Every chunk is zstd-compressed and carries a `crc32c` checksum (both core Zarr v3 codecs),
+//! so a damaged chunk fails to read instead of returning wrong numbers. Which product planes a
+//! store keeps, at what precision, and whether it compresses is its `storage` root attribute
+//! ([`Storage`], from the plan's `[storage]`; a store without it is uncompressed with every
+//! plane, as stores were before it existed). The per-frame metadata
 //! arrays and `products/set`, `products/angles_deg` are small and rewritten whole
 //! ([`RunStore::write_frame_metadata`] mirrors the journal's frame records), in chunks of a
 //! fixed 4096 rows (32 columns): a chunk's size never depends on the array's length, so a
@@ -93,10 +97,12 @@ mod metadata;
 mod plane;
 mod products;
 mod schema;
+mod storage;
 use durable::{lock, DurableStore};
 pub use error::StoreError;
 pub use plane::Plane;
 pub use schema::STATUS_CODES;
+pub use storage::{Compression, Precision, ProductSet, Storage};
 
 pub use schema::{conventions, HASH_ALGORITHM, KIND_CODES};
 
@@ -203,6 +209,8 @@ pub struct RunStore {
     store: Arc<DurableStore>,
     width: u32,
     height: u32,
+    /// How images are kept (the `storage` root attribute).
+    storage: Storage,
     pixels: Mutex<Array<DurableStore>>,
     /// This instance holds frames past the `frames/pixels` shape on disk (written, or looked
     /// for by [`RunStore::verify`], since the metadata last mirrored the journal): it keeps
@@ -232,10 +240,10 @@ fn codec_options() -> CodecOptions {
 fn pixels_array(
     store: &Arc<DurableStore>,
     frames: u64,
-    width: u32,
-    height: u32,
+    size: (u32, u32),
+    storage: &Storage,
 ) -> Result<Array<DurableStore>, zarrs::array::ArrayCreateError> {
-    schema::image_stack(store.clone(), PIXELS, frames, width, height)
+    schema::image_stack(store.clone(), PIXELS, frames, size, storage)
 }
 
 /// `products/<name>` with `slots` slots of `width x height`, one chunk per slot.
@@ -243,10 +251,21 @@ fn product_array(
     store: &Arc<DurableStore>,
     node: &str,
     slots: u64,
-    width: u32,
-    height: u32,
+    size: (u32, u32),
+    storage: &Storage,
 ) -> Result<Array<DurableStore>, zarrs::array::ArrayCreateError> {
-    schema::image_stack(store.clone(), node, slots, width, height)
+    schema::image_stack(store.clone(), node, slots, size, storage)
+}
+
+/// The `storage` root attribute of a store (absent: written before it existed).
+fn storage_of(attrs: &Map<String, Value>, path: &Path) -> Result<Storage, StoreError> {
+    match attrs.get("storage") {
+        None => Ok(Storage::legacy()),
+        Some(v) => serde_json::from_value(v.clone()).map_err(|e| StoreError::Layout {
+            path: path.display().to_string(),
+            message: format!("root attribute storage = {v}: {e}"),
+        }),
+    }
 }
 
 impl RunStore {
@@ -272,6 +291,16 @@ impl RunStore {
         let p = |node: &str| format!("{}{node}", path.display());
 
         let mut attrs = attributes;
+        let storage = storage_of(&attrs, &path)?;
+        let storage = if attrs.contains_key("storage") {
+            storage
+        } else {
+            Storage::default()
+        };
+        attrs.insert(
+            "storage".into(),
+            serde_json::to_value(storage).unwrap_or(Value::Null),
+        );
         attrs.insert("format".into(), json!(FORMAT));
         attrs.insert("format_version".into(), json!(FORMAT_VERSION));
         for (k, v) in [
@@ -307,7 +336,7 @@ impl RunStore {
             g.store_metadata()
                 .map_err(zarr_err(p(group), "writing the group"))?;
         }
-        let pixels = pixels_array(&store, 0, width, height)
+        let pixels = pixels_array(&store, 0, (width, height), &storage)
             .map_err(zarr_err(p(PIXELS), "creating the array"))?;
         pixels
             .store_metadata()
@@ -317,6 +346,7 @@ impl RunStore {
             store,
             width,
             height,
+            storage,
             pixels: Mutex::new(pixels),
             pixels_ahead: AtomicBool::new(false),
             products: Mutex::new(None),
@@ -353,16 +383,27 @@ impl RunStore {
                 ),
             });
         }
+        let root = Group::open(store.clone(), "/").map_err(zarr_err(
+            format!("{}", path.display()),
+            "opening the root group",
+        ))?;
+        let storage = storage_of(root.attributes(), &path)?;
         Ok(RunStore {
             path,
             store,
             width,
             height,
+            storage,
             pixels: Mutex::new(pixels),
             pixels_ahead: AtomicBool::new(false),
             products: Mutex::new(None),
             attrs: Mutex::new(()),
         })
+    }
+
+    /// How the store keeps its images (compression, products, precision).
+    pub fn storage(&self) -> Storage {
+        self.storage
     }
 
     /// The store directory (`RUN_DIR/run.zarr`).
@@ -420,8 +461,13 @@ impl RunStore {
         // (`write_frame_metadata`), so every per-frame array and frames/pixels always have
         // one length and the group opens whole (a crash leaves the frame invisible until a
         // resume, never a visible frame without its pixels or its metadata).
-        let grown = pixels_array(&self.store, index + 1, self.width, self.height)
-            .map_err(zarr_err(self.node(PIXELS), "growing"))?;
+        let grown = pixels_array(
+            &self.store,
+            index + 1,
+            (self.width, self.height),
+            &self.storage,
+        )
+        .map_err(zarr_err(self.node(PIXELS), "growing"))?;
         self.store_frame_chunk(&grown, index, pixels)?;
         *array = grown;
         self.pixels_ahead.store(true, Ordering::SeqCst);
@@ -479,8 +525,13 @@ impl RunStore {
             if index >= count(&array) {
                 // Past the shape on disk: a frame written since the metadata last mirrored
                 // the journal reads from its chunk.
-                let wider = pixels_array(&self.store, index + 1, self.width, self.height)
-                    .map_err(zarr_err(self.node(PIXELS), "growing"))?;
+                let wider = pixels_array(
+                    &self.store,
+                    index + 1,
+                    (self.width, self.height),
+                    &self.storage,
+                )
+                .map_err(zarr_err(self.node(PIXELS), "growing"))?;
                 return Ok(
                     match wider
                         .retrieve_chunk_if_exists_opt::<Vec<u16>>(&[index, 0, 0], &codec_options())

@@ -124,8 +124,11 @@ impl RunStore {
         angles_deg: &[f64],
         images: &[(&str, Plane<'_>)],
     ) -> Result<u64, StoreError> {
+        // The planes this store keeps, at their precision ([`Storage::prepare`]).
+        let kept = self.storage.prepare(images);
+        let images: Vec<(&str, Plane<'_>)> = kept.iter().map(|(n, k)| (*n, k.plane())).collect();
         self.store.begin_batch();
-        let written = self.write_products_files(set, angles_deg, images);
+        let written = self.write_products_files(set, angles_deg, &images);
         self.store
             .commit_batch(written.is_ok())
             .map_err(io_err(&self.path, "renaming the products into place"))?;
@@ -175,8 +178,14 @@ impl RunStore {
             if let Some(a) = state.arrays.get_mut(&name) {
                 if a.shape().first().copied().unwrap_or(0) < slots {
                     let node = format!("{PRODUCTS}/{name}");
-                    let grown = product_array(&self.store, &node, slots, self.width, self.height)
-                        .map_err(zarr_err(self.node(&node), "growing"))?;
+                    let grown = product_array(
+                        &self.store,
+                        &node,
+                        slots,
+                        (self.width, self.height),
+                        &self.storage,
+                    )
+                    .map_err(zarr_err(self.node(&node), "growing"))?;
                     grown
                         .store_metadata()
                         .map_err(zarr_err(self.node(&node), "writing the array metadata"))?;
@@ -188,8 +197,14 @@ impl RunStore {
         for (name, _) in images {
             if !state.arrays.contains_key(*name) {
                 let node = format!("{PRODUCTS}/{name}");
-                let a = product_array(&self.store, &node, slots, self.width, self.height)
-                    .map_err(zarr_err(self.node(&node), "creating the array"))?;
+                let a = product_array(
+                    &self.store,
+                    &node,
+                    slots,
+                    (self.width, self.height),
+                    &self.storage,
+                )
+                .map_err(zarr_err(self.node(&node), "creating the array"))?;
                 a.store_metadata()
                     .map_err(zarr_err(self.node(&node), "writing the array metadata"))?;
                 state.arrays.insert((*name).to_string(), a);
@@ -261,10 +276,21 @@ impl RunStore {
     }
 
     /// Reads product `name` of `slot`, as float32 whatever its stored type (the uint8 `flags`
-    /// convert exactly).
+    /// convert exactly). S1 and S2, when the store keeps only the essential planes, are
+    /// derived from S0, DoLP and AoP ([`super::storage::derive`]).
     pub fn read_product(&self, name: &str, slot: u64) -> Result<Vec<f32>, StoreError> {
         check_product_name(name)?;
         let node = format!("{PRODUCTS}/{name}");
+        let derivable = super::storage::DERIVED.contains(&name)
+            && ["s0", "dolp", "aop_rad"]
+                .iter()
+                .all(|n| self.node_exists(&format!("{PRODUCTS}/{n}")));
+        if !self.node_exists(&node) && derivable {
+            let [s0, dolp, aop] = ["s0", "dolp", "aop_rad"].map(|n| self.read_product(n, slot));
+            if let Some(v) = super::storage::derive(name, &s0?, &dolp?, &aop?) {
+                return Ok(v);
+            }
+        }
         if !self.node_exists(&node) {
             return Err(StoreError::Product {
                 name: name.into(),

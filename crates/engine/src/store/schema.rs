@@ -6,11 +6,12 @@
 //! read as `{"name": "crc32c"}` back as the bare string `"crc32c"`, which zarr-python 3
 //! refuses. Every metadata write goes through [`array`], which builds the metadata afresh.
 
+use super::storage::Storage;
 use crate::AngleSource;
 use serde_json::{json, Map, Value};
 use std::sync::Arc;
 use zarrs::array::builder::ArrayBuilderFillValue;
-use zarrs::array::codec::Crc32cCodec;
+use zarrs::array::codec::{Crc32cCodec, ZstdCodec};
 use zarrs::array::{
     data_type, Array, ArrayBuilder, BytesToBytesCodecTraits, DataType, ZARR_NAN_F32,
 };
@@ -204,13 +205,22 @@ const FRAME_COORDINATES: &str = "angle_start_deg angle_end_deg angle_sigma_deg a
      measured_angle_deg commanded_angle_deg exposure_us gain host_time_unix_ns \
      device_timestamp_ns set step kind accepted status frame_id sun_zenith_deg sun_azimuth_deg";
 
-fn checksum() -> Vec<Arc<dyn BytesToBytesCodecTraits>> {
-    vec![Arc::new(Crc32cCodec::new())]
+/// The bytes-to-bytes codecs of a chunk: zstd when `compressed` ([`super::storage`]), then a
+/// `crc32c` checksum of the stored bytes.
+fn codecs(compressed: bool) -> Vec<Arc<dyn BytesToBytesCodecTraits>> {
+    let mut v: Vec<Arc<dyn BytesToBytesCodecTraits>> = Vec::new();
+    if compressed {
+        v.push(Arc::new(ZstdCodec::new(super::storage::ZSTD_LEVEL, false)));
+    }
+    v.push(Arc::new(Crc32cCodec::new()));
+    v
 }
 
 /// Builds the array at `node` with its canonical metadata: `shape`, `chunk`, `data_type`,
-/// `fill`, dimension names `dims`, a `crc32c` checksum on every chunk and the attributes of
-/// [`attributes`]. Nothing is written until the caller stores metadata or chunks.
+/// `fill`, dimension names `dims`, zstd compression when `compressed`, a `crc32c` checksum on
+/// every chunk and the attributes of [`attributes`]. Nothing is written until the caller
+/// stores metadata or chunks.
+#[allow(clippy::too_many_arguments)]
 pub fn array<TStorage: ?Sized>(
     store: Arc<TStorage>,
     node: &str,
@@ -219,33 +229,36 @@ pub fn array<TStorage: ?Sized>(
     data_type: DataType,
     fill: impl Into<ArrayBuilderFillValue>,
     dims: &[&str],
+    compressed: bool,
 ) -> Result<Array<TStorage>, zarrs::array::ArrayCreateError> {
     ArrayBuilder::new(shape, chunk, data_type, fill)
         .dimension_names(Some(dims.iter().copied()))
-        .bytes_to_bytes_codecs(checksum())
+        .bytes_to_bytes_codecs(codecs(compressed))
         .attributes(attributes(node))
         .build(store, node)
 }
 
 /// A stack of `count` images of `width x height`, one chunk per image: `frames/pixels`
 /// (uint16 raw frames along `frame`, fill 0) or a product `products/<name>` (float32 along
-/// `slot`, fill NaN).
+/// `slot`, fill NaN); zstd-compressed when `storage` says so, with the plane's rounding noted
+/// in its attributes.
 pub fn image_stack<TStorage: ?Sized>(
     store: Arc<TStorage>,
     node: &str,
     count: u64,
-    width: u32,
-    height: u32,
+    (width, height): (u32, u32),
+    storage: &Storage,
 ) -> Result<Array<TStorage>, zarrs::array::ArrayCreateError> {
     let (h, w) = (u64::from(height), u64::from(width));
     let (shape, chunk) = (vec![count, h, w], vec![1, h, w]);
+    let z = storage.compressed();
     if node == "/products/flags" {
         // A bit mask: unsigned integers, 0 (no flag) where nothing was written.
         let dims = ["slot", "y", "x"];
-        array(store, node, shape, chunk, data_type::uint8(), 0u8, &dims)
-    } else if node.starts_with("/products/") {
+        array(store, node, shape, chunk, data_type::uint8(), 0u8, &dims, z)
+    } else if let Some(name) = node.strip_prefix("/products/") {
         let dims = ["slot", "y", "x"];
-        array(
+        let mut a = array(
             store,
             node,
             shape,
@@ -253,9 +266,23 @@ pub fn image_stack<TStorage: ?Sized>(
             data_type::float32(),
             ZARR_NAN_F32,
             &dims,
-        )
+            z,
+        )?;
+        if let Some(note) = storage.rounding_note(name) {
+            a.attributes_mut().insert("precision".into(), json!(note));
+        }
+        Ok(a)
     } else {
         let dims = ["frame", "y", "x"];
-        array(store, node, shape, chunk, data_type::uint16(), 0u16, &dims)
+        array(
+            store,
+            node,
+            shape,
+            chunk,
+            data_type::uint16(),
+            0u16,
+            &dims,
+            z,
+        )
     }
 }

@@ -94,6 +94,26 @@ def _store(path: str | os.PathLike) -> Path:
     return store
 
 
+def _derive_stokes(products: Any) -> Any:
+    """Adds S1 and S2 derived from S0, DoLP and AoP where the store did not keep them."""
+    import numpy as np
+
+    have = set(products.data_vars)
+    if not {"s0", "dolp", "aop_rad"} <= have:
+        return products
+    for name, trig in (("s1", np.cos), ("s2", np.sin)):
+        if name in have:
+            continue
+        v = products["s0"] * products["dolp"] * trig(2 * products["aop_rad"])
+        v.attrs = {
+            "units": "DN",
+            "long_name": f"Stokes {name.upper()}",
+            "derived": f"s0 * dolp * {trig.__name__}(2 aop_rad): not stored by the run",
+        }
+        products[name] = v.astype(np.float32)
+    return products
+
+
 def open_run(path: str | os.PathLike, *, accepted_only: bool = True) -> Any:
     """A run as one ``xarray.Dataset``.
 
@@ -101,8 +121,11 @@ def open_run(path: str | os.PathLike, *, accepted_only: bool = True) -> Any:
     products use them and the dark frames, as ``frames/accepted == 1``), ``y``, ``x``,
     ``set`` (one per finished set: the products) and ``channel`` (its angles).
 
-    Variables: ``pixels`` (frame, y, x; uint16 DN, read lazily), the ten products and
-    ``flags`` (set, y, x), and ``dark_mean`` (y, x, the mean of every dark frame) when the run
+    Variables: ``pixels`` (frame, y, x; uint16 DN, read lazily), the products the run stored
+    and ``flags`` (set, y, x) (a run's ``[storage] products = "essential"``, the default,
+    stores ``s0``, ``dolp``, ``aop_rad``, ``sigma_s0`` and ``sigma_dolp``; ``s1`` and ``s2``
+    are then derived here from them, marked by a ``derived`` attribute, and the other sigmas
+    come from :func:`stokes` on the frames), and ``dark_mean`` (y, x, the mean of every dark frame) when the run
     took dark frames; ``angles_deg`` (set, channel) is a coordinate. Coordinates on ``frame``: the analyzer span (``angle_start_deg``,
     ``angle_end_deg``), ``exposure_us``, the host time ``host_time_unix_ns``
     (datetime64), ``frame_set`` (the set the frame belongs to), ``kind`` and the rest of
@@ -130,7 +153,7 @@ def open_run(path: str | os.PathLike, *, accepted_only: bool = True) -> Any:
         # Slots not written yet (a killed run's, set -1) hold no set's products.
         products = products.isel(slot=products["set"].values >= 0)
         products = products.set_coords("set").swap_dims({"slot": "set"})
-        parts.append(products)
+        parts.append(_derive_stokes(products))
     if "darks" in groups and "mean" in root["darks"].array_keys():
         darks = xr.open_zarr(str(store), group="darks", consolidated=False)
         parts.append(darks.rename({"mean": "dark_mean"}))

@@ -353,7 +353,13 @@ pub async fn remove(
                 ));
             }
             let message = "removed while paused; the run stays resumable".to_string();
-            s.finish_current(ExitState::Stopped, message, Value::Null, app.st.now());
+            let uploads = app.st.config.upload.is_some();
+            s.finish_current(
+                (ExitState::Stopped, message),
+                Value::Null,
+                app.st.now(),
+                uploads,
+            );
             return Ok(());
         }
         Err(ApiError::new(
