@@ -1,10 +1,10 @@
-"""The kill campaign: SIGKILL the station at 20 seeded random moments (during sets, uploads and
-between items, right after queue edits), restart it each time, and check that every item it
-accepted ran exactly once to the end, the queue and history are whole, and every run is whole:
-the run check passes, zarr-python opens it, and its counted frames are exactly the plan's.
-The station uploads each finished run to moto's S3 server meanwhile: every run ends up in the
-bucket whole (its completion marker lists every file at the local file's size) and
-zarr-python counts the same frames there."""
+"""The kill campaign: SIGKILL the station at 20 moments, 16 seeded random ones (during sets,
+between items, right after queue edits) and 4 aimed at an upload going, restart it each time,
+and check that every item it accepted ran exactly once to the end, the queue and history are
+whole, and every run is whole: the run check passes, zarr-python opens it, and its counted
+frames are exactly the plan's. The station uploads each finished run to moto's S3 server
+meanwhile: every run ends up in the bucket whole (its completion marker lists every file at
+the local file's size) and zarr-python counts the same frames there."""
 
 import json
 import random
@@ -40,6 +40,17 @@ def test_kills_at_random_moments_lose_and_duplicate_nothing(tmp_path):
         log.close()
 
 
+def uploading(st):
+    """Whether an upload is going: its attempt counted (saved as it starts), not done, and
+    not failed."""
+    try:
+        return any(h.get("upload", {}).get("state") == "pending"
+                   and h["upload"]["attempts"] >= 1 and not h["upload"].get("error")
+                   for h in st.history())
+    except httpx.HTTPError:
+        return False
+
+
 def campaign(st, rng, port):
     accepted = {}
     plans = [timelapse(count=3, interval_s=1, name="a"), plan_text("capture"),
@@ -59,7 +70,13 @@ def campaign(st, rng, port):
         submit(p)
     crash_resumes_seen = 0
     for k in range(KILLS):
-        time.sleep(rng.uniform(0.1, 2.5))
+        if k % 5 == 3:
+            # Aimed at an upload: wait (up to 20 s) until one is going.
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not uploading(st):
+                time.sleep(0.01)
+        else:
+            time.sleep(rng.uniform(0.1, 2.5))
         if k % 4 == 0:
             submit(timelapse(count=2, interval_s=1, name=f"k{k}"))
         st.stop(signal.SIGKILL)
@@ -99,7 +116,9 @@ def campaign(st, rng, port):
             bucket(port, f"{PREFIX}/{run.name}/run.zarr"), read_only=True), mode="r")
         assert int(np.asarray(up["frames/accepted"][:]).sum()) == counted
     assert crash_resumes_seen >= 1, "some kill landed during a run"
-    # An attempt is counted when it starts: more than one is an upload a kill cut short.
+    # An attempt is counted when it starts: more than one is an upload a kill cut short
+    # (4 kills were aimed at uploads going).
     uploads_cut = sum(h["upload"]["attempts"] > 1 for h in history)
+    assert uploads_cut >= 1, "no kill landed during an upload"
     print(f"{KILLS} kills: {len(history)} items done, {crash_resumes_seen} resumed after a crash, "
           f"{len(history)} uploaded ({uploads_cut} taken up again after a kill)")

@@ -25,6 +25,11 @@ pub fn serve(
     on_listening: impl FnOnce(SocketAddr, &Config),
 ) -> Result<(), StationError> {
     config.check_bind()?;
+    if let Some(u) = &config.upload {
+        // A bucket that cannot be set up (its secret file unreadable, say) stops the start,
+        // rather than a station that would keep every run and never upload one.
+        crate::upload::bucket(u)?;
+    }
     let st = Station::open(config, runner)?;
     let addr = st.config.listen;
     let listener = std::net::TcpListener::bind(addr)

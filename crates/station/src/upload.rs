@@ -192,6 +192,17 @@ mod tests {
     }
 
     #[test]
+    fn an_unreadable_secret_file_is_named() {
+        let mut c = config();
+        c.secret_access_key_file = Some("/nonexistent/s3.secret".into());
+        let e = bucket(&c).err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(
+            e.contains("upload.secret_access_key_file") && e.contains("/nonexistent/s3.secret"),
+            "{e}"
+        );
+    }
+
+    #[test]
     fn an_interrupted_upload_resumes_and_the_marker_lists_every_file() {
         let dir = tempfile::tempdir().unwrap();
         let run = dir.path().join("7-capture");
