@@ -8,7 +8,7 @@
 //! is the plan's scene model standing in for the sky, and its frame size that of
 //! `[simulation]`.
 
-use crate::simulated::{SimError, SimRig};
+use crate::simulated::{SimError, SimRig, SimWorld};
 use polar_engine::plan::{Plan, StepSpec};
 use polar_engine::products::{compute, Dark, NoiseModel, Products, SetGeometry};
 use polar_engine::store::{Plane, RunStore};
@@ -107,8 +107,7 @@ fn io(e: impl std::fmt::Display) -> SimError {
 
 /// Renders one frame per step from a simulated camera held at the step's angle (a dark step
 /// with the lens capped).
-fn render(plan: &Plan, plan_dir: &Path, steps: &[StepSpec]) -> Result<Vec<Vec<u16>>, SimError> {
-    let world = SimRig::world(plan, plan_dir)?;
+fn render(plan: &Plan, world: &SimWorld, steps: &[StepSpec]) -> Result<Vec<Vec<u16>>, SimError> {
     let angle_bits = Arc::new(AtomicU64::new(0));
     let source = Arc::clone(&angle_bits);
     let mut cam = SimCamera::new(
@@ -160,7 +159,8 @@ pub fn forecast(plan: &Plan, plan_dir: &Path) -> Result<StoreBytes, SimError> {
     }
     let mut rendered = steps.clone();
     rendered.extend(dark_step);
-    let mut frames = render(plan, plan_dir, &rendered)?;
+    let world = SimRig::world(plan, plan_dir)?;
+    let mut frames = render(plan, &world, &rendered)?;
     let dark_frame = (frames.len() > steps.len()).then(|| frames.pop()).flatten();
     let (w, h) = (plan.simulation.width, plan.simulation.height);
     let dir = scratch();
@@ -186,7 +186,6 @@ pub fn forecast(plan: &Plan, plan_dir: &Path) -> Result<StoreBytes, SimError> {
         None => 0,
     };
     if steps.iter().any(|s| s.set.is_some()) {
-        let world = SimRig::world(plan, plan_dir)?;
         let camera = &world.camera_model;
         let noise = NoiseModel::from_camera(camera, steps[0].gain_db);
         let dark = Dark::Scalar(noise.dark_level_dn(camera, steps[0].exposure_us) as f32);

@@ -20,6 +20,7 @@
 //! it was written ([`Storage::legacy`]: uncompressed, every plane, float32).
 
 use super::plane::Plane;
+use polar_model::polarization::Stokes;
 use serde::{Deserialize, Serialize};
 
 /// The zstd level of every compressed chunk (zstd's own default, the speed and ratio most
@@ -244,18 +245,22 @@ pub fn round_sigma(v: f32) -> f32 {
     }
 }
 
-/// Derives plane `name` (one of [`DERIVED`]) from S0, DoLP and AoP, pixel by pixel.
+/// Derives plane `name` (one of [`DERIVED`]) from S0, DoLP and AoP, pixel by pixel: the
+/// polarised part `S0 DoLP` at AoP as the model's [`Stokes::linear`] writes it.
 pub fn derive(name: &str, s0: &[f32], dolp: &[f32], aop: &[f32]) -> Option<Vec<f32>> {
-    let trig: fn(f32) -> f32 = match name {
-        "s1" => f32::cos,
-        "s2" => f32::sin,
+    let component = match name {
+        "s1" => 1,
+        "s2" => 2,
         _ => return None,
     };
     Some(
         s0.iter()
             .zip(dolp)
             .zip(aop)
-            .map(|((&s, &p), &a)| s * p * trig(2.0 * a))
+            .map(|((&s, &p), &a)| {
+                let polarised = Stokes::linear(f64::from(s) * f64::from(p), f64::from(a));
+                polarised.0[component] as f32
+            })
             .collect(),
     )
 }
