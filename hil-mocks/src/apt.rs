@@ -1018,6 +1018,7 @@ pub const SIM: SimDialect = SimDialect {
     models: polar_drivers::apt::DIALECT.models,
     build: simulate,
     at_speed: Some(simulate_at_speed),
+    on_bus: None,
     motion: None,
 };
 

@@ -817,6 +817,7 @@ pub const SIM: SimDialect = SimDialect {
         Some(Box::new(ElliptecDevice::new(config, faults, seed)))
     },
     at_speed: None,
+    on_bus: None,
     motion: None,
 };
 

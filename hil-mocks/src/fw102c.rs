@@ -535,6 +535,7 @@ pub const SIM: SimDialect = SimDialect {
         Some(Box::new(Fw102cDevice::new(config, faults, seed)))
     },
     at_speed: None,
+    on_bus: None,
     motion: None,
 };
 

@@ -689,6 +689,7 @@ pub const SIM: SimDialect = SimDialect {
         config.homing_s = 0.1;
         Some(Box::new(NativeDevice::new(config, faults, seed)))
     }),
+    on_bus: None,
     motion: Some(SimMotion {
         ramp_s: 1.0 / AT_SPEED_RAMP_PER_S as f64,
         max_spin_deg_per_s: MAX_SPIN_TURNS_PER_S * 360.0,

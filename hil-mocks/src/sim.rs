@@ -4,12 +4,19 @@
 
 use crate::faults::FaultProfile;
 pub use crate::simulator::{
-    next_request, BuildAtSpeed, BuildSimulator, Scan, SimDialect, SimMotion, Simulator, Truth,
+    next_request, BuildAtSpeed, BuildOnBus, BuildSimulator, Scan, SimDialect, SimMotion, Simulator,
+    Truth,
 };
-use crate::{apt, elliptec, fw102c, native};
+use crate::{apt, elliptec, fw102c, native, smc100};
 
 /// Every dialect's simulators, one line each.
-pub static SIMULATORS: &[SimDialect] = &[native::SIM, elliptec::SIM, fw102c::SIM, apt::SIM];
+pub static SIMULATORS: &[SimDialect] = &[
+    native::SIM,
+    elliptec::SIM,
+    fw102c::SIM,
+    apt::SIM,
+    smc100::SIM,
+];
 
 /// Why [`simulator`] made none; the message names the value and what is allowed.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

@@ -115,6 +115,11 @@ pub type BuildSimulator = fn(&str, FaultProfile, u64) -> Option<Box<dyn Simulato
 /// and a seed; `None` for a model the dialect does not have or that is not a rotator.
 pub type BuildAtSpeed = fn(&str, f64, FaultProfile, u64) -> Option<Box<dyn Simulator>>;
 
+/// Builds the simulated devices of one model at several bus addresses on one port (each
+/// valid for the dialect's bus) with device faults and a seed; `None` for a model the dialect
+/// does not have.
+pub type BuildOnBus = fn(&str, &[u8], FaultProfile, u64) -> Option<Box<dyn Simulator>>;
+
 /// The simulators of one serial dialect, keyed by the dialect's name in
 /// `polar_drivers::registry::DIALECTS`.
 #[derive(Debug, Clone, Copy)]
@@ -129,6 +134,9 @@ pub struct SimDialect {
     /// plan sets `simulation.stage_deg_per_s`); `None`: the dialect's rotators run at their
     /// real speed only.
     pub at_speed: Option<BuildAtSpeed>,
+    /// The constructor of several devices on one port at chosen addresses (`simulate stage
+    /// --address`); `None`: one device per port, at the dialect's default address.
+    pub on_bus: Option<BuildOnBus>,
     /// How its rotators built by `at_speed` move, for the continuous planner's stage limits;
     /// `None`: not known here (a plan must give them).
     pub motion: Option<SimMotion>,

@@ -33,6 +33,29 @@ pub fn serve(dialect: &str, model: &str, seed: u64, dir: &Path) -> Result<SimSer
         .map_err(|e| format!("{dialect} {model}: cannot open a pseudo-terminal: {e}"))
 }
 
+/// As [`serve`], but a rotator whose simulator can be built at a speed turns at `deg_s` (a
+/// test's speed: the AG-PR100P's real 1.5 deg/s would take minutes to home); the others run
+/// at their real speed.
+pub fn serve_at(
+    dialect: &str,
+    model: &str,
+    deg_s: f64,
+    seed: u64,
+    dir: &Path,
+) -> Result<SimServer, String> {
+    let faults = FaultProfile::default();
+    let fast = polar_hil_mocks::sim::SIMULATORS
+        .iter()
+        .find(|s| s.dialect == dialect)
+        .and_then(|s| s.at_speed)
+        .and_then(|build| build(model, deg_s, faults, seed));
+    let Some(sim) = fast else {
+        return serve(dialect, model, seed, dir);
+    };
+    SimServer::pty(sim, faults, seed, &dir.join(format!("{dialect}-{model}")))
+        .map_err(|e| format!("{dialect} {model}: cannot open a pseudo-terminal: {e}"))
+}
+
 /// Runs the plan file `plan` with the rig file `rig` as `polarimeter run --rig RIG PLAN --out
 /// OUT` does (`polar_cli::acquire::run_cmd`, no terminal): on the rig's devices, or with
 /// `simulate` on the engine's simulated rig (`run --simulate --rig`: the rig file gives the

@@ -19,12 +19,16 @@
 //! * [`hil::k10cr1`]: a capture on `examples/rigs/sim_k10cr1.toml` (the simulated K10CR1 through
 //!   the APT driver) through the `run` command's entry point; its Stokes products against the
 //!   rendered truth.
+//! * [`hil::pr50cc`]: the same capture on `examples/rigs/sim_pr50cc.toml` (the simulated
+//!   SMC100CC with a PR50CC through the SMC100 driver).
 //! * [`hil::apt_capture`]: a capture through the real APT driver on the simulated K10CR1 and
 //!   PRM1Z8, the engine's run with the analyzer on an `AptRotator`; Stokes against the truth.
 //! * [`hil::genicam_loop`]: Aravis's in-process fake GigE camera painting each frame from the
 //!   simulated stage's true angle, the stage driven by its real driver; DoLP and AoP recovered.
-//! * [`hil::conformance_elliptec`], [`hil::conformance_apt`]: the public client libraries
-//!   (pylablib, thorlabs_elliptec, elliptec, thorlabs-apt-device) against the simulated devices
+//! * [`hil::conformance_elliptec`], [`hil::conformance_apt`], [`hil::conformance_smc100`]: the
+//!   public client libraries
+//!   (pylablib, thorlabs_elliptec, elliptec, thorlabs-apt-device, pystages, yaqd-newport)
+//!   against the simulated devices
 //!   on pseudo-terminals, through `scripts/conformance/*.py` in the venv `POLARIMETER_PYTHON`
 //!   names.
 //!
@@ -35,6 +39,7 @@ mod hil {
     pub mod cameras;
     pub mod conformance_apt;
     pub mod conformance_elliptec;
+    pub mod conformance_smc100;
     pub mod dialects;
     pub mod doc_tables;
     pub mod following;
@@ -42,4 +47,5 @@ mod hil {
     pub mod k10cr1;
     pub mod plan_kinds;
     pub mod plans;
+    pub mod pr50cc;
 }

@@ -60,7 +60,7 @@ async fn queries(
     let policy = (dialect.policy)();
     let bytes_before;
     if let Some(connect) = dialect.rotator {
-        let mut r = connect(connector, 0, policy).await?;
+        let mut r = connect(connector, dialect.default_address(), policy).await?;
         // The read that never answers from a cache, where the driver has it.
         let fresh = r.spin_position_rad().await.is_ok();
         bytes_before = server.stats().bytes_out;
@@ -74,7 +74,7 @@ async fn queries(
             times.push(t.elapsed().as_secs_f64());
         }
     } else if let Some(connect) = dialect.wheel {
-        let mut w = connect(connector, 0, policy).await?;
+        let mut w = connect(connector, dialect.default_address(), policy).await?;
         bytes_before = server.stats().bytes_out;
         for _ in 0..n {
             let t = Instant::now();

@@ -109,7 +109,8 @@ pub fn list(simulate: bool) -> Result<Value, DevicesError> {
                 "kinds": d.kinds.iter().map(|k| k.name()).collect::<Vec<_>>(),
                 "models": d.models,
                 "baud": d.baud,
-                "addressed": d.addressed,
+                "addressed": d.addressed(),
+                "addresses": d.bus.map(|b| format!("{}..={}", b.first, b.last)),
             })
         })
         .collect();
@@ -278,7 +279,7 @@ async fn stage_async(
             let mut v = identity_json(&id);
             v["port"] = json!(port);
             v["dialect"] = json!(d.name);
-            if d.addressed {
+            if d.addressed() {
                 v["address"] = json!(address);
             }
             return Ok(v);
@@ -410,10 +411,14 @@ pub fn load_faults(path: &Path) -> Result<FaultProfile, DevicesError> {
 pub fn sim_stage(
     dialect: &'static Dialect,
     model: Option<&str>,
+    addresses: &[u8],
     faults: FaultProfile,
     seed: u64,
 ) -> Result<(), DevicesError> {
-    let sim = simulator(dialect.name, model, faults, seed)?;
+    let sim = match addresses {
+        [] => simulator(dialect.name, model, faults, seed)?,
+        _ => sim_on_bus(dialect, model, addresses, faults, seed)?,
+    };
     let dir = sim_root().join(format!("{SIM_DIR_PREFIX}{}", std::process::id()));
     // A folder with this process's id is a dead process's (ids are reused): not ours to keep.
     let _ = std::fs::remove_dir_all(&dir);
@@ -451,6 +456,39 @@ pub fn sim_stage(
     result
 }
 
+/// The simulated devices of `dialect` at `addresses` on one port; an address outside the
+/// dialect's bus, or a dialect whose simulator has no bus, is refused naming what is allowed.
+fn sim_on_bus(
+    dialect: &'static Dialect,
+    model: Option<&str>,
+    addresses: &[u8],
+    faults: FaultProfile,
+    seed: u64,
+) -> Result<Box<dyn polar_hil_mocks::sim::Simulator>, DevicesError> {
+    let entry = SIMULATORS.iter().find(|s| s.dialect == dialect.name);
+    let Some(on_bus) = entry.and_then(|s| s.on_bus) else {
+        return Err(DevicesError(format!(
+            "--address: the {} simulator puts one device on a port (give no --address)",
+            dialect.name
+        )));
+    };
+    for &a in addresses {
+        dialect
+            .check_address(a)
+            .map_err(|e| DevicesError(format!("--{e}")))?;
+    }
+    // The model is checked as for one device.
+    simulator(dialect.name, model, faults, seed)?;
+    let model = model.unwrap_or(dialect.models[0]);
+    on_bus(model, addresses, faults, seed).ok_or_else(|| {
+        DevicesError(format!(
+            "--model = {model:?} is not a {} device: allowed {}",
+            dialect.name,
+            dialect.model_list()
+        ))
+    })
+}
+
 /// Ctrl-C, or (on Unix) SIGTERM as a service manager or `kill` sends: the simulator then
 /// removes its links before it exits.
 async fn stop_signal() {
@@ -479,7 +517,7 @@ pub fn identify_any(
         for d in DIALECTS {
             let mut policy = (d.policy)();
             policy.attempts = 1;
-            let id = (d.identify)(d.connector(port), 0, policy);
+            let id = (d.identify)(d.connector(port), d.default_address(), policy);
             if let Ok(Ok(id)) = tokio::time::timeout(deadline, id).await {
                 return Ok(Some((d, id)));
             }
@@ -528,7 +566,10 @@ pub fn list_cmd(
         let stage = match &rig.file.stage {
             None => Value::Null,
             Some(s) if s.is_simulated() => json!({ "simulated": s.dialect }),
-            Some(s) => match stage(&s.port, dialect(&s.dialect)?, s.address, &StageAction::Info) {
+            Some(s) => match dialect(&s.dialect).and_then(|d| {
+                let address = s.address.unwrap_or(d.default_address());
+                stage(&s.port, d, address, &StageAction::Info)
+            }) {
                 Ok(v) => v,
                 Err(e) => json!({ "port": s.port, "dialect": s.dialect, "error": e.0 }),
             },
@@ -556,7 +597,7 @@ pub fn list_cmd(
                 found = Some(polar_rig::file::StageEntry {
                     dialect: d.name.to_string(),
                     port,
-                    address: 0,
+                    address: None,
                     model: Some(id.model.to_lowercase()).filter(|m| d.models.contains(&m.as_str())),
                 });
                 break;
@@ -569,7 +610,7 @@ pub fn list_cmd(
             found = Some(polar_rig::file::StageEntry {
                 dialect: dialect.into(),
                 port: polar_rig::SIM_PORT.into(),
-                address: 0,
+                address: None,
                 model: Some(model.into()),
             });
         }
@@ -612,8 +653,11 @@ pub fn stage_target(
     let name = dialect_name
         .or_else(|| entry.as_ref().map(|s| s.dialect.clone()))
         .ok_or_else(|| missing("stage.dialect", "--dialect"))?;
-    let address = address.or(entry.map(|s| s.address)).unwrap_or(0);
-    Ok((port, dialect(&name)?, address))
+    let d = dialect(&name)?;
+    let address = address
+        .or(entry.and_then(|s| s.address))
+        .unwrap_or(d.default_address());
+    Ok((port, d, address))
 }
 
 /// Human-readable rendering of a result: `key: value` lines.

@@ -854,7 +854,7 @@ pub const DIALECT: Dialect = Dialect {
         flow_control: FlowControl::Hardware,
         ..LINE_8N1
     },
-    addressed: false,
+    bus: None,
     policy: default_policy,
     identify: |c, _, policy| {
         Box::pin(async move {

@@ -108,8 +108,9 @@ pub struct Dialect {
     pub baud: u32,
     /// Framing and flow control.
     pub line: LineSettings,
-    /// Whether devices sit on a bus at an address 0..=15 (`--address`).
-    pub addressed: bool,
+    /// The addresses devices have on a shared bus (`--address`); `None`: one device per
+    /// port (address 0).
+    pub bus: Option<Bus>,
     /// Deadlines and retries.
     pub policy: fn() -> Policy,
     /// Reads what the device is, without moving it.
@@ -140,17 +141,40 @@ impl Dialect {
         self.models.join(", ")
     }
 
-    /// Checks a bus address against the dialect: 0..=15 on a bus, 0 otherwise.
+    /// The address a device has when none is given: the bus's first, else 0.
+    pub fn default_address(&self) -> u8 {
+        self.bus.map_or(0, |b| b.first)
+    }
+
+    /// Whether devices of the dialect sit on a bus at an address.
+    pub fn addressed(&self) -> bool {
+        self.bus.is_some()
+    }
+
+    /// Checks a bus address against the dialect: the bus's range, 0 where there is no bus.
     pub fn check_address(&self, address: u8) -> Result<(), String> {
-        match (self.addressed, address) {
-            (true, 0..=15) | (false, 0) => Ok(()),
-            (true, a) => Err(format!("address = {a} is out of range: allowed 0..=15")),
-            (false, a) => Err(format!(
-                "address = {a} is invalid: {} devices have no bus address (allowed 0)",
+        match self.bus {
+            Some(b) if (b.first..=b.last).contains(&address) => Ok(()),
+            Some(b) => Err(format!(
+                "address = {address} is out of range: allowed {}..={} for {} devices",
+                b.first, b.last, self.name
+            )),
+            None if address == 0 => Ok(()),
+            None => Err(format!(
+                "address = {address} is invalid: {} devices have no bus address (allowed 0)",
                 self.name
             )),
         }
     }
+}
+
+/// The addresses of a dialect's bus.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Bus {
+    /// The lowest address.
+    pub first: u8,
+    /// The highest address.
+    pub last: u8,
 }
 
 /// A serial port by path with a dialect's baud and line settings.

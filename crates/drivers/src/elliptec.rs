@@ -20,7 +20,7 @@
 //!   reopen of the port.
 
 use crate::any::{AnyRotator, AnyWheel};
-use crate::dialect::{DeviceKind, Dialect, Identity, Position, LINE_8N1};
+use crate::dialect::{Bus, DeviceKind, Dialect, Identity, Position, LINE_8N1};
 use crate::link::{retryable, Connector, Link, Policy};
 use polar_hal::{
     angle_from_counts, counts_toward, DeviceError, ErrorKind, FilterWheel, Rotator, RotatorInfo,
@@ -755,7 +755,7 @@ pub const DIALECT: Dialect = Dialect {
     models: &["ell14", "ell18", "ell6", "ell9"],
     baud: 9600,
     line: LINE_8N1,
-    addressed: true,
+    bus: Some(Bus { first: 0, last: 15 }),
     policy: default_policy,
     identify: |c, address, policy| {
         Box::pin(async move {

@@ -286,7 +286,7 @@ pub const DIALECT: Dialect = Dialect {
     models: &["fw102c", "fw212c"],
     baud: 115_200,
     line: LINE_8N1,
-    addressed: false,
+    bus: None,
     policy: default_policy,
     identify: |c, _, policy| {
         Box::pin(async move {

@@ -22,3 +22,4 @@ pub mod fw102c;
 pub mod link;
 pub mod native;
 pub mod registry;
+pub mod smc100;

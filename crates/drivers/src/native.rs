@@ -1042,7 +1042,7 @@ pub const DIALECT: Dialect = Dialect {
     models: &["rotator", "wheel"],
     baud: 115_200,
     line: LINE_8N1,
-    addressed: false,
+    bus: None,
     policy: default_policy,
     identify: |c, _, policy| {
         Box::pin(async move {

@@ -6,11 +6,11 @@
 //! (`docs/DEVICES.md`, "Adding a dialect").
 
 pub use crate::dialect::{
-    not_provided, ConnectRotator, ConnectWheel, DataBits, DeviceKind, Dialect, FlowControl,
+    not_provided, Bus, ConnectRotator, ConnectWheel, DataBits, DeviceKind, Dialect, FlowControl,
     Identify, Identity, LineSettings, Parity, Position, SerialLine, StopBits, LINE_8N1,
 };
 pub use crate::elliptec::ELLIPTEC_TOLERANCE_DEG;
-use crate::{apt, elliptec, fw102c, native};
+use crate::{apt, elliptec, fw102c, native, smc100};
 
 /// Every dialect, one line each.
 pub static DIALECTS: &[Dialect] = &[
@@ -18,6 +18,7 @@ pub static DIALECTS: &[Dialect] = &[
     elliptec::DIALECT,
     fw102c::DIALECT,
     apt::DIALECT,
+    smc100::DIALECT,
 ];
 
 /// The dialect named `name`.

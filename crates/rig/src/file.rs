@@ -5,7 +5,7 @@
 //! [stage]
 //! dialect = "elliptec"                           # a name in polar_drivers::registry::DIALECTS
 //! port = "/dev/serial/by-id/usb-FTDI_FT230X_Basic_UART_DK0AHAJZ-if00-port0"   # or "sim"
-//! address = 0                                    # bus address (Elliptec 0..=15), default 0
+//! address = 0                                    # bus address (Elliptec 0..=15, SMC100 1..=31)
 //! model = "ell14"                                # optional, one of the dialect's models
 //!
 //! [camera]
@@ -47,9 +47,10 @@ pub struct StageEntry {
     pub dialect: String,
     /// The serial port (a stable path), or `sim`.
     pub port: String,
-    /// Bus address (Elliptec 0..=15), else 0.
-    #[serde(default)]
-    pub address: u8,
+    /// Bus address (Elliptec 0..=15, SMC100 1..=31); default the dialect's first (0 where
+    /// there is no bus).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub address: Option<u8>,
     /// The model, lower case.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub model: Option<String>,
@@ -234,7 +235,7 @@ impl Rig {
                     return Err(bad(path, "stage.model", m, &d.model_list()));
                 }
             }
-            if let Err(e) = d.check_address(s.address) {
+            if let Err(e) = d.check_address(s.address.unwrap_or(d.default_address())) {
                 return Err(RigError(format!("rig {}: stage.{e}", path.display())));
             }
             if s.port.is_empty() {
@@ -333,7 +334,7 @@ impl Rig {
         let dialect = dialect.ok_or_else(|| missing("stage.dialect", "--dialect"))?;
         let camera = camera.ok_or_else(|| missing("camera.backend", "--camera"))?;
         let camera_file = camera_file.ok_or_else(|| missing("camera.file", "--camera-file"))?;
-        let address = o.address.or(stage.map(|s| s.address)).unwrap_or(0);
+        let address = o.address.or(stage.and_then(|s| s.address));
         let zero = o
             .zero_offset_deg
             .or(self.analyzer.as_ref().map(|a| a.zero_offset_deg))
@@ -832,7 +833,7 @@ mod tests {
         let stage = StageEntry {
             dialect: "fw102c".into(),
             port: "/dev/ttyUSB0".into(),
-            address: 0,
+            address: None,
             model: Some("fw102c".into()),
         };
         for s in [Some(stage), None] {

@@ -33,8 +33,9 @@ pub struct HardwareFlags {
     /// The stage's protocol.
     #[arg(long, value_parser = dialect_values())]
     pub dialect: Option<String>,
-    /// Bus address (Elliptec 0..=15); default the rig's, else 0.
-    #[arg(long, value_parser = clap::value_parser!(u8).range(0..=15))]
+    /// Bus address (Elliptec 0..=15, SMC100 1..=31); default the rig's, else the dialect's
+    /// first.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(0..=31))]
     pub address: Option<u8>,
     /// The camera: sim, genicam:ID, v4l:NAME or uvc:BUS_OR_NAME.
     #[arg(long)]
@@ -87,7 +88,7 @@ impl HardwareFlags {
                 self.dialect.as_deref(),
                 self.camera.clone(),
                 self.camera_file.clone(),
-                self.address.unwrap_or(0),
+                self.address,
                 self.zero_offset_deg.unwrap_or(0.0),
             )
             .map(|hw| (hw, None))

@@ -64,7 +64,7 @@ impl Hardware {
         dialect: Option<&str>,
         camera: Option<String>,
         camera_file: Option<PathBuf>,
-        address: u8,
+        address: Option<u8>,
         zero_offset_deg: f64,
     ) -> Result<Option<Hardware>, String> {
         match (port, dialect, camera, camera_file) {
@@ -81,6 +81,7 @@ impl Hardware {
                         "--zero-offset-deg = {zero_offset_deg} is invalid: allowed a finite angle"
                     ));
                 }
+                let address = address.unwrap_or(dialect.default_address());
                 dialect
                     .check_address(address)
                     .map_err(|e| format!("--{e}"))?;

@@ -452,7 +452,12 @@ impl SimRig {
         };
         let d = registry::find(self.stage_dialect).ok_or_else(|| not_found("driver"))?;
         let connect = d.rotator.ok_or_else(|| not_found("rotator driver"))?;
-        connect(d.connector(&self.link.to_string_lossy()), 0, (d.policy)()).await
+        connect(
+            d.connector(&self.link.to_string_lossy()),
+            d.default_address(),
+            (d.policy)(),
+        )
+        .await
     }
 
     /// Starts the rig for `plan` and connects the real driver to the stage: the engine's

@@ -3,12 +3,17 @@
 use polar_drivers::registry::{DeviceKind, Position, DIALECTS};
 use polar_hal::{signed_difference, FilterWheel, Rotator, TURN_RAD};
 use polar_hil_mocks::sim::{Truth, SIMULATORS};
-use polar_hil_tests::{scratch, serve};
+use polar_hil_tests::{scratch, serve_at};
 
 /// The largest backlash of the simulated rotators (our stage's 20 counts of 144000 per turn,
 /// 0.05 deg; the ELL14's 10 of 262144): the encoder the readback check reads sits before the
 /// backlash, so the true output may lag the readback by up to this much.
 const BACKLASH_BOUND_DEG: f64 = 0.05;
+
+/// The speed of the rotators whose simulators can be built at one (native, APT, SMC100):
+/// the AG-PR100P's real 1.5 deg/s would take minutes to home; the others run at their real
+/// speed.
+const TEST_SPEED_DEG_S: f64 = 90.0;
 
 /// Every dialect has a simulator line keyed by its name, and every simulated model is one of
 /// the dialect's models: a dialect added without its simulator fails here.
@@ -49,13 +54,17 @@ fn every_dialect_through_its_registry_constructor() {
         for model in sims.models {
             let server = {
                 let _g = rt.enter();
-                serve(d.name, model, 7, &dir).unwrap_or_else(|e| panic!("{e}"))
+                serve_at(d.name, model, TEST_SPEED_DEG_S, 7, &dir).unwrap_or_else(|e| panic!("{e}"))
             };
             let port = server.link().expect("a pty link").display().to_string();
             let policy = (d.policy)();
             let what = format!("{} {model}", d.name);
             let id = rt
-                .block_on((d.identify)(d.connector(&port), 0, policy))
+                .block_on((d.identify)(
+                    d.connector(&port),
+                    d.default_address(),
+                    policy,
+                ))
                 .unwrap_or_else(|e| panic!("{what}: identify: {e}"));
             assert!(d.provides(id.kind), "{what}: identified as a {:?}", id.kind);
             match id.kind {
@@ -67,7 +76,7 @@ fn every_dialect_through_its_registry_constructor() {
                     let connect = d.rotator.expect("a rotator constructor");
                     let target = 123.4f64.to_radians();
                     let (info, reached, read) = rt.block_on(async {
-                        let mut r = connect(d.connector(&port), 0, policy)
+                        let mut r = connect(d.connector(&port), d.default_address(), policy)
                             .await
                             .unwrap_or_else(|e| panic!("{what}: connect: {e}"));
                         r.home()
@@ -102,7 +111,7 @@ fn every_dialect_through_its_registry_constructor() {
                 DeviceKind::Wheel => {
                     let connect = d.wheel.expect("a wheel constructor");
                     let (slots, picked, read) = rt.block_on(async {
-                        let mut w = connect(d.connector(&port), 0, policy)
+                        let mut w = connect(d.connector(&port), d.default_address(), policy)
                             .await
                             .unwrap_or_else(|e| panic!("{what}: connect: {e}"));
                         let last = w.slots().len() - 1;

@@ -14,10 +14,17 @@ use polar_hil_tests::{repo_root, run_cli, scratch, stokes_within_two_sigma};
 /// give a sampling spread of 0.05 %; Poisson skew and the mount's backlash add a little).
 #[test]
 fn capture_on_the_simulated_k10cr1_rig_file() {
+    capture_on_a_rig_file("sim_k10cr1.toml", "capture_k10cr1.toml", "apt", "k10cr1");
+}
+
+/// The capture of `tests/fixtures/FIXTURE` on `examples/rigs/RIG` through the command's entry
+/// point, judged as [`capture_on_the_simulated_k10cr1_rig_file`] says; the store must record the
+/// stage's `dialect` and `model`.
+pub(crate) fn capture_on_a_rig_file(rig: &str, fixture: &str, dialect: &str, model: &str) {
     let root = repo_root();
-    let rig_path = root.join("examples/rigs/sim_k10cr1.toml");
-    let plan_path = root.join("tests/fixtures/capture_k10cr1.toml");
-    let run_dir = scratch("k10cr1").join("run");
+    let rig_path = root.join("examples/rigs").join(rig);
+    let plan_path = root.join("tests/fixtures").join(fixture);
+    let run_dir = scratch(model).join("run");
     let (out, code) =
         run_cli(&plan_path, &rig_path, &run_dir, 0, false).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!((out["state"].as_str(), code), (Some("done"), 0), "{out}");
@@ -29,13 +36,13 @@ fn capture_on_the_simulated_k10cr1_rig_file() {
     assert!(check.ok && check.finished, "{check:?}");
     let store = RunStore::open(&run_dir).expect("store");
     let devices = &store.attributes().expect("attributes")["devices"];
-    assert_eq!(devices["stage"]["dialect"], "apt");
-    assert_eq!(devices["stage"]["model"], "k10cr1");
+    assert_eq!(devices["stage"]["dialect"], dialect);
+    assert_eq!(devices["stage"]["model"], model);
     let rig = polar_rig::Rig::load(&rig_path).unwrap_or_else(|e| panic!("{e}"));
     let camera_file = rig.camera_file.expect("a camera file");
     let share = stokes_within_two_sigma(&store, &camera_file, 250.0);
     println!(
-        "K10CR1 rig: products within 2 sigma of the truth: {:.2} %",
+        "{model} rig: products within 2 sigma of the truth: {:.2} %",
         100.0 * share
     );
     assert!((0.93..=0.975).contains(&share), "{:.2} %", 100.0 * share);

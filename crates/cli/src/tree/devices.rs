@@ -80,8 +80,9 @@ pub struct StageArgs {
     /// The device's protocol.
     #[arg(long, value_parser = polar_rig::flags::dialect_values())]
     dialect: Option<String>,
-    /// Bus address (Elliptec 0..=15); default the rig's, else 0.
-    #[arg(long, value_parser = clap::value_parser!(u8).range(0..=15))]
+    /// Bus address (Elliptec 0..=15, SMC100 1..=31); default the rig's, else the dialect's
+    /// first.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(0..=31))]
     address: Option<u8>,
     /// JSON output.
     #[arg(long, global = true)]

@@ -52,6 +52,10 @@ struct StageArgs {
     /// Seed of every random choice (faults, noise, power-on position).
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// A bus address a simulated controller answers at, repeatable for several controllers on
+    /// one port (dialects on a bus, such as smc100 1..=31; default the dialect's first).
+    #[arg(long = "address", value_name = "ADDRESS")]
+    addresses: Vec<u8>,
 }
 
 impl StageArgs {
@@ -64,6 +68,7 @@ impl StageArgs {
             devices::sim_stage(
                 devices::dialect(&self.dialect)?,
                 self.model.as_deref(),
+                &self.addresses,
                 f,
                 self.seed,
             )
