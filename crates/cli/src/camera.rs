@@ -169,7 +169,7 @@ pub async fn grab(cam: &mut ThreadedCamera, opts: &GrabOptions) -> Result<Value,
         "files": files,
         "exposure_us": applied_us,
         "gain": applied_gain,
-        "stats": { "delivered": s.delivered, "incomplete": s.incomplete, "dropped": s.dropped, "timeouts": s.timeouts },
+        "stats": serde_json::to_value(polar_engine::run::CameraStream::from(s)).unwrap_or_default(),
     }))
 }
 

@@ -300,6 +300,25 @@ pub struct StreamStats {
     pub dropped: u64,
     /// Grabs that ended at their deadline without a frame.
     pub timeouts: u64,
+    /// The transport's own counters, where it keeps them (GigE Vision packets).
+    pub transport: Option<TransportStats>,
+}
+
+/// A packet transport's counters since the stream started (GigE Vision: Aravis's stream
+/// statistics).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct TransportStats {
+    /// Packets received.
+    pub received_packets: u64,
+    /// Packets found missing from a frame (before any resend).
+    pub missing_packets: u64,
+    /// Packets asked for again.
+    pub resend_requests: u64,
+    /// Packets that came back when asked for again.
+    pub resent_packets: u64,
+    /// Whether lost packets are asked for again at all (GigE Vision: only where the device
+    /// offers packet resend in its GVCP capabilities; Aravis's fake cameras do not).
+    pub packet_resend: bool,
 }
 
 /// A camera.
@@ -403,6 +422,10 @@ pub trait BlockingCamera: Send + 'static {
     /// Waits at most `wait` for the next buffer. An error of kind
     /// [`ErrorKind::Disconnected`] ends the stream.
     fn wait_frame(&mut self, wait: Duration) -> Result<Grabbed, DeviceError>;
+    /// The transport's packet counters, where it keeps them (`None`: it keeps none).
+    fn transport_stats(&self) -> Option<TransportStats> {
+        None
+    }
     /// Asks to be told when each exposure ends, before its readout and transfer: `hook` is
     /// called (from within [`BlockingCamera::wait_frame`]) with the frame id the exposure will
     /// be delivered as, once the sensor has stopped integrating. Returns `false`, dropping the

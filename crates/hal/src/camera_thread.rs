@@ -390,7 +390,11 @@ fn run<C: BlockingCamera>(
             }
             continue;
         }
-        match camera.wait_frame(policy.poll) {
+        let waited = camera.wait_frame(policy.poll);
+        if let Some(t) = camera.transport_stats() {
+            shared.lock().stats.transport = Some(t);
+        }
+        match waited {
             Ok(Grabbed::Frame(frame)) => {
                 awaiting = false;
                 let mut state = shared.lock();

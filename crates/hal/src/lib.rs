@@ -24,7 +24,7 @@ pub mod camera_thread;
 pub use analyzer::{Analyzer, Approach, OnRotator, OnWheel, SlotAngle};
 pub use camera::{
     BlockingCamera, Camera, CameraInfo, ExposureEndHook, Frame, GainUnit, Grabbed, PixelFormat,
-    Roi, StreamStats, TriggerMode,
+    Roi, StreamStats, TransportStats, TriggerMode,
 };
 
 use std::f64::consts::PI;

@@ -1,7 +1,7 @@
 //! The device actors: the analyzer and the camera, each owned by one local task that takes
 //! commands from a bounded channel.
 
-use polar_hal::{Analyzer, Camera, DeviceError, Frame, TriggerMode};
+use polar_hal::{Analyzer, Camera, DeviceError, Frame, StreamStats, TriggerMode};
 use std::time::Duration;
 use tokio::sync::{mpsc, oneshot};
 use tracing::Instrument;
@@ -27,6 +27,8 @@ pub(super) enum CamCmd {
         exposed: Option<oneshot::Sender<u64>>,
         reply: oneshot::Sender<Result<Frame, DeviceError>>,
     },
+    /// The stream's counters.
+    Stats { reply: oneshot::Sender<StreamStats> },
 }
 
 pub(super) fn spawn_stage<A: Analyzer + 'static>(mut analyzer: A) -> mpsc::Sender<StageCmd> {
@@ -104,6 +106,9 @@ pub(super) fn spawn_camera<C: Camera + 'static>(mut camera: C) -> mpsc::Sender<C
                         .instrument(info_span!("grab"))
                         .await;
                         let _ = reply.send(r);
+                    }
+                    CamCmd::Stats { reply } => {
+                        let _ = reply.send(camera.stats());
                     }
                 }
             }

@@ -12,7 +12,7 @@ use super::calibration::calibrate;
 use super::clock::now_unix_ns;
 use super::ending::{end_aborted, end_done};
 use super::link::{Event, RunLink, RunState};
-use super::outcome::{Outcome, RunError, Saturation, Summary, Verdict};
+use super::outcome::{CameraStream, Outcome, RunError, Saturation, Summary, Verdict};
 use super::pause::{hold_paused, send_store, AfterPause};
 use super::pause::{CAP_LENS, UNCAP_LENS};
 use super::run_dir::{open_run, set_aside_damaged};
@@ -358,6 +358,8 @@ pub(super) trait Strategy<'a> {
     fn decisions(&self) -> Option<&[Value]> {
         None
     }
+    /// The camera's stream counters (`None`: the camera could not be asked).
+    async fn camera_stream(&mut self) -> Option<CameraStream>;
 }
 
 /// Runs `strategy` to its ending: the frames, then the summary, the plan's calibration and the
@@ -387,6 +389,7 @@ async fn end<'a, S: Strategy<'a>>(
     let final_angles_deg = strategy.final_angles();
     let planned_steps = strategy.planned_steps();
     let decisions = strategy.decisions().map(<[Value]>::to_vec);
+    let camera_stream = strategy.camera_stream().await;
     let core = strategy.core();
     let plan = core.plan;
     let summary = Summary {
@@ -400,6 +403,7 @@ async fn end<'a, S: Strategy<'a>>(
         device_s: core.device_s,
         final_angles_deg,
         saturation: Saturation::of(&core.reader, plan.suspender.max_saturated_fraction)?,
+        camera_stream,
     };
     let result = match outcome {
         Some(Outcome::Aborted(reason)) => end_aborted(&core.link, &core.to_store, reason),

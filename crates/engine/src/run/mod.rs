@@ -50,7 +50,7 @@ mod writer;
 
 pub use adaptive::replayed_decisions;
 pub use link::{link, Control, Controller, Event, RunLink, RunState};
-pub use outcome::{Outcome, RunError, Saturation, Summary, Verdict};
+pub use outcome::{CameraStream, Outcome, RunError, Saturation, Summary, Verdict};
 pub use pause::{CAP_LENS, UNCAP_LENS};
 pub use rig::{Rig, SceneLight};
 pub use run_dir::{default_run_dir, is_finished, noise_stream, plan_of, run_parts};

@@ -58,6 +58,54 @@ pub struct Summary {
     /// The sets (of the whole run, every process's) whose saturated share of pixels is over
     /// the plan's `suspender.max_saturated_fraction`.
     pub saturation: Saturation,
+    /// The camera's stream over this process's part of the run (`None`: not asked of it).
+    pub camera_stream: Option<CameraStream>,
+}
+
+/// A camera's stream counters as a run records them (`polar_hal::StreamStats`): frames
+/// delivered, incomplete, dropped and timed out, and the transport's packets where it counts
+/// them (GigE Vision).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
+pub struct CameraStream {
+    /// Frames handed out.
+    pub delivered: u64,
+    /// Frames that came incomplete (never handed out).
+    pub incomplete: u64,
+    /// Complete frames dropped because the consumer was too slow.
+    pub dropped: u64,
+    /// Grabs that ended at their deadline.
+    pub timeouts: u64,
+    /// Packets received (GigE Vision).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub received_packets: Option<u64>,
+    /// Packets missing from frames before any resend.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub missing_packets: Option<u64>,
+    /// Packets asked for again.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub resend_requests: Option<u64>,
+    /// Packets that came back when asked for again.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub resent_packets: Option<u64>,
+    /// Whether lost packets were asked for again (the device offers packet resend).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub packet_resend: Option<bool>,
+}
+
+impl From<polar_hal::StreamStats> for CameraStream {
+    fn from(s: polar_hal::StreamStats) -> Self {
+        CameraStream {
+            delivered: s.delivered,
+            incomplete: s.incomplete,
+            dropped: s.dropped,
+            timeouts: s.timeouts,
+            received_packets: s.transport.map(|t| t.received_packets),
+            missing_packets: s.transport.map(|t| t.missing_packets),
+            resend_requests: s.transport.map(|t| t.resend_requests),
+            resent_packets: s.transport.map(|t| t.resent_packets),
+            packet_resend: s.transport.map(|t| t.packet_resend),
+        }
+    }
 }
 
 /// Saturated pixels over a run, from the store's per-set record.

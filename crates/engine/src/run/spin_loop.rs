@@ -54,7 +54,7 @@
 
 use super::core::{drive, Checked, Core, Opening, Strategy};
 use super::link::{Control, Event, RunLink, RunState};
-use super::outcome::{Outcome, RunError};
+use super::outcome::{CameraStream, Outcome, RunError};
 use super::record::{frame_record, FrameSpan};
 use super::rig::Rig;
 use super::writer::{FromStore, SetJob, ToStore};
@@ -284,6 +284,10 @@ fn check_trigger<R: Rotator, C: Camera>(
 impl<'a, R: Rotator, C: Camera> Strategy<'a> for SpinLoop<'a, R, C> {
     fn core(&mut self) -> &mut Core<'a> {
         &mut self.core
+    }
+
+    async fn camera_stream(&mut self) -> Option<CameraStream> {
+        Some(self.rig.camera.stats().into())
     }
 
     async fn acquire(&mut self) -> Result<Option<Outcome>, RunError> {

@@ -10,7 +10,7 @@ use super::adaptive::{adaptive_set, adaptive_start, aptd_frame, decision_json, A
 use super::clock::now_unix_ns;
 use super::core::{drive, Checked, Core, Opening, Replay, Strategy};
 use super::link::{Control, Event, RunLink, RunState};
-use super::outcome::{Outcome, RunError};
+use super::outcome::{CameraStream, Outcome, RunError};
 use super::pause::AfterPause;
 use super::pause::{CAP_LENS, UNCAP_LENS};
 use super::rig::{Rig, SceneLight};
@@ -199,6 +199,12 @@ fn first_move(plan: &Plan, stage: &mpsc::Sender<StageCmd>) -> Option<PendingMove
 impl<'a> Strategy<'a> for StepLoop<'a> {
     fn core(&mut self) -> &mut Core<'a> {
         &mut self.core
+    }
+
+    async fn camera_stream(&mut self) -> Option<CameraStream> {
+        let (reply, rx) = oneshot::channel();
+        self.camera.send(CamCmd::Stats { reply }).await.ok()?;
+        rx.await.ok().map(CameraStream::from)
     }
 
     async fn acquire(&mut self) -> Result<Option<Outcome>, RunError> {
