@@ -28,6 +28,7 @@ pub mod serve;
 pub mod sim;
 pub mod simulator;
 pub mod smc100;
+pub mod standa;
 
 /// Blocks the thread until `until`, to within a few microseconds: an OS sleep overshoots by
 /// its wake-up latency (up to a millisecond on an idle virtual machine), which would make a

@@ -7,7 +7,7 @@ pub use crate::simulator::{
     next_request, BuildAtSpeed, BuildOnBus, BuildSimulator, Scan, SimDialect, SimMotion, Simulator,
     Truth,
 };
-use crate::{apt, elliptec, fw102c, native, smc100};
+use crate::{apt, elliptec, fw102c, native, smc100, standa};
 
 /// Every dialect's simulators, one line each.
 pub static SIMULATORS: &[SimDialect] = &[
@@ -16,6 +16,7 @@ pub static SIMULATORS: &[SimDialect] = &[
     fw102c::SIM,
     apt::SIM,
     smc100::SIM,
+    standa::SIM,
 ];
 
 /// Why [`simulator`] made none; the message names the value and what is allowed.

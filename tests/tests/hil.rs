@@ -25,9 +25,10 @@
 //!   PRM1Z8, the engine's run with the analyzer on an `AptRotator`; Stokes against the truth.
 //! * [`hil::genicam_loop`]: Aravis's in-process fake GigE camera painting each frame from the
 //!   simulated stage's true angle, the stage driven by its real driver; DoLP and AoP recovered.
-//! * [`hil::conformance_elliptec`], [`hil::conformance_apt`], [`hil::conformance_smc100`]: the
+//! * [`hil::conformance_elliptec`], [`hil::conformance_apt`], [`hil::conformance_smc100`],
+//!   [`hil::conformance_standa`]: the
 //!   public client libraries
-//!   (pylablib, thorlabs_elliptec, elliptec, thorlabs-apt-device, pystages, yaqd-newport)
+//!   (pylablib, thorlabs_elliptec, elliptec, thorlabs-apt-device, pystages, yaqd-newport, pylablib's Standa8SMC)
 //!   against the simulated devices
 //!   on pseudo-terminals, through `scripts/conformance/*.py` in the venv `POLARIMETER_PYTHON`
 //!   names.
@@ -40,6 +41,7 @@ mod hil {
     pub mod conformance_apt;
     pub mod conformance_elliptec;
     pub mod conformance_smc100;
+    pub mod conformance_standa;
     pub mod dialects;
     pub mod doc_tables;
     pub mod following;

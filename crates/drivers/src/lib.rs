@@ -23,3 +23,4 @@ pub mod link;
 pub mod native;
 pub mod registry;
 pub mod smc100;
+pub mod standa;

@@ -10,7 +10,7 @@ pub use crate::dialect::{
     Identify, Identity, LineSettings, Parity, Position, SerialLine, StopBits, LINE_8N1,
 };
 pub use crate::elliptec::ELLIPTEC_TOLERANCE_DEG;
-use crate::{apt, elliptec, fw102c, native, smc100};
+use crate::{apt, elliptec, fw102c, native, smc100, standa};
 
 /// Every dialect, one line each.
 pub static DIALECTS: &[Dialect] = &[
@@ -19,6 +19,7 @@ pub static DIALECTS: &[Dialect] = &[
     fw102c::DIALECT,
     apt::DIALECT,
     smc100::DIALECT,
+    standa::DIALECT,
 ];
 
 /// The dialect named `name`.

@@ -187,12 +187,24 @@ fn demo_runs_on_the_simulated_k10cr1() {
 
     assert_eq!(
         demo_stages(),
-        ["native", "ell14", "ell18", "k10cr1", "prm1z8"]
+        [
+            "native",
+            "ell14",
+            "ell18",
+            "k10cr1",
+            "prm1z8",
+            "pr50cc",
+            "urs",
+            "conex-agp",
+            "8mpr16-1"
+        ]
     );
     let e = demo_on_stage(&out_dir, "ell6", ui).unwrap_err().to_string();
     assert!(
         e.contains("--stage \"ell6\"")
-            && e.contains("allowed native, ell14, ell18, k10cr1, prm1z8"),
+            && e.contains(
+                "allowed native, ell14, ell18, k10cr1, prm1z8, pr50cc, urs, conex-agp, 8mpr16-1"
+            ),
         "{e}"
     );
     assert!(

@@ -403,7 +403,7 @@ async fn end<'a, S: Strategy<'a>>(
         device_s: core.device_s,
         final_angles_deg,
         saturation: Saturation::of(&core.reader, plan.suspender.max_saturated_fraction)?,
-        camera_stream,
+        camera_stream: camera_stream.map(Box::new),
     };
     let result = match outcome {
         Some(Outcome::Aborted(reason)) => end_aborted(&core.link, &core.to_store, reason),

@@ -59,7 +59,7 @@ pub struct Summary {
     /// the plan's `suspender.max_saturated_fraction`.
     pub saturation: Saturation,
     /// The camera's stream over this process's part of the run (`None`: not asked of it).
-    pub camera_stream: Option<CameraStream>,
+    pub camera_stream: Option<Box<CameraStream>>,
 }
 
 /// A camera's stream counters as a run records them (`polar_hal::StreamStats`): frames
