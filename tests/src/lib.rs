@@ -1,7 +1,10 @@
 //! The harness of the workspace's hardware-in-the-loop tests (`tests/hil.rs`, one test binary):
 //! a simulator of a registered dialect on a real pseudo-terminal, a plan run through the `acquire
-//! run` command's entry point on a rig file, and scratch folders. The tests themselves live in `tests/hil/`.
+//! run` command's entry point on a rig file, scratch folders, and the conformance tests' runs of
+//! public client scripts ([`conformance`]). The tests themselves live in `tests/hil/`.
 #![warn(missing_docs)]
+
+pub mod conformance;
 
 use polar_hil_mocks::faults::FaultProfile;
 use polar_hil_mocks::serve::SimServer;

@@ -109,8 +109,9 @@ mod tests {
     }
 
     /// No flag: no hardware (the simulated devices); a dialect outside the registry, an
-    /// address past 15 and a zero offset past 360 deg are refused naming the flag and what is
-    /// allowed (clap's messages for the first two, ours for the third).
+    /// address past 31 (any bus), an address outside the dialect's bus (Elliptec 0..=15) and a
+    /// zero offset past 360 deg are refused naming the flag and what is allowed (clap's
+    /// messages for the first two, ours for the others).
     #[test]
     fn flags_are_checked() {
         let none = Cli::try_parse_from(["x"]).unwrap();
@@ -119,10 +120,26 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("--dialect") && e.contains("elliptec"), "{e}");
-        let e = Cli::try_parse_from(["x", "--address", "16"])
+        let e = Cli::try_parse_from(["x", "--address", "32"])
             .unwrap_err()
             .to_string();
-        assert!(e.contains("--address") && e.contains("0..=15"), "{e}");
+        assert!(e.contains("--address") && e.contains("0..=31"), "{e}");
+        let elliptec = Cli::try_parse_from([
+            "x",
+            "--port",
+            "/dev/ttyUSB0",
+            "--dialect",
+            "elliptec",
+            "--address",
+            "16",
+            "--camera",
+            "sim",
+            "--camera-file",
+            "cam.toml",
+        ])
+        .unwrap();
+        let e = elliptec.hw.hardware().unwrap_err().to_string();
+        assert!(e.contains("--address = 16") && e.contains("0..=15"), "{e}");
         let far = Cli::try_parse_from(["x", "--zero-offset-deg", "-400"]).unwrap();
         let e = far.hw.hardware().unwrap_err().to_string();
         assert!(

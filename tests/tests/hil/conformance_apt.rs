@@ -16,29 +16,10 @@ use polar_hil_mocks::apt::{AptDevice, AptSimConfig};
 use polar_hil_mocks::faults::FaultProfile;
 use polar_hil_mocks::serve::SimServer;
 use polar_hil_mocks::sim::Truth;
-use polar_hil_tests::repo_root;
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use polar_hil_tests::conformance::{client_python, clients_available, run_script};
 
 /// Where the script parks every mount, degrees.
 const PARK_DEG: f64 = 123.0;
-
-fn client_python() -> PathBuf {
-    std::env::var_os("POLARIMETER_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo_root().join("target/py-venv/bin/python"))
-}
-
-fn has_clients(python: &Path) -> bool {
-    Command::new(python)
-        .args([
-            "-c",
-            "import thorlabs_apt_device, pylablib.devices.Thorlabs, serial",
-        ])
-        .output()
-        .map(|o| o.status.success())
-        .unwrap_or(false)
-}
 
 /// The PRM1Z8 and the K10CR1 through every client: no FAILED row; identify, enable, home,
 /// absolute and relative moves, position, velocity parameters and status bits passed by
@@ -47,20 +28,11 @@ fn has_clients(python: &Path) -> bool {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn public_apt_clients_drive_the_simulated_mounts() {
     let python = client_python();
-    if !has_clients(&python) {
-        if std::env::var("POLARIMETER_SKIP_PYTHON").as_deref() == Ok("1") {
-            println!(
-                "skipped: {} cannot import thorlabs_apt_device",
-                python.display()
-            );
-            return;
-        }
-        panic!(
-            "{} cannot import thorlabs_apt_device and pylablib: run `bash scripts/test.sh`, \
-             which creates the venv, or point POLARIMETER_PYTHON at a python that has them; \
-             set POLARIMETER_SKIP_PYTHON=1 to skip this test",
-            python.display()
-        );
+    if !clients_available(
+        &python,
+        "thorlabs_apt_device, pylablib.devices.Thorlabs, serial",
+    ) {
+        return;
     }
     let dir = std::env::temp_dir().join(format!("polar-apt-clients-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
@@ -80,45 +52,14 @@ async fn public_apt_clients_drive_the_simulated_mounts() {
         args.push(format!("{name}={}", link.display()));
         servers.push((name, config, server));
     }
-    let results = dir.join("results.tsv");
-    let script = repo_root().join("scripts/conformance/apt_clients.py");
-    let output = tokio::task::spawn_blocking({
-        let results = results.clone();
-        move || {
-            Command::new(&python)
-                .arg(&script)
-                .args(&args)
-                .arg("--results")
-                .arg(&results)
-                .output()
-                .expect("run the conformance script")
-        }
+    let run = tokio::task::spawn_blocking({
+        let dir = dir.clone();
+        move || run_script(&python, "apt_clients.py", &args, &dir, "apt-conformance.md")
     })
     .await
     .expect("the script's thread");
-    let table = String::from_utf8_lossy(&output.stdout).into_owned();
-    let log = String::from_utf8_lossy(&output.stderr).into_owned();
-    println!("{table}\n{log}");
-    let _ = std::fs::write(repo_root().join("target/apt-conformance.md"), &table);
-    let text = std::fs::read_to_string(&results).unwrap_or_default();
-    let rows: Vec<Vec<&str>> = text
-        .lines()
-        .filter(|l| !l.is_empty())
-        .map(|l| l.split('\t').collect())
-        .collect();
-    assert!(!rows.is_empty(), "no results:\n{log}");
-    for r in &rows {
-        assert!(r.len() >= 5, "a row has 5 fields: {r:?}");
-        assert_ne!(r[3], "FAILED", "{r:?}\n{log}");
-        assert!(
-            ["passed", "client difference", "not offered"].contains(&r[3]),
-            "{r:?}"
-        );
-        if r[3] != "passed" {
-            assert!(!r[4].is_empty(), "a {} without its reason: {r:?}", r[3]);
-        }
-    }
-    assert!(output.status.success(), "the script failed:\n{log}");
+    run.check_rows(&["passed", "client difference", "not offered"]);
+    let rows = &run.rows;
     let passed = |client: &str, model: &str, op: &str| {
         rows.iter()
             .any(|r| r[0] == client && r[1] == model && r[2] == op && r[3] == "passed")

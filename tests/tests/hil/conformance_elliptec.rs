@@ -18,29 +18,10 @@ use polar_hil_mocks::faults::FaultProfile;
 use polar_hil_mocks::fw102c::{Fw102cConfig, Fw102cDevice};
 use polar_hil_mocks::serve::SimServer;
 use polar_hil_mocks::sim::{Simulator, Truth};
+use polar_hil_tests::conformance::{client_python, clients_available};
 use polar_hil_tests::repo_root;
 use std::f64::consts::TAU;
-use std::path::{Path, PathBuf};
 use std::process::Command;
-
-/// The venv's python: `POLARIMETER_PYTHON`, else `target/py-venv/bin/python`.
-fn client_python() -> PathBuf {
-    std::env::var_os("POLARIMETER_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo_root().join("target/py-venv/bin/python"))
-}
-
-/// Whether `python` imports both client libraries.
-fn has_clients(python: &Path) -> bool {
-    Command::new(python)
-        .args([
-            "-c",
-            "import pylablib.devices.Thorlabs, thorlabs_elliptec, elliptec, serial",
-        ])
-        .output()
-        .map(|o| o.status.success())
-        .unwrap_or(false)
-}
 
 /// One row of the script's results.
 #[derive(Debug)]
@@ -77,21 +58,9 @@ fn parse_rows(text: &str) -> Vec<Row> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn public_clients_drive_every_simulated_model() {
     let python = client_python();
-    if !has_clients(&python) {
-        if std::env::var("POLARIMETER_SKIP_PYTHON").as_deref() == Ok("1") {
-            println!(
-                "skipped: {} cannot import pylablib and thorlabs_elliptec \
-                 (POLARIMETER_SKIP_PYTHON=1)",
-                python.display()
-            );
-            return;
-        }
-        panic!(
-            "{} cannot import pylablib and thorlabs_elliptec: run the tests with \
-             `bash scripts/test.sh`, which creates the venv, or point POLARIMETER_PYTHON \
-             at a python that has them; set POLARIMETER_SKIP_PYTHON=1 to skip this test",
-            python.display()
-        );
+    let imports = "pylablib.devices.Thorlabs, thorlabs_elliptec, elliptec, serial";
+    if !clients_available(&python, imports) {
+        return;
     }
     let dir = std::env::temp_dir().join(format!("polar-clients-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");

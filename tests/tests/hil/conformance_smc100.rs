@@ -16,9 +16,7 @@ use polar_hil_mocks::faults::FaultProfile;
 use polar_hil_mocks::serve::SimServer;
 use polar_hil_mocks::sim::Truth;
 use polar_hil_mocks::smc100::{Smc100Bus, Smc100Config};
-use polar_hil_tests::repo_root;
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use polar_hil_tests::conformance::{client_python, clients_available, run_script};
 
 /// Where the script parks every device's address 1, degrees.
 const PARK_DEG: f64 = 123.0;
@@ -26,39 +24,13 @@ const PARK_DEG: f64 = 123.0;
 /// deg) plus half the simulated backlash (0.001 deg).
 const PARK_TOL_DEG: f64 = 0.004;
 
-fn client_python() -> PathBuf {
-    std::env::var_os("POLARIMETER_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo_root().join("target/py-venv/bin/python"))
-}
-
-fn has_clients(python: &Path) -> bool {
-    Command::new(python)
-        .args(["-c", "import pystages, yaqc, yaqd_newport, serial"])
-        .output()
-        .map(|o| o.status.success())
-        .unwrap_or(false)
-}
-
 /// The bus (pystages), the SMC100 and the CONEX-AGP (yaq): no FAILED row; every operation of
 /// each client passed; each device's address 1 truly at 123 deg and still.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn public_newport_clients_drive_the_simulated_controllers() {
     let python = client_python();
-    if !has_clients(&python) {
-        if std::env::var("POLARIMETER_SKIP_PYTHON").as_deref() == Ok("1") {
-            println!(
-                "skipped: {} cannot import pystages and yaqc",
-                python.display()
-            );
-            return;
-        }
-        panic!(
-            "{} cannot import pystages, yaqc and yaqd_newport: run `bash scripts/test.sh`, which \
-             creates the venv, or point POLARIMETER_PYTHON at a python that has them; set \
-             POLARIMETER_SKIP_PYTHON=1 to skip this test",
-            python.display()
-        );
+    if !clients_available(&python, "pystages, yaqc, yaqd_newport, serial") {
+        return;
     }
     let dir = std::env::temp_dir().join(format!("polar-smc100-clients-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
@@ -79,40 +51,22 @@ async fn public_newport_clients_drive_the_simulated_controllers() {
         args.push(format!("{name}={}", link.display()));
         servers.push((name, server));
     }
-    let results = dir.join("results.tsv");
-    let script = repo_root().join("scripts/conformance/smc100_clients.py");
-    let output = tokio::task::spawn_blocking({
-        let results = results.clone();
+    let run = tokio::task::spawn_blocking({
+        let dir = dir.clone();
         move || {
-            Command::new("timeout")
-                .arg("300")
-                .arg(&python)
-                .arg(&script)
-                .args(&args)
-                .arg("--results")
-                .arg(&results)
-                .output()
-                .expect("run the conformance script")
+            run_script(
+                &python,
+                "smc100_clients.py",
+                &args,
+                &dir,
+                "smc100-conformance.md",
+            )
         }
     })
     .await
     .expect("the script's thread");
-    let table = String::from_utf8_lossy(&output.stdout).into_owned();
-    let log = String::from_utf8_lossy(&output.stderr).into_owned();
-    println!("{table}\n{log}");
-    let _ = std::fs::write(repo_root().join("target/smc100-conformance.md"), &table);
-    let text = std::fs::read_to_string(&results).unwrap_or_default();
-    let rows: Vec<Vec<&str>> = text
-        .lines()
-        .filter(|l| !l.is_empty())
-        .map(|l| l.split('\t').collect())
-        .collect();
-    assert!(!rows.is_empty(), "no results:\n{log}");
-    for r in &rows {
-        assert!(r.len() >= 5, "a row has 5 fields: {r:?}");
-        assert_eq!(r[3], "passed", "{r:?}\n{log}");
-    }
-    assert!(output.status.success(), "the script failed:\n{log}");
+    run.check_rows(&["passed"]);
+    let rows = &run.rows;
     for client in ["pystages", "yaqd-newport-smc100", "yaqd-newport-conex-agp"] {
         let n = rows.iter().filter(|r| r[0] == client).count();
         assert!(n >= 5, "{client}: {n} operations passed, want at least 5");

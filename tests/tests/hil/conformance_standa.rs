@@ -13,9 +13,7 @@ use polar_hil_mocks::faults::FaultProfile;
 use polar_hil_mocks::serve::SimServer;
 use polar_hil_mocks::sim::Truth;
 use polar_hil_mocks::standa::{StandaConfig, StandaDevice};
-use polar_hil_tests::repo_root;
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use polar_hil_tests::conformance::{client_python, clients_available, run_script};
 
 /// Where the script parks the stage, degrees.
 const PARK_DEG: f64 = 123.0;
@@ -23,40 +21,14 @@ const PARK_DEG: f64 = 123.0;
 /// stage has no backlash): 1 / 20 480 deg.
 const PARK_TOL_DEG: f64 = 1.0 / 20_480.0;
 
-fn client_python() -> PathBuf {
-    std::env::var_os("POLARIMETER_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo_root().join("target/py-venv/bin/python"))
-}
-
-fn has_client(python: &Path) -> bool {
-    Command::new(python)
-        .args(["-c", "import pylablib.devices.Standa, serial"])
-        .output()
-        .map(|o| o.status.success())
-        .unwrap_or(false)
-}
-
 /// Every operation passed (engine type, calibration, home, position reference, absolute and
 /// relative moves, status, jog both ways with a soft stop, the move parameters, the park); the
 /// stage truly at 123 deg and still.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn pylablib_drives_the_simulated_standa() {
     let python = client_python();
-    if !has_client(&python) {
-        if std::env::var("POLARIMETER_SKIP_PYTHON").as_deref() == Ok("1") {
-            println!(
-                "skipped: {} cannot import pylablib.devices.Standa",
-                python.display()
-            );
-            return;
-        }
-        panic!(
-            "{} cannot import pylablib.devices.Standa: run `bash scripts/test.sh`, which creates \
-             the venv, or point POLARIMETER_PYTHON at a python that has it; set \
-             POLARIMETER_SKIP_PYTHON=1 to skip this test",
-            python.display()
-        );
+    if !clients_available(&python, "pylablib.devices.Standa, serial") {
+        return;
     }
     let dir = std::env::temp_dir().join(format!("polar-standa-clients-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
@@ -64,42 +36,27 @@ async fn pylablib_drives_the_simulated_standa() {
     let link = dir.join("standa");
     let device = StandaDevice::new(StandaConfig::mpr16().at_speed(90.0), healthy, 41);
     let server = SimServer::pty(device, healthy, 7, &link).expect("a pty");
-    let results = dir.join("results.tsv");
-    let script = repo_root().join("scripts/conformance/standa_clients.py");
-    let output = tokio::task::spawn_blocking({
-        let results = results.clone();
-        let link = link.clone();
+    let args = vec![link.display().to_string()];
+    let run = tokio::task::spawn_blocking({
+        let dir = dir.clone();
         move || {
-            Command::new("timeout")
-                .arg("300")
-                .arg(&python)
-                .arg(&script)
-                .arg(&link)
-                .arg("--results")
-                .arg(&results)
-                .output()
-                .expect("run the conformance script")
+            run_script(
+                &python,
+                "standa_clients.py",
+                &args,
+                &dir,
+                "standa-conformance.md",
+            )
         }
     })
     .await
     .expect("the script's thread");
-    let table = String::from_utf8_lossy(&output.stdout).into_owned();
-    let log = String::from_utf8_lossy(&output.stderr).into_owned();
-    println!("{table}\n{log}");
-    let _ = std::fs::write(repo_root().join("target/standa-conformance.md"), &table);
-    let text = std::fs::read_to_string(&results).unwrap_or_default();
-    let rows: Vec<Vec<&str>> = text
-        .lines()
-        .filter(|l| !l.is_empty())
-        .map(|l| l.split('\t').collect())
-        .collect();
-    assert!(!rows.is_empty(), "no results:\n{log}");
-    for r in &rows {
-        assert!(r.len() >= 5, "a row has 5 fields: {r:?}");
-        assert_eq!(r[3], "passed", "{r:?}\n{log}");
-    }
-    assert!(output.status.success(), "the script failed:\n{log}");
-    assert!(rows.len() >= 11, "{} operations, want 11", rows.len());
+    run.check_rows(&["passed"]);
+    assert!(
+        run.rows.len() >= 11,
+        "{} operations, want 11",
+        run.rows.len()
+    );
     let Truth::Angle { output_rad, moving } = server.truth() else {
         panic!("not a rotator")
     };

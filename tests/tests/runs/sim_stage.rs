@@ -107,7 +107,11 @@ fn stage_choice_is_checked() {
             ("elliptec", "ell14"),
             ("elliptec", "ell18"),
             ("apt", "k10cr1"),
-            ("apt", "prm1z8")
+            ("apt", "prm1z8"),
+            ("smc100", "pr50cc"),
+            ("smc100", "urs"),
+            ("smc100", "conex-agp"),
+            ("standa", "8mpr16-1")
         ]
     );
     let default_model = Plan::from_toml_str(&capture(r#"{ dialect = "apt" }"#)).unwrap();
