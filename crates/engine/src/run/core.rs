@@ -236,16 +236,19 @@ impl<'a> Core<'a> {
         }
     }
 
-    /// Takes a message of the storage thread: a durable frame is reported with the frames that
-    /// count so far (one per step: a superseded or rejected frame no longer counts, so the
-    /// progress never passes the plan); a checked set is returned for the strategy to act on; a
-    /// storage failure is an error.
+    /// Takes a message of the storage thread: a durable frame is reported with the durable
+    /// frames that count so far (one per step: a superseded or rejected frame no longer counts,
+    /// so the progress never passes the plan; a frame still on its way to the store does not
+    /// count yet, so each durable frame adds one even when the store lags the loop); a checked
+    /// set is returned for the strategy to act on; a storage failure is an error.
     pub(super) fn on_store(&mut self, msg: FromStore) -> Result<Option<Checked>, String> {
         match msg {
             FromStore::Durable { index, label } => {
                 self.in_flight.remove(&index);
+                // Every frame in flight was counted as accepted when it was taken.
+                let pending = self.in_flight.len().min(self.accepted.len());
                 self.event(Event::Progress {
-                    done: self.accepted.len() as u64,
+                    done: (self.accepted.len() - pending) as u64,
                     planned: self.planned_frames,
                     label,
                 });
