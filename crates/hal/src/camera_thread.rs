@@ -391,8 +391,11 @@ fn run<C: BlockingCamera>(
             continue;
         }
         let waited = camera.wait_frame(policy.poll);
-        if let Some(t) = camera.transport_stats() {
-            shared.lock().stats.transport = Some(t);
+        // The transport's counters change only with a buffer: read them then, not every poll.
+        if matches!(waited, Ok(Grabbed::Frame(_) | Grabbed::Incomplete { .. })) {
+            if let Some(t) = camera.transport_stats() {
+                shared.lock().stats.transport = Some(t);
+            }
         }
         match waited {
             Ok(Grabbed::Frame(frame)) => {
