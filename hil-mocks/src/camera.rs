@@ -407,6 +407,8 @@ pub struct SimCamera {
     illumination: Illumination,
     /// Told each exposure's end, before the frame is drawn.
     exposure_end: Option<ExposureEndHook>,
+    /// Each exposure's true start and end angles.
+    exposures: ExposureLog,
     /// The trigger input, if wired.
     line: Option<LineSource>,
     /// Edges of the line already acted on (or ignored).
@@ -445,6 +447,47 @@ impl Illumination {
 impl Default for Illumination {
     fn default() -> Self {
         Illumination::new()
+    }
+}
+
+/// What an exposure truly saw: the analyzer's true angle at its start and its end, as the
+/// camera sampled them (the simulator's ground truth, for tests that judge recorded spans).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ExposureTruth {
+    /// The frame's id.
+    pub frame_id: u64,
+    /// The analyzer's true angle when the exposure started, radians.
+    pub start_rad: f64,
+    /// Its true angle when the exposure ended, radians.
+    pub end_rad: f64,
+}
+
+/// The truth of the last [`EXPOSURE_LOG_LEN`] exposures, shared with whoever judges them.
+#[derive(Debug, Clone, Default)]
+pub struct ExposureLog(Arc<std::sync::Mutex<std::collections::VecDeque<ExposureTruth>>>);
+
+/// Exposures an [`ExposureLog`] keeps (older ones leave it).
+pub const EXPOSURE_LOG_LEN: usize = 100_000;
+
+impl ExposureLog {
+    fn push(&self, truth: ExposureTruth) {
+        let mut log = self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if log.len() == EXPOSURE_LOG_LEN {
+            log.pop_front();
+        }
+        log.push_back(truth);
+    }
+
+    /// The truth of frame `frame_id`, while the log holds it.
+    pub fn get(&self, frame_id: u64) -> Option<ExposureTruth> {
+        let log = self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        log.iter().rev().find(|t| t.frame_id == frame_id).copied()
     }
 }
 
@@ -512,6 +555,7 @@ impl SimCamera {
             epoch: Instant::now(),
             illumination: Illumination::new(),
             exposure_end: None,
+            exposures: ExposureLog::default(),
             line: None,
             line_seen: 0,
             config,
@@ -532,6 +576,11 @@ impl SimCamera {
     /// The handle on the scene's illumination (lens cap, clouds).
     pub fn illumination(&self) -> Illumination {
         self.illumination.clone()
+    }
+
+    /// The handle on the exposures' truth (each frame's true start and end angles).
+    pub fn exposures(&self) -> ExposureLog {
+        self.exposures.clone()
     }
 
     /// The sensor model the frames are drawn from.
@@ -677,6 +726,11 @@ impl SimCamera {
         let light = self.illumination.get();
         let id = self.frame_id;
         self.frame_id += 1;
+        self.exposures.push(ExposureTruth {
+            frame_id: id,
+            start_rad: started.path.first().map_or(f64::NAN, |p| p.1),
+            end_rad: started.path.last().map_or(f64::NAN, |p| p.1),
+        });
         if let Some(hook) = &self.exposure_end {
             hook(id);
         }

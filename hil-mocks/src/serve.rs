@@ -306,12 +306,11 @@ struct Outbox {
 }
 
 impl Outbox {
-    fn new(baud: u32) -> Self {
+    fn new(seconds_per_byte: f64) -> Self {
         Outbox {
             queue: Vec::new(),
             line_free_s: 0.0,
-            // 8N1: ten bits per byte.
-            seconds_per_byte: 10.0 / baud.max(1) as f64,
+            seconds_per_byte,
         }
     }
 
@@ -377,6 +376,45 @@ impl Outbox {
     fn take_due(&mut self, now_s: f64) -> Vec<u8> {
         let n = self.queue.partition_point(|(t, _)| *t <= now_s);
         self.queue.drain(..n).flat_map(|(_, b)| b).collect()
+    }
+}
+
+/// The host's bytes on their way to the device: a pseudo-terminal hands them over at once, but
+/// on the device's serial line they take their bits' time at its baud, and the device acts on
+/// a request only once its last byte is in.
+struct Inbox {
+    queue: std::collections::VecDeque<(f64, Vec<u8>)>,
+    line_free_s: f64,
+    seconds_per_byte: f64,
+}
+
+impl Inbox {
+    fn new(seconds_per_byte: f64) -> Self {
+        Inbox {
+            queue: std::collections::VecDeque::new(),
+            line_free_s: 0.0,
+            seconds_per_byte,
+        }
+    }
+
+    /// Bytes the host wrote at `now_s`: in at the device once the line has carried them.
+    fn push(&mut self, now_s: f64, bytes: &[u8]) {
+        let start = now_s.max(self.line_free_s);
+        self.line_free_s = start + bytes.len() as f64 * self.seconds_per_byte;
+        self.queue.push_back((self.line_free_s, bytes.to_vec()));
+    }
+
+    fn next_due(&self) -> Option<f64> {
+        self.queue.front().map(|(t, _)| *t)
+    }
+
+    /// The oldest bytes in by `now_s`, with the time they were in.
+    fn pop_due(&mut self, now_s: f64) -> Option<(f64, Vec<u8>)> {
+        if self.queue.front().is_some_and(|(t, _)| *t <= now_s) {
+            self.queue.pop_front()
+        } else {
+            None
+        }
     }
 }
 
@@ -546,7 +584,7 @@ async fn serve(
     unplugs: &mut mpsc::UnboundedReceiver<f64>,
 ) -> Ended {
     let now = shared.now_s();
-    let mut outbox = Outbox::new(shared.sim().baud());
+    let mut outbox = Outbox::new(shared.sim().seconds_per_byte());
     let stale: Vec<u8> = (0..faults.stale_bytes_at_open)
         .map(|_| dice.byte())
         .collect();
@@ -556,9 +594,17 @@ async fn serve(
         let mut stats = shared.stats();
         outbox.push(now, opened, faults, dice, &mut stats);
     }
+    let mut inbox = Inbox::new(shared.sim().seconds_per_byte());
     let mut buf = [0u8; 256];
     loop {
         let now = shared.now_s();
+        while let Some((in_s, bytes)) = inbox.pop_due(now) {
+            let reply = shared.sim().receive(in_s, &bytes);
+            outbox.push(in_s, reply, faults, dice, &mut shared.stats());
+            if dice.chance(faults.unplug) {
+                return Ended::Unplugged(faults.replug_s);
+            }
+        }
         let ticked = shared.sim().tick(now);
         outbox.push(now, ticked, faults, dice, &mut shared.stats());
         let due = outbox.take_due(now);
@@ -568,10 +614,14 @@ async fn serve(
                 return Ended::Closed;
             }
         }
-        let next = [outbox.next_due(), shared.sim().next_event_s()]
-            .into_iter()
-            .flatten()
-            .fold(f64::INFINITY, f64::min);
+        let next = [
+            outbox.next_due(),
+            inbox.next_due(),
+            shared.sim().next_event_s(),
+        ]
+        .into_iter()
+        .flatten()
+        .fold(f64::INFINITY, f64::min);
         let wake = if next.is_finite() {
             // One microsecond late, so that the float-to-instant rounding never wakes the
             // server just before the event (which would spin without advancing a paused clock).
@@ -592,13 +642,8 @@ async fn serve(
                     Ok(0) | Err(_) => return Ended::Closed,
                     Ok(n) => n,
                 };
-                let now = shared.now_s();
                 shared.stats().bytes_in += n as u64;
-                let reply = shared.sim().receive(now, &buf[..n]);
-                outbox.push(now, reply, faults, dice, &mut shared.stats());
-                if dice.chance(faults.unplug) {
-                    return Ended::Unplugged(faults.replug_s);
-                }
+                inbox.push(shared.now_s(), &buf[..n]);
             }
             _ = sleep_until(wake, precise) => {}
             request = reopen => match request {
@@ -633,9 +678,10 @@ mod tests {
         out
     }
 
-    /// In memory on the paused clock: the boot notice at open, an identify answered after its
-    /// transmission time at 115200 baud (and not before), and a home whose MotionDone arrives
-    /// at the simulated homing time (0.5 s), late only by its sending time and timer rounding.
+    /// In memory on the paused clock: the boot notice at open, an identify answered after the
+    /// request's and the reply's transmission times at 115200 baud (and not before), and a home
+    /// whose MotionDone arrives at the simulated homing time (0.5 s), late only by the sending
+    /// times and timer rounding.
     #[tokio::test(start_paused = true)]
     async fn memory_round_trip_paced_and_timed() {
         let server = SimServer::memory(
@@ -655,8 +701,15 @@ mod tests {
         let r = read_replies(&mut io, 1).await;
         assert!(matches!(r[..], [Reply::Identity { .. }]), "{r:?}");
         let dt = t0.elapsed().as_secs_f64();
-        // An identity frame is 21 bytes: 21 * 10 / 115200 = 1.8 ms on the wire.
-        assert!(dt > 1.5e-3 && dt < 3e-3, "{dt}");
+        // The request's bytes, then the identity frame's 21: 10 bits each at 115200 baud. The
+        // device waits for the request's last byte, and tokio's timer rounds each of the two
+        // wake-ups up to the next millisecond.
+        let request = encode_vec(1, &Command::Identify).len();
+        let wire_s = (request + 21) as f64 * 10.0 / 115_200.0;
+        assert!(
+            dt >= wire_s && dt < wire_s + 2e-3,
+            "{dt} s, on the wire {wire_s} s"
+        );
         let t0 = Instant::now();
         io.write_all(&encode_vec(2, &Command::Home)).await.unwrap();
         let r = read_replies(&mut io, 2).await;
@@ -665,9 +718,9 @@ mod tests {
             "{r:?}"
         );
         let dt = t0.elapsed().as_secs_f64();
-        // The frame takes 1 ms to send and tokio's timer rounds each wake up to the next
-        // millisecond: 0.5 s + [0, 3 ms).
-        assert!((0.5..0.503).contains(&dt), "{dt}");
+        // The frames take 1.5 ms to send and tokio's timer rounds each wake up to the next
+        // millisecond: 0.5 s + [0, 4 ms).
+        assert!((0.5..0.504).contains(&dt), "{dt}");
         assert_eq!(server.stats().connections, 1);
     }
 

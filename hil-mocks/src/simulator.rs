@@ -60,8 +60,13 @@ pub fn next_request<T>(
 pub trait Simulator: Send + 'static {
     /// A short description, such as `"elliptec ELL14 at address 0"`.
     fn describe(&self) -> String;
-    /// The line rate the real device uses (the server paces output at baud / 10 bytes per s).
+    /// The line rate the real device uses.
     fn baud(&self) -> u32;
+    /// How long one byte takes between host and device, seconds: the server paces both ways
+    /// by it. By default a UART's ten bits (8N1) at [`Simulator::baud`].
+    fn seconds_per_byte(&self) -> f64 {
+        10.0 / f64::from(self.baud().max(1))
+    }
     /// Feeds the host's bytes at `now_s`; returns the device's bytes (events that fell due,
     /// then replies, in order). Never panics on any input.
     fn receive(&mut self, now_s: f64, bytes: &[u8]) -> Vec<u8>;
@@ -84,6 +89,9 @@ impl Simulator for Box<dyn Simulator> {
     }
     fn baud(&self) -> u32 {
         (**self).baud()
+    }
+    fn seconds_per_byte(&self) -> f64 {
+        (**self).seconds_per_byte()
     }
     fn receive(&mut self, now_s: f64, bytes: &[u8]) -> Vec<u8> {
         (**self).receive(now_s, bytes)

@@ -35,7 +35,7 @@
 
 use crate::faults::{Dice, FaultProfile};
 use crate::motion::{output_from_motor, Profile, Ramp};
-use crate::simulator::{SimDialect, Simulator, Truth};
+use crate::simulator::{SimDialect, SimMotion, Simulator, Truth};
 use polar_drivers::standa::wire::{self, Code, Fields};
 
 /// A partial frame idle this long (simulated seconds) is dropped (the manual's 400 ms).
@@ -579,6 +579,12 @@ impl Simulator for StandaDevice {
         115_200
     }
 
+    /// USB CDC: the 115200 8N2 a host sets is nominal, the bytes move in USB full-speed bulk
+    /// packets (about 1 MB/s), so a reply is not held up by its length as on a UART.
+    fn seconds_per_byte(&self) -> f64 {
+        1e-6
+    }
+
     fn receive(&mut self, now_s: f64, bytes: &[u8]) -> Vec<u8> {
         if !self.pending.is_empty() && now_s - self.last_byte_s >= IDLE_TIMEOUT_S {
             self.pending.clear();
@@ -632,7 +638,10 @@ pub const SIM: SimDialect = SimDialect {
         })
     }),
     on_bus: None,
-    motion: None,
+    motion: Some(SimMotion {
+        ramp_s: 0.1,
+        max_spin_deg_per_s: polar_drivers::standa::MAX_SPIN_DEG_PER_S,
+    }),
 };
 
 #[cfg(test)]

@@ -21,6 +21,8 @@
 //!   rendered truth.
 //! * [`hil::pr50cc`]: the same capture on `examples/rigs/sim_pr50cc.toml` (the simulated
 //!   SMC100CC with a PR50CC through the SMC100 driver).
+//! * [`hil::standa_rig`]: the same capture on `examples/rigs/sim_8mpr16.toml` (the simulated
+//!   8SMC5-USB with the 8MPR16-1 through the Standa driver, at the stage's real speeds).
 //! * [`hil::apt_capture`]: a capture through the real APT driver on the simulated K10CR1 and
 //!   PRM1Z8, the engine's run with the analyzer on an `AptRotator`; Stokes against the truth.
 //! * [`hil::genicam_loop`]: Aravis's in-process fake GigE camera painting each frame from the
@@ -28,10 +30,10 @@
 //! * [`hil::conformance_elliptec`], [`hil::conformance_apt`], [`hil::conformance_smc100`],
 //!   [`hil::conformance_standa`]: the
 //!   public client libraries
-//!   (pylablib, thorlabs_elliptec, elliptec, thorlabs-apt-device, pystages, yaqd-newport, pylablib's Standa8SMC)
-//!   against the simulated devices
-//!   on pseudo-terminals, through `scripts/conformance/*.py` in the venv `POLARIMETER_PYTHON`
-//!   names.
+//!   public client libraries (pylablib, thorlabs_elliptec, elliptec, thorlabs-apt-device,
+//!   pystages, yaqd-newport, pylablib's Standa8SMC) against the simulated devices on
+//!   pseudo-terminals, and Standa's libximc against its own virtual controller and the
+//!   simulator, through `scripts/conformance/*.py` in the venv `POLARIMETER_PYTHON` names.
 //!
 //! Crate-level tests stay in their crates.
 
@@ -50,4 +52,5 @@ mod hil {
     pub mod plan_kinds;
     pub mod plans;
     pub mod pr50cc;
+    pub mod standa_rig;
 }

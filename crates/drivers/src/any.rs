@@ -5,7 +5,9 @@
 //! GUI hold a stage of any dialect without being generic over it, and a new dialect needs no
 //! change here (its registry line in [`crate::registry`] boxes its driver).
 
-use polar_hal::{ContinuousSupport, DeviceError, FilterWheel, Rotator, RotatorInfo, TriggerPulse};
+use polar_hal::{
+    ContinuousSupport, DeviceError, FilterWheel, Rotator, RotatorInfo, TriggerPulse, WireTimes,
+};
 use std::future::Future;
 use std::pin::Pin;
 use std::time::Duration;
@@ -25,6 +27,7 @@ trait DynRotator {
     fn spin(&mut self, rad_per_s: f64) -> LocalFuture<'_, Result<(), DeviceError>>;
     fn stop_spin(&mut self) -> LocalFuture<'_, Result<f64, DeviceError>>;
     fn spin_position_rad(&mut self) -> LocalFuture<'_, Result<f64, DeviceError>>;
+    fn spin_read_wire(&self) -> WireTimes;
     fn arm_trigger(
         &mut self,
         first_rad: f64,
@@ -67,6 +70,9 @@ impl<R: Rotator> DynRotator for R {
     }
     fn spin_position_rad(&mut self) -> LocalFuture<'_, Result<f64, DeviceError>> {
         Box::pin(Rotator::spin_position_rad(self))
+    }
+    fn spin_read_wire(&self) -> WireTimes {
+        Rotator::spin_read_wire(self)
     }
     fn arm_trigger(
         &mut self,
@@ -133,6 +139,10 @@ impl Rotator for AnyRotator {
 
     async fn spin_position_rad(&mut self) -> Result<f64, DeviceError> {
         self.0.spin_position_rad().await
+    }
+
+    fn spin_read_wire(&self) -> WireTimes {
+        self.0.spin_read_wire()
     }
 
     async fn arm_trigger(

@@ -44,7 +44,7 @@ use crate::link::{retryable, BoxIo, Connector, Link, OpenFuture, Policy};
 use codec::{status, Decoded, HwInfo, Message, VelParams};
 use polar_hal::{
     signed_difference, wrap, ContinuousSupport, DeviceError, ErrorKind, Rotator, RotatorInfo,
-    TURN_RAD,
+    WireTimes, TURN_RAD,
 };
 use std::io;
 use std::time::Duration;
@@ -975,6 +975,12 @@ impl Rotator for AptRotator {
     async fn spin_position_rad(&mut self) -> Result<f64, DeviceError> {
         let p = self.position_counts().await?;
         Ok((f64::from(p) / self.model.counts_per_deg()).to_radians())
+    }
+
+    /// `MOT_REQ_POSCOUNTER` (6 bytes) and `MOT_GET_POSCOUNTER` (12) at 115200 baud 8N1 (the
+    /// controllers' FTDI UART): 0.52 ms before the latch, 1.04 ms after it.
+    fn spin_read_wire(&self) -> WireTimes {
+        WireTimes::uart(6, 12, BAUD, 10)
     }
 }
 

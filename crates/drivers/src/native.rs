@@ -17,7 +17,7 @@ use polar_firmware_protocol::{
 };
 use polar_hal::{
     angle_from_counts, counts_toward, ContinuousSupport, DeviceError, ErrorKind, FilterWheel,
-    Rotator, RotatorInfo, TURN_RAD,
+    Rotator, RotatorInfo, WireTimes, TURN_RAD,
 };
 use std::collections::VecDeque;
 use std::time::Duration;
@@ -938,6 +938,21 @@ impl Rotator for NativeRotator {
         self.session.ensure_ready().await?;
         let p = self.session.status().await?.position_counts;
         Ok(f64::from(p) / f64::from(self.info.counts_per_turn.max(1)) * TURN_RAD)
+    }
+
+    /// `GetStatus` and its `Status` frames at the port's baud, 8N1.
+    fn spin_read_wire(&self) -> WireTimes {
+        let request = encode_vec(0, &Command::GetStatus).len();
+        let reply = encode_vec(
+            0,
+            &Reply::Status {
+                position_counts: 0,
+                flags: StatusFlags::default(),
+                slot: 0,
+            },
+        )
+        .len();
+        WireTimes::uart(request, reply, DIALECT.baud, 10)
     }
 
     async fn arm_trigger(

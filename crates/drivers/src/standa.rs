@@ -26,7 +26,8 @@ use crate::any::AnyRotator;
 use crate::dialect::{DeviceKind, Dialect, Identity, LineSettings, Position};
 use crate::link::{retryable, Connector, Link, Policy};
 use polar_hal::{
-    angle_from_counts, signed_difference, DeviceError, ErrorKind, Rotator, RotatorInfo, TURN_RAD,
+    angle_from_counts, signed_difference, ContinuousSupport, DeviceError, ErrorKind, Rotator,
+    RotatorInfo, TURN_RAD,
 };
 use std::time::Duration;
 use tokio::time::Instant;
@@ -553,10 +554,17 @@ impl StandaSession {
 
 crate::link::initialise_by_flag!(StandaSession);
 
+/// The fastest the driver spins the 8MPR16-1, degrees per second: the move speed of Standa's
+/// own profile for the stage (500 full steps/s); the driver does not drive it faster.
+pub const MAX_SPIN_DEG_PER_S: f64 = 6.25;
+
 /// The 8MPR16-1 on an 8SMC4/5 controller.
 pub struct StandaRotator {
     session: StandaSession,
     info: RotatorInfo,
+    /// The move settings (`gmov`'s data) before a spin changed the speed, written back when
+    /// it stops.
+    spin_restore: Option<Vec<u8>>,
 }
 
 impl StandaRotator {
@@ -578,6 +586,7 @@ impl StandaRotator {
                 tolerance_rad: STANDA_TOLERANCE_DEG.to_radians(),
             },
             session,
+            spin_restore: None,
         })
     }
 
@@ -588,6 +597,17 @@ impl StandaRotator {
 
     fn angle(&self, usteps: i64) -> f64 {
         angle_from_counts(usteps, self.info.counts_per_turn)
+    }
+
+    /// `gmov`'s data with the speed set to `deg_s` (full steps and microsteps per second).
+    fn move_settings_at(&self, gmov: &[u8], deg_s: f64) -> Vec<u8> {
+        let per = self.session.info().map_or(256, |i| i.microsteps);
+        let usteps_s = (deg_s / 360.0 * f64::from(self.info.counts_per_turn)).round() as i64;
+        let (steps, usteps) = wire::split(usteps_s, per);
+        let mut data = gmov.to_vec();
+        data[0..4].copy_from_slice(&(steps.max(0) as u32).to_le_bytes());
+        data[4] = usteps.clamp(0, 255) as u8;
+        data
     }
 }
 
@@ -622,6 +642,56 @@ impl Rotator for StandaRotator {
         self.session.ensure_ready().await?;
         let p = self.session.position_usteps().await?;
         Ok(self.angle(p))
+    }
+
+    fn continuous_support(&self) -> ContinuousSupport {
+        ContinuousSupport::Velocity
+    }
+
+    /// Velocity mode: the move speed set to `|rad_per_s|` (`smov`, at most
+    /// [`MAX_SPIN_DEG_PER_S`]), then `rigt` (positive) or `left`; a second call changes the
+    /// speed and direction. The move settings of before are written back by `stop_spin`.
+    async fn spin(&mut self, rad_per_s: f64) -> Result<(), DeviceError> {
+        let deg_s = rad_per_s.to_degrees();
+        if !(deg_s.is_finite() && deg_s != 0.0 && deg_s.abs() <= MAX_SPIN_DEG_PER_S) {
+            return Err(self.session.error(
+                ErrorKind::OutOfRange,
+                format!(
+                    "spin speed {deg_s} deg/s: allowed 0 < |speed| <= {MAX_SPIN_DEG_PER_S} \
+                     deg/s (the 8MPR16-1 profile's move speed)"
+                ),
+            ));
+        }
+        self.session.ensure_ready().await?;
+        let gmov = self.session.request(b"gmov", &[], 24).await?;
+        let settings = self.move_settings_at(&gmov, deg_s.abs());
+        if self.spin_restore.is_none() {
+            self.spin_restore = Some(gmov);
+        }
+        self.session.request(b"smov", &settings, 0).await?;
+        let code = if deg_s > 0.0 { b"rigt" } else { b"left" };
+        self.session.request(code, &[], 0).await?;
+        Ok(())
+    }
+
+    /// `sstp` (a decelerating stop), `gets` until it ends, the move settings written back;
+    /// where the stage stopped.
+    async fn stop_spin(&mut self) -> Result<f64, DeviceError> {
+        self.session.request(b"sstp", &[], 0).await?;
+        let timeout = self.session.policy.move_timeout;
+        self.session.wait_done(timeout).await?;
+        if let Some(gmov) = self.spin_restore.take() {
+            self.session.request(b"smov", &gmov, 0).await?;
+        }
+        let p = self.session.position_usteps().await?;
+        Ok(self.angle(p))
+    }
+
+    /// `gpos` (the counter, unwrapped). Over USB, so no serial line's share in its round trip
+    /// ([`Rotator::spin_read_wire`] stays zero).
+    async fn spin_position_rad(&mut self) -> Result<f64, DeviceError> {
+        let p = self.session.position_usteps().await?;
+        Ok(p as f64 / f64::from(self.info.counts_per_turn.max(1)) * TURN_RAD)
     }
 }
 

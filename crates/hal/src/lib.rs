@@ -161,6 +161,31 @@ pub struct TriggerPulse {
     pub device_time_us: u32,
 }
 
+/// The time a position read spends on a serial line, seconds: the request's bytes, before the
+/// device can latch the position, and the reply's, after it latched. A read's round trip on
+/// the host's clock brackets the latch only to within these: the latch lies in `[request
+/// sent + request_s, reply received - reply_s]`. Zero where the transport adds no such time
+/// (USB, or a driver that does not say).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct WireTimes {
+    /// Seconds for the request's bytes on the line.
+    pub request_s: f64,
+    /// Seconds for the reply's bytes on the line.
+    pub reply_s: f64,
+}
+
+impl WireTimes {
+    /// A UART at `baud` with `bits_per_byte` (start, data, parity and stop bits: 10 for 8N1,
+    /// 11 for 8N2) carrying `request_bytes` and `reply_bytes`.
+    pub fn uart(request_bytes: usize, reply_bytes: usize, baud: u32, bits_per_byte: u32) -> Self {
+        let per_byte_s = f64::from(bits_per_byte) / f64::from(baud.max(1));
+        WireTimes {
+            request_s: request_bytes as f64 * per_byte_s,
+            reply_s: reply_bytes as f64 * per_byte_s,
+        }
+    }
+}
+
 /// The error a stage without continuous rotation gives for `what` (kind
 /// [`ErrorKind::OutOfRange`]: the request is outside what the stage offers).
 fn unsupported(info: &RotatorInfo, what: &str, support: ContinuousSupport) -> DeviceError {
@@ -216,6 +241,10 @@ pub trait Rotator {
             "stop_spin",
             self.continuous_support(),
         ))
+    }
+    /// The line's share of a [`Rotator::spin_position_rad`] round trip (by default none).
+    fn spin_read_wire(&self) -> WireTimes {
+        WireTimes::default()
     }
     /// The position while spinning, radians, unwrapped (it keeps counting past a turn), read
     /// from the device now (never a cached value). Refuses by default.

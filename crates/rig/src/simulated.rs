@@ -83,6 +83,8 @@ pub struct SimRig {
     pub sensor: SensorModel,
     /// The lens cap and the clouds.
     pub illumination: Illumination,
+    /// Each exposure's true start and end angles (ground truth for tests).
+    pub exposures: polar_hil_mocks::camera::ExposureLog,
     /// Materials of the scene file (for target masks by name).
     pub scene_file: Option<Scene>,
 }
@@ -418,6 +420,7 @@ impl SimRig {
         }
         let sensor = cam.sensor().clone();
         let illumination = cam.illumination();
+        let exposures = cam.exposures();
         let camera = ThreadedCamera::spawn(cam, ThreadPolicy::default())
             .map_err(|e| SimError::Camera(e.to_string()))?;
         Ok((
@@ -430,6 +433,7 @@ impl SimRig {
                 camera_model,
                 sensor,
                 illumination,
+                exposures,
                 scene_file: Some(scene_file),
             },
             camera,

@@ -68,3 +68,67 @@ async fn pylablib_drives_the_simulated_standa() {
     server.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Standa's libximc through its own virtual controller (`xi-emu`) and through the simulated
+/// controller's pseudo-terminal (`xi-com`), the same command sequence on both, driven by
+/// `scripts/conformance/standa_ximc.py`: every call libximc makes succeeds on the simulator
+/// wherever it succeeds on the emulator (no row `INCOMPATIBLE`, exit status 0), every
+/// differing field has a named reason (no `UNEXPLAINED`: the emulator's generic profile, its
+/// motion without acceleration, the status bits it does not keep), and the motion the two
+/// agree on is there: the position after `move` and after `movr`, the engine type, the
+/// settings written and read back. The simulator is the stage at Standa's real profile (the
+/// script raises FastHome so homing takes seconds); the table is in
+/// `docs/DEVICES-conformance.md`, also written to `target/standa-ximc.md`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn libximc_emulator_and_simulator_agree() {
+    let python = client_python();
+    if !clients_available(&python, "libximc") {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("polar-standa-ximc-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let healthy = FaultProfile::default();
+    let link = dir.join("standa");
+    let device = StandaDevice::new(StandaConfig::mpr16(), healthy, 43);
+    let server = SimServer::pty(device, healthy, 9, &link).expect("a pty");
+    let args = vec![link.display().to_string()];
+    let run = tokio::task::spawn_blocking({
+        let dir = dir.clone();
+        move || run_script(&python, "standa_ximc.py", &args, &dir, "standa-ximc.md")
+    })
+    .await
+    .expect("the script's thread");
+    assert!(run.success, "the script failed:\n{}", run.log);
+    assert!(
+        run.rows.len() >= 40,
+        "{} rows:\n{}",
+        run.rows.len(),
+        run.log
+    );
+    for r in &run.rows {
+        assert_eq!(
+            r.len(),
+            5,
+            "operation, verdict, emulator, simulator, reasons: {r:?}"
+        );
+        assert!(matches!(r[1].as_str(), "same" | "different"), "{r:?}");
+        assert!(!r[4].contains("UNEXPLAINED"), "{r:?}");
+        if r[1] == "different" {
+            assert!(!r[4].is_empty(), "a difference without its reason: {r:?}");
+        }
+    }
+    let same = |op: &str| {
+        run.rows
+            .iter()
+            .any(|r| r[0].starts_with(op) && r[1] == "same")
+    };
+    for op in [
+        "get_entype_settings",
+        "get_position after move",
+        "get_position after movr",
+    ] {
+        assert!(same(op), "{op} differs: {:?}", run.rows);
+    }
+    server.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}

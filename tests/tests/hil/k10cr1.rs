@@ -14,16 +14,21 @@ use polar_hil_tests::{repo_root, run_cli, scratch, stokes_within_two_sigma};
 /// give a sampling spread of 0.05 %; Poisson skew and the mount's backlash add a little).
 #[test]
 fn capture_on_the_simulated_k10cr1_rig_file() {
-    capture_on_a_rig_file("sim_k10cr1.toml", "capture_k10cr1.toml", "apt", "k10cr1");
+    capture_on_a_rig_file(
+        "sim_k10cr1.toml",
+        "tests/fixtures/capture_k10cr1.toml",
+        "apt",
+        "k10cr1",
+    );
 }
 
-/// The capture of `tests/fixtures/FIXTURE` on `examples/rigs/RIG` through the command's entry
-/// point, judged as [`capture_on_the_simulated_k10cr1_rig_file`] says; the store must record the
-/// stage's `dialect` and `model`.
-pub(crate) fn capture_on_a_rig_file(rig: &str, fixture: &str, dialect: &str, model: &str) {
+/// The capture of `PLAN` (a path from the repository's root) on `examples/rigs/RIG` through
+/// the command's entry point, judged as [`capture_on_the_simulated_k10cr1_rig_file`] says; the
+/// store must record the stage's `dialect` and `model`.
+pub(crate) fn capture_on_a_rig_file(rig: &str, plan: &str, dialect: &str, model: &str) {
     let root = repo_root();
     let rig_path = root.join("examples/rigs").join(rig);
-    let plan_path = root.join("tests/fixtures").join(fixture);
+    let plan_path = root.join(plan);
     let run_dir = scratch(model).join("run");
     let (out, code) =
         run_cli(&plan_path, &rig_path, &run_dir, 0, false).unwrap_or_else(|e| panic!("{e}"));

@@ -10,5 +10,10 @@ use super::k10cr1::capture_on_a_rig_file;
 /// of the rendered truth (95.45 % for an unbiased Gaussian estimate; see the K10CR1's test).
 #[test]
 fn capture_on_the_simulated_pr50cc_rig_file() {
-    capture_on_a_rig_file("sim_pr50cc.toml", "capture_pr50cc.toml", "smc100", "pr50cc");
+    capture_on_a_rig_file(
+        "sim_pr50cc.toml",
+        "tests/fixtures/capture_pr50cc.toml",
+        "smc100",
+        "pr50cc",
+    );
 }

@@ -5,8 +5,13 @@
 //!
 //! A position sample is a read of the stage's position while it spins
 //! (`Rotator::spin_position_rad`) with the host's clock read just before the request and just
-//! after the reply. The device latches the position somewhere inside that round trip; the
-//! sample's time is the round trip's midpoint, `t = (t_request + t_reply) / 2`. Where inside
+//! after the reply. The device latches the position somewhere inside that round trip, but not
+//! while the request's bytes are still on a serial line nor once the reply's are: the driver
+//! states both times (`Rotator::spin_read_wire`, the bytes' bits at the line's baud; a
+//! K10CR1's position read spends 0.52 ms before its latch and 1.04 ms after it at 115200
+//! baud), and the bracket is narrowed by them ([`PositionSample::bracketed`]). The sample's
+//! time is the narrowed bracket's midpoint, `t = (t_request + t_reply) / 2`, and `rtt` below
+//! its width. Where inside
 //! the round trip the latch falls is a property of the controller that no number of samples
 //! reveals, so its offset from the midpoint is a systematic error common to all samples,
 //! uniform over `[-rtt / 2, rtt / 2]`: standard deviation `rtt / (2 sqrt 3)` in time, `omega`
@@ -66,6 +71,7 @@
 //! not move it. A frame's end is `host = offset + rate x device`; what is left is the least
 //! latency, which the plan's `timing_sigma_us` states.
 
+use polar_hal::WireTimes;
 use std::collections::VecDeque;
 use std::f64::consts::{PI, TAU};
 
@@ -81,6 +87,25 @@ pub struct PositionSample {
 }
 
 impl PositionSample {
+    /// A read sent at `sent_s` and answered at `received_s` (host clock, seconds), its
+    /// position `angle_rad`: the latch lies after the request's bytes reached the device and
+    /// before the reply's left it ([`polar_hal::WireTimes`]). A round trip shorter than the
+    /// line's share (a clock read late) keeps the line's proportion of it.
+    pub fn bracketed(sent_s: f64, received_s: f64, wire: WireTimes, angle_rad: f64) -> Self {
+        let round_trip_s = (received_s - sent_s).max(0.0);
+        let on_line_s = wire.request_s.max(0.0) + wire.reply_s.max(0.0);
+        let scale = if on_line_s > round_trip_s && on_line_s > 0.0 {
+            round_trip_s / on_line_s
+        } else {
+            1.0
+        };
+        PositionSample {
+            request_s: sent_s + scale * wire.request_s.max(0.0),
+            reply_s: sent_s.max(received_s - scale * wire.reply_s.max(0.0)),
+            angle_rad,
+        }
+    }
+
     /// The sample's time: the round trip's midpoint.
     pub fn time_s(&self) -> f64 {
         0.5 * (self.request_s + self.reply_s)
@@ -623,6 +648,32 @@ mod tests {
         assert!(e.contains("clock map window = 1"), "{e}");
         let e = map.push(f64::NAN, 0.0).expect_err("nan").to_string();
         assert!(e.contains("device timestamp"), "{e}");
+    }
+
+    /// A read's bracket is narrowed by the line's share: a K10CR1 read (6 bytes out, 12 back
+    /// at 115200 baud 8N1: 0.52 and 1.04 ms) sent at 1 s and answered at 1.004 s latched in
+    /// [1.00052, 1.00296] s (to 1e-12 s); no line leaves the round trip as it is; a round
+    /// trip shorter than the line's share (a clock read late) keeps its proportion, so the
+    /// bracket is one point, 1/3 of the way in, and never runs backwards.
+    #[test]
+    fn wire_times_narrow_the_bracket() {
+        let wire = WireTimes::uart(6, 12, 115_200, 10);
+        assert!((wire.request_s - 60.0 / 115_200.0).abs() < 1e-15);
+        let s = PositionSample::bracketed(1.0, 1.004, wire, 0.5);
+        assert!(
+            (s.request_s - (1.0 + 60.0 / 115_200.0)).abs() < 1e-12,
+            "{s:?}"
+        );
+        assert!(
+            (s.reply_s - (1.004 - 120.0 / 115_200.0)).abs() < 1e-12,
+            "{s:?}"
+        );
+        assert_eq!(s.angle_rad, 0.5);
+        let none = PositionSample::bracketed(1.0, 1.004, WireTimes::default(), 0.5);
+        assert_eq!((none.request_s, none.reply_s), (1.0, 1.004));
+        let short = PositionSample::bracketed(1.0, 1.0009, wire, 0.5);
+        assert!((short.round_trip_s()).abs() < 1e-12, "{short:?}");
+        assert!((short.request_s - 1.0003).abs() < 1e-12, "{short:?}");
     }
 
     /// Bad input is refused with the field named: too few samples, no spread in time, a

@@ -9,7 +9,7 @@ use polar_engine::run::{self, Outcome};
 use polar_engine::store::RunStore;
 use polar_engine::FrameRecord;
 use polar_hal::Roi;
-use polar_hil_mocks::camera::{CameraFaults, SimCamera, SimCameraConfig};
+use polar_hil_mocks::camera::{CameraFaults, ExposureLog, SimCamera, SimCameraConfig};
 use polar_rig::SimWorld;
 use std::path::Path;
 use std::sync::Arc;
@@ -103,4 +103,70 @@ pub fn half_turn_z_scores(
         }
     }
     z
+}
+
+/// The frames of a stored run that count: a half turn cut by a late exposure is taken again
+/// whole, its earlier frames stored but superseded in the journal.
+pub fn counted_records(store: &RunStore, dir: &Path) -> Vec<FrameRecord> {
+    let superseded = polar_engine::journal::replay(dir)
+        .unwrap()
+        .rejected_frames();
+    store
+        .read_frame_metadata()
+        .unwrap()
+        .into_iter()
+        .filter(|r| !superseded.contains(&r.index))
+        .collect()
+}
+
+/// Recorded span starts against the simulated camera's true angles.
+pub struct SpanStarts {
+    /// The fraction within 2 recorded sigma.
+    pub within_2_sigma: f64,
+    /// The largest error in recorded sigma.
+    pub worst_z: f64,
+    /// The mean error, degrees (a bias of the recorded starts).
+    pub mean_error_deg: f64,
+}
+
+/// Each record's span start, less `lag_deg` (an offset of the stage's output from its reads,
+/// such as half a backlash), against the analyzer's true angle when its exposure started (the
+/// camera's `exposures` log, by frame id), in recorded sigma; prints each frame.
+pub fn span_start_z(records: &[FrameRecord], exposures: &ExposureLog, lag_deg: f64) -> SpanStarts {
+    let mut z = Vec::with_capacity(records.len());
+    let mut errors = Vec::with_capacity(records.len());
+    for r in records {
+        let truth = exposures
+            .get(r.frame_id)
+            .unwrap_or_else(|| panic!("frame {}: no exposure truth", r.frame_id));
+        let true_deg = truth.start_rad.to_degrees();
+        let d = (r.angle_start_deg - lag_deg - true_deg).rem_euclid(180.0);
+        let d = if d > 90.0 { d - 180.0 } else { d };
+        let zi = d / r.angle_sigma_deg;
+        println!(
+            "frame {}: start {:.5} deg, truth {:.5} deg (+ {lag_deg}), error {d:+.5} deg, \
+             sigma {:.5} deg, z {zi:+.2}",
+            r.index,
+            r.angle_start_deg,
+            true_deg.rem_euclid(180.0),
+            r.angle_sigma_deg
+        );
+        z.push(zi);
+        errors.push(d);
+    }
+    let n = z.len().max(1) as f64;
+    let starts = SpanStarts {
+        within_2_sigma: z.iter().filter(|v| v.abs() <= 2.0).count() as f64 / n,
+        worst_z: z.iter().fold(0.0, |m: f64, v| m.max(v.abs())),
+        mean_error_deg: errors.iter().sum::<f64>() / n,
+    };
+    println!(
+        "span starts: {} frames, {:.1} % within 2 recorded sigma, worst z {:.2}, mean error \
+         {:+.5} deg",
+        z.len(),
+        100.0 * starts.within_2_sigma,
+        starts.worst_z,
+        starts.mean_error_deg
+    );
+    starts
 }

@@ -31,16 +31,17 @@ fn fit_err(e: FitError) -> DeviceError {
     DeviceError::new(ErrorKind::Protocol, "continuous", e.to_string())
 }
 
-/// One position read of the spinning stage on `clock`.
+/// One position read of the spinning stage on `clock`, its bracket narrowed by the line's
+/// share of the round trip ([`polar_hal::WireTimes`]: the device latches after the request's
+/// last byte and before the reply's first).
 async fn read<R: Rotator>(rotator: &mut R, clock: Instant) -> Result<PositionSample, DeviceError> {
-    let request_s = clock.elapsed().as_secs_f64();
+    let wire = rotator.spin_read_wire();
+    let sent_s = clock.elapsed().as_secs_f64();
     let angle_rad = rotator.spin_position_rad().await?;
-    let reply_s = clock.elapsed().as_secs_f64();
-    Ok(PositionSample {
-        request_s,
-        reply_s,
-        angle_rad,
-    })
+    let received_s = clock.elapsed().as_secs_f64();
+    Ok(PositionSample::bracketed(
+        sent_s, received_s, wire, angle_rad,
+    ))
 }
 
 /// The first stage angle at or after `angle_rad` that is a whole half turn of the analyzer
