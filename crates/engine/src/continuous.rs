@@ -48,7 +48,7 @@ use polar_model::span::{span_signal, SpanExposure, SpanSignal};
 use serde::{Deserialize, Serialize};
 
 /// How each frame's analyzer span is measured.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum TriggerSource {
     /// The stage's position-compare output triggers the camera (GenICam `TriggerSource =
@@ -70,7 +70,7 @@ fn twenty() -> f64 {
 }
 
 /// What the planner of a `from_planner` section optimises (`polar_planner::continuous`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum FromPlannerObjective {
     /// The shortest time until the target's DoLP standard deviation is `dolp_sigma`.
@@ -137,7 +137,7 @@ fn readout_default() -> f64 {
 /// `[simulation]` scene and camera, as a capture's `from_planner`), within the camera's and
 /// the stage's limits. The settings default to `polarimeter plan continuous`'s flags; the
 /// stage's limits not given are the simulated rig's stage ([`crate::continuous_planner`]).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ContinuousFromPlanner {
     /// Target material (a name in the scene).
@@ -243,7 +243,7 @@ impl ContinuousFromPlanner {
 /// `[continuous]`. With `from_planner` given, `frames_per_half_turn`, `exposure_us` and
 /// `speed_deg_per_s` are 0 until [`Continuous::resolve`] sets the planner's choice (and
 /// [`Continuous::validate`] refuses the section until then).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(try_from = "ContinuousAsWritten", into = "ContinuousAsWritten")]
 pub struct Continuous {
     /// Frames per half turn, 3..=360, equally spaced.
@@ -266,23 +266,33 @@ pub struct Continuous {
 }
 
 /// `[continuous]` as written: the three values optional, or `from_planner`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 struct ContinuousAsWritten {
+    /// Frames per half turn, 3..=360, equally spaced (or `from_planner`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     frames_per_half_turn: Option<u32>,
+    /// Exposure of each frame, microseconds, `(0, 1e7]`, short enough that the span ends
+    /// before the next trigger (or `from_planner`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     exposure_us: Option<f64>,
+    /// The analyzer's speed, degrees per second, `(0, 3600]` (or `from_planner`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     speed_deg_per_s: Option<f64>,
+    /// Half turns (Stokes sets), 1..=100000.
     #[serde(default = "one")]
     half_turns: u32,
+    /// How spans are measured: `encoder` (the stage's position-compare pulses trigger the
+    /// camera) or `timestamps` (the stage's position reads against the host's clock).
     #[serde(default = "encoder")]
     trigger: TriggerSource,
+    /// Timing uncertainty of a frame's exposure end (timestamps), microseconds, `[0, 1e6]`.
     #[serde(default = "twenty")]
     timing_sigma_us: f64,
+    /// Analog gain, dB, `[0, 48]`.
     #[serde(default)]
     gain_db: f64,
+    /// The continuous planner chooses frames per half turn, exposure and speed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     from_planner: Option<ContinuousFromPlanner>,
 }

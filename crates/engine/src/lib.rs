@@ -30,6 +30,7 @@ mod forecast_basis;
 pub mod journal;
 pub mod plan;
 mod plan_error;
+pub mod plan_schema;
 pub mod products;
 pub mod run;
 pub mod store;

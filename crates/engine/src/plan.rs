@@ -25,6 +25,7 @@
 
 use crate::store::Storage;
 use crate::FrameKind;
+use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -66,7 +67,7 @@ fn quoted_angles(angles: &[f64]) -> String {
 }
 
 /// The plan kinds.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum PlanKind {
     /// Angle sets at fixed (or planner-chosen) angles, with darks.
@@ -99,7 +100,7 @@ impl PlanKind {
 }
 
 /// The planner's choice of angles for a capture.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct FromPlanner {
     /// Target material (a name in the scene).
@@ -132,7 +133,7 @@ fn default_analyzer_darks() -> u32 {
 }
 
 /// `[capture]`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Capture {
     /// Analyzer angles of a set, degrees, 3..=16 of them, each in [0, 180).
@@ -158,7 +159,7 @@ pub struct Capture {
 }
 
 /// `[calibrate-noise]`: for each exposure, `pairs` dark pairs and light pairs (EMVA 1288).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct CalibrateNoise {
     /// Exposures of the photon-transfer series, microseconds, 4..=200 of them, increasing.
@@ -176,7 +177,7 @@ pub struct CalibrateNoise {
 
 /// `[calibrate-analyzer]`: a known polarizer in front; the analyzer turns through `steps`
 /// angles over 180 degrees.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct CalibrateAnalyzer {
     /// The reference polarizer's transmission axis in the camera frame, degrees, [0, 180).
@@ -197,7 +198,7 @@ pub struct CalibrateAnalyzer {
 }
 
 /// `[time-lapse]`: `count` sets, one every `interval_s`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct TimeLapse {
     /// Analyzer angles of a set, degrees, 3..=16 of them.
@@ -219,7 +220,7 @@ pub struct TimeLapse {
 }
 
 /// What a time-lapse does with a set that is late (see [`TimeLapse::late`]).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum LatePolicy {
     /// Take the late set at once (the sets then run back to back until on time again).
@@ -230,7 +231,7 @@ pub enum LatePolicy {
 }
 
 /// How the adaptive loop knows the target.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct AdaptiveTarget {
     /// A material of the simulated scene whose pixels are the target (simulation only).
@@ -245,7 +246,7 @@ pub struct AdaptiveTarget {
 }
 
 /// `[adaptive]`: APTD (MODEL.md section 9).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Adaptive {
     /// The first set, degrees (a conventional set).
@@ -285,7 +286,7 @@ fn two_percent() -> f64 {
 }
 
 /// `[policy]`: deadlines and retries.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct Policy {
     /// Deadline of one move, seconds, (0, 600].
@@ -310,7 +311,7 @@ impl Default for Policy {
 }
 
 /// What the suspender does with a set that fails its check.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum SuspendAction {
     /// Record why and take the set again (up to `max_reacquire` times, then pause).
@@ -321,7 +322,7 @@ pub enum SuspendAction {
 
 /// `[suspender]`: every angle set is checked against the model (Malus's law within the
 /// predicted noise, and the analyzer where it was commanded).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct Suspender {
     /// Check sets at all.
@@ -360,7 +361,7 @@ impl Default for Suspender {
 }
 
 /// `[site]`: where the instrument is (for the sun geometry recorded with every frame).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Site {
     /// Latitude, degrees, [-90, 90].
@@ -373,7 +374,7 @@ pub struct Site {
 }
 
 /// `[simulation]`: the simulated devices of `--simulate` and `demo`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct Simulation {
     /// Scene file (TOML, relative to the plan's folder); none: the rooftop panels example.
@@ -396,11 +397,13 @@ pub struct Simulation {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stage: Option<SimStage>,
     /// Fault profile of the stage's serial link (hil-mocks `FaultProfile` fields).
+    #[schemars(with = "Option<serde_json::Map<String, serde_json::Value>>")]
     pub stage_faults: Option<toml::Table>,
     /// Camera faults (hil-mocks `CameraFaults` fields).
+    #[schemars(with = "Option<serde_json::Map<String, serde_json::Value>>")]
     pub camera_faults: Option<toml::Table>,
-    /// Cloud: from this set on, the illumination drops by `cloud_depth` for `cloud_sets`
-    /// sets, in the middle of a set (the suspender's test case).
+    /// Cloud: the illumination drops by `cloud_depth` from the middle of this set to its
+    /// end, on its first try (the suspender's test case: the set is taken again).
     pub cloud_at_set: Option<u64>,
     /// Fractional drop of the illumination under the cloud, (0, 1).
     pub cloud_depth: f64,
@@ -425,7 +428,7 @@ impl Default for Simulation {
 }
 
 /// `[simulation] stage`: which simulated rotation stage the simulated rig drives.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct SimStage {
     /// The dialect (`native`, `elliptec`, `apt`, ...: one with a rotator simulator).
@@ -438,7 +441,7 @@ pub struct SimStage {
 /// A plan file as written: `kind` and every kind's optional section. [`Plan`] is read through
 /// it (serde's messages for unknown keys and wrong types, with their paths) and converted by
 /// [`Plan::try_from`], which keeps exactly the section of `kind`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 struct PlanFile {
     /// A name for people. A plan read from a file without one (or with a blank one) is named
@@ -520,7 +523,7 @@ impl Acquisition {
 
 /// A plan: a name, what it acquires ([`Acquisition`]) and the sections every kind shares.
 /// Read and written in the file's layout (`kind` and the kind's section).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(try_from = "PlanFile", into = "PlanFile")]
 pub struct Plan {
     /// A name for people. A plan read from a file without one (or with a blank one) is named

@@ -1,7 +1,7 @@
 //! `plan`: plan from the model: `plan scene` (angles, integration time and a forecast for a
 //! scene and a camera), `plan angles` (optimal angles for given class statistics), `plan check`
 //! (a plan file's forecast without running it), `plan continuous` (frames per half turn,
-//! exposure and speed for a spinning analyzer).
+//! exposure and speed for a spinning analyzer), `plan schema` (every key of a plan file).
 
 use super::analyze::AptdArgs;
 use super::errors::in_plan_file;
@@ -32,6 +32,9 @@ enum PlanCommand {
     /// Continuous rotation: frames per half turn, exposure and speed within the camera's and
     /// the stage's limits, which limit binds, and a step-and-shoot set beside it.
     Continuous(ContinuousArgs),
+    /// Every key of a plan file, generated from the parser's own types: a JSON Schema, or
+    /// with --markdown the reference in docs/PLAN-KEYS.md (type, default, description).
+    Schema(SchemaArgs),
     /// The same as `analyze aptd`.
     #[command(hide = true)]
     Aptd(AptdArgs),
@@ -45,6 +48,7 @@ impl PlanGroup {
             PlanCommand::Angles(a) => a.run(),
             PlanCommand::Check(a) => a.run(),
             PlanCommand::Continuous(a) => a.run(),
+            PlanCommand::Schema(a) => a.run(),
             PlanCommand::Aptd(a) => a.run(),
         }
     }
@@ -97,6 +101,29 @@ impl CheckArgs {
                 .and_then(|rig| polar_cli::acquire::plan_check(&file, rig.as_ref()))
                 .map_err(|e| in_plan_file(&file, e)),
         )
+    }
+}
+
+/// `plan schema`.
+#[derive(Debug, Args)]
+struct SchemaArgs {
+    /// The Markdown reference (docs/PLAN-KEYS.md) instead of the JSON Schema.
+    #[arg(long)]
+    markdown: bool,
+}
+
+impl SchemaArgs {
+    fn run(self) -> ExitCode {
+        if self.markdown {
+            print!("{}", polar_engine::plan_schema::plan_keys_markdown());
+        } else {
+            let schema = polar_engine::plan_schema::plan_schema();
+            println!(
+                "{}",
+                serde_json::to_string_pretty(&schema).unwrap_or_else(|e| format!("{e}"))
+            );
+        }
+        ExitCode::SUCCESS
     }
 }
 

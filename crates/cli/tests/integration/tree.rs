@@ -73,7 +73,10 @@ fn root_help_lists_only_the_groups() {
 #[test]
 fn every_group_lists_its_subcommands() {
     let groups: [(&[&str], &[&str]); 12] = [
-        (&["plan"], &["scene", "angles", "check", "continuous"]),
+        (
+            &["plan"],
+            &["scene", "angles", "check", "continuous", "schema"],
+        ),
         (
             &["station"],
             &[
@@ -154,12 +157,12 @@ fn plan_with_scene_flags_is_plan_scene() {
 }
 
 /// A mistyped subcommand or flag is refused (exit status 2) on one line that names clap's
-/// suggestion, so a user can guess their way: `plan scen` suggests `scene`, `model fresnel
+/// suggestion, so a user can guess their way: `plan secne` suggests `scene`, `model fresnel
 /// --theta-i 60` suggests `--theta-i-deg`.
 #[test]
 fn mistypes_suggest_the_name_meant() {
     for (args, meant) in [
-        (&["plan", "scen"][..], "`scene`"),
+        (&["plan", "secne"][..], "`scene`"),
         (&["acquire", "resum", "x"][..], "`resume`"),
         (
             &["model", "fresnel", "--n", "1.5", "--theta-i", "60"][..],

@@ -37,7 +37,9 @@ pub const ESSENTIAL: [&str; 6] = ["s0", "dolp", "aop_rad", "sigma_s0", "sigma_do
 pub const DERIVED: [&str; 2] = ["s1", "s2"];
 
 /// Which product planes a run stores.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, schemars::JsonSchema,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum ProductSet {
     /// S0, DoLP, AoP, the sigmas of S0 and DoLP, and the flags.
@@ -48,7 +50,9 @@ pub enum ProductSet {
 }
 
 /// The precision a stored product keeps.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, schemars::JsonSchema,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum Precision {
     /// Rounded to what the pixel's sigma warrants (see the module's documentation).
@@ -60,7 +64,7 @@ pub enum Precision {
 
 /// How a run's store keeps its images: the `storage` root attribute, and a plan's
 /// `[storage]` section (every key optional, defaulting to [`Storage::default`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct Storage {
     /// `"zstd"` or `"none"`.
@@ -72,7 +76,7 @@ pub struct Storage {
 }
 
 /// The compression of every image chunk.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum Compression {
     /// zstd at [`ZSTD_LEVEL`].
