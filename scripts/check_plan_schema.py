@@ -1,0 +1,78 @@
+#!/usr/bin/env python3
+"""The plan schema (`polarimeter plan schema`) against the plans users are shown, judged by the
+`jsonschema` package (Draft 2020-12), not by our parser.
+
+Usage: check_plan_schema.py --bin PATH/TO/polarimeter
+
+Every plan in examples/plans/ and tests/fixtures/ (TOML or YAML, those with a `kind`) must
+validate (our parser reads them all: the tests run them). The schema must not be vacuous: a capture plan with an unknown key, a wrong type (`repeats = "three"`), an
+unknown kind or without its `exposure_us` must each be refused. Prints one line per plan; exits
+1 on any failure.
+"""
+
+import glob
+import json
+import os
+import subprocess
+import sys
+import tomllib
+
+import jsonschema
+import yaml
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def load(path):
+    with open(path, "rb") as f:
+        if path.endswith(".toml"):
+            return tomllib.load(f)
+        return yaml.safe_load(f)
+
+
+def main(argv):
+    if len(argv) != 3 or argv[1] != "--bin":
+        print(__doc__, file=sys.stderr)
+        return 2
+    binary = argv[2]
+    schema = json.loads(subprocess.run([binary, "plan", "schema"], check=True,
+                                       capture_output=True, text=True).stdout)
+    validator = jsonschema.Draft202012Validator(schema)
+    failed = 0
+    paths = sorted(glob.glob(os.path.join(ROOT, "examples/plans/*.*"))
+                   + glob.glob(os.path.join(ROOT, "tests/fixtures/*.toml")))
+    checked = 0
+    for path in paths:
+        if not path.endswith((".toml", ".yaml", ".yml")):
+            continue
+        plan = load(path)
+        if not isinstance(plan, dict) or "kind" not in plan:
+            continue
+        checked += 1
+        errors = [e.message for e in validator.iter_errors(plan)]
+        rel = os.path.relpath(path, ROOT)
+        print(f"{'ok' if not errors else 'FAILED'}  {rel}" + (f": {errors[:3]}" if errors else ""))
+        failed += bool(errors)
+    good = {"kind": "capture", "capture": {"angles_deg": [0, 45, 90], "exposure_us": [100]}}
+    bad = {
+        "unknown key": {**good, "capture": {**good["capture"], "repeat": 3}},
+        "wrong type": {**good, "capture": {**good["capture"], "repeats": "three"}},
+        "unknown kind": {**good, "kind": "capturing"},
+        "missing exposure_us": {**good, "capture": {"angles_deg": [0, 45, 90]}},
+    }
+    if list(validator.iter_errors(good)):
+        print(f"FAILED  a minimal capture plan is refused: {good}")
+        failed += 1
+    for what, plan in bad.items():
+        refused = bool(list(validator.iter_errors(plan)))
+        print(f"{'ok' if refused else 'FAILED'}  refused: {what}")
+        failed += not refused
+    print(f"{checked} plans validated, {failed} failures")
+    if checked < 10:
+        print("FAILED  fewer than 10 plans found")
+        return 1
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))
