@@ -1,11 +1,12 @@
 #!/usr/bin/env python3
-"""The plan schema (`polarimeter plan schema`) against the plans users are shown, judged by the
-`jsonschema` package (Draft 2020-12), not by our parser.
+"""The file schemas (`polarimeter plan schema --file plan|rig|scene|camera`) against the files
+users are shown, judged by the `jsonschema` package (Draft 2020-12), not by our parsers.
 
 Usage: check_plan_schema.py --bin PATH/TO/polarimeter
 
-Every plan in examples/plans/ and tests/fixtures/ (TOML or YAML, those with a `kind`) must
-validate (our parser reads them all: the tests run them). The schema must not be vacuous: a capture plan with an unknown key, a wrong type (`repeats = "three"`), an
+Every plan in examples/plans/ and tests/fixtures/ (TOML or YAML, those with a `kind`), every
+rig in examples/rigs/, every camera in examples/cameras/ and every scene in examples/ (those
+with a `[sun]`) must validate (our parsers read them all: the tests use them). The schema must not be vacuous: a capture plan with an unknown key, a wrong type (`repeats = "three"`), an
 unknown kind or without its `exposure_us` must each be refused. Prints one line per plan; exits
 1 on any failure.
 """
@@ -35,10 +36,31 @@ def main(argv):
         print(__doc__, file=sys.stderr)
         return 2
     binary = argv[2]
-    schema = json.loads(subprocess.run([binary, "plan", "schema"], check=True,
-                                       capture_output=True, text=True).stdout)
-    validator = jsonschema.Draft202012Validator(schema)
+    def validator_of(kind):
+        schema = json.loads(subprocess.run([binary, "plan", "schema", "--file", kind], check=True,
+                                           capture_output=True, text=True).stdout)
+        return jsonschema.Draft202012Validator(schema)
+
     failed = 0
+    others = [("rig", "examples/rigs/*.toml", "stage"), ("camera", "examples/cameras/*.toml", "name"),
+              ("scene", "examples/*.toml", "sun")]
+    for kind, pattern, marker in others:
+        v = validator_of(kind)
+        found = 0
+        for path in sorted(glob.glob(os.path.join(ROOT, pattern))):
+            data = load(path)
+            if marker not in data:
+                continue
+            found += 1
+            errors = [e.message for e in v.iter_errors(data)]
+            rel = os.path.relpath(path, ROOT)
+            print(f"{'ok' if not errors else 'FAILED'}  {kind} {rel}"
+                  + (f": {errors[:3]}" if errors else ""))
+            failed += bool(errors)
+        if found < 2:
+            print(f"FAILED  fewer than 2 {kind} files found")
+            failed += 1
+    validator = validator_of("plan")
     paths = sorted(glob.glob(os.path.join(ROOT, "examples/plans/*.*"))
                    + glob.glob(os.path.join(ROOT, "tests/fixtures/*.toml")))
     checked = 0

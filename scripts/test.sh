@@ -94,7 +94,8 @@ xvfb-run -a -s "-screen 0 1400x900x24" \
   cargo run --release --locked -q -p polar-gui -- --simulate --out target/gui-runs \
   --screenshots target/gui-screenshots
 
-# The plan schema judged by jsonschema: every example plan validates, and bad plans are refused.
+# The file schemas judged by jsonschema: every example plan, rig, scene and camera validates, and
+# bad plans are refused.
 "$POLARIMETER_PYTHON" scripts/check_plan_schema.py --bin target/release/polarimeter
 
 # Every command the README's tour and the examples' headers show, run as a new user runs them:

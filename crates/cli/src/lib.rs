@@ -15,6 +15,7 @@ pub mod commands;
 pub mod count_arg;
 pub mod devices;
 pub mod figures;
+pub mod file_keys;
 pub mod logging;
 pub mod plan;
 pub mod plan_continuous;

@@ -1,8 +1,9 @@
 //! The plan file's keys from the code's own definitions: a JSON Schema of the plan as written
 //! (serde's layout of [`crate::plan::Plan`]: `kind`, each kind's section and the shared
 //! sections, with every field's doc comment as its description and every serde default as
-//! its default), and the Markdown reference `docs/PLAN-KEYS.md` generated from that schema, so
-//! the reference cannot drift from the parser (a test compares the two).
+//! its default), and a Markdown reference of any such schema ([`keys_markdown`]: one table
+//! per section), from which `docs/FILE-KEYS.md` is generated, so the reference cannot drift
+//! from the parsers (the CLI's test compares the two).
 
 use serde_json::{Map, Value};
 
@@ -12,20 +13,20 @@ pub fn plan_schema() -> Value {
     schema.to_value()
 }
 
-/// The Markdown reference of every plan key: one table per section (`[capture]`,
-/// `[continuous.from_planner]`, ...) with each key's type, default and description.
-pub fn plan_keys_markdown() -> String {
-    let schema = plan_schema();
+/// The Markdown reference of every key `schema` describes: one table per section, headed
+/// `{level} [section]` (`level` is the heading's `#`s), with each key's type, default and
+/// description.
+pub fn keys_markdown(schema: &Value, level: &str) -> String {
     let defs = schema
         .get("$defs")
         .and_then(Value::as_object)
         .cloned()
         .unwrap_or_default();
-    let mut out = String::from(HEADER);
+    let mut out = String::new();
     let mut sections = Vec::new();
-    table(&schema, "", &defs, &mut sections);
+    table(schema, "", false, &defs, &mut sections);
     for (name, rows) in sections {
-        out.push_str(&format!("\n## {name}\n\n"));
+        out.push_str(&format!("\n{level} {name}\n\n"));
         out.push_str("| key | type | default | description |\n|---|---|---|---|\n");
         for r in rows {
             out.push_str(&format!(
@@ -36,13 +37,6 @@ pub fn plan_keys_markdown() -> String {
     }
     out
 }
-
-const HEADER: &str = "# Plan file keys\n\n\
-Every key of a plan file (TOML or YAML), generated from the parser's own definitions by \
-`polarimeter plan schema --markdown`; `polarimeter plan schema` prints the same as a JSON \
-Schema. A test fails when this file and the code disagree. A key without a default must be \
-given; a section marked optional may be left out. `kind` chooses which one of the kinds' \
-sections the plan has; the example plans in examples/plans/ show each kind.\n";
 
 /// `schema` with a `$ref` followed into `defs`, and whether it allows null (an `Option`).
 fn resolve<'a>(schema: &'a Value, defs: &'a Map<String, Value>) -> (&'a Value, bool) {
@@ -72,10 +66,18 @@ fn is_section(schema: &Value) -> bool {
     schema.get("properties").is_some_and(Value::is_object)
 }
 
-/// The section `path`'s rows, then its subsections', into `sections`.
+/// The items of a list of tables (`[[material]]`), if `schema` is one.
+fn table_items<'a>(schema: &'a Value, defs: &'a Map<String, Value>) -> Option<&'a Value> {
+    let (items, _) = resolve(schema.get("items")?, defs);
+    is_section(items).then_some(items)
+}
+
+/// The section `path`'s rows (`[[path]]` for a list of tables), then its subsections', into
+/// `sections`.
 fn table(
     schema: &Value,
     path: &str,
+    list: bool,
     defs: &Map<String, Value>,
     sections: &mut Vec<(String, Vec<[String; 4]>)>,
 ) {
@@ -87,10 +89,10 @@ fn table(
         .and_then(Value::as_array)
         .map(|r| r.iter().filter_map(Value::as_str).collect())
         .unwrap_or_default();
-    let title = if path.is_empty() {
-        "Top level".to_string()
-    } else {
-        format!("`[{path}]`")
+    let title = match (path.is_empty(), list) {
+        (true, _) => "Top level".to_string(),
+        (false, true) => format!("`[[{path}]]` (a list of tables)"),
+        (false, false) => format!("`[{path}]`"),
     };
     let at = sections.len();
     sections.push((title, Vec::new()));
@@ -115,7 +117,17 @@ fn table(
                 "".into(),
                 description,
             ]);
-            nested.push((inner, child));
+            nested.push((inner, child, false));
+            continue;
+        }
+        if let Some(items) = table_items(inner, defs) {
+            sections[at].1.push([
+                key.clone(),
+                format!("list of tables (`[[{child}]]`)"),
+                "none".into(),
+                description,
+            ]);
+            nested.push((items, child, true));
             continue;
         }
         let default = match field.get("default") {
@@ -128,8 +140,8 @@ fn table(
             .1
             .push([key.clone(), type_of(inner, defs), default, description]);
     }
-    for (inner, child) in nested {
-        table(inner, &child, defs, sections);
+    for (inner, child, list) in nested {
+        table(inner, &child, list, defs, sections);
     }
 }
 
@@ -167,9 +179,14 @@ fn type_of(schema: &Value, defs: &Map<String, Value>) -> String {
     };
     match kind.as_str() {
         "array" => {
-            let item = schema
-                .get("items")
-                .map_or("value".to_string(), |i| type_of(i, defs));
+            // A tuple (`[x, y]`) has its items' schemas in `prefixItems`.
+            let first = schema.get("items").or_else(|| {
+                schema
+                    .get("prefixItems")
+                    .and_then(Value::as_array)
+                    .and_then(|p| p.first())
+            });
+            let item = first.map_or("value".to_string(), |i| type_of(i, defs));
             format!("list of {item}")
         }
         "integer" => match schema.get("minimum").and_then(Value::as_f64) {
@@ -195,31 +212,6 @@ fn enum_values(schema: &Value) -> Option<Vec<String>> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// `docs/PLAN-KEYS.md` is what the code generates: a key added, renamed, documented
-    /// differently or given another default in the plan's types changes the generated text,
-    /// and this test names the first line that differs (regenerate with `polarimeter plan
-    /// schema --markdown > docs/PLAN-KEYS.md`).
-    #[test]
-    fn plan_keys_reference_is_current() {
-        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../docs/PLAN-KEYS.md");
-        let written = std::fs::read_to_string(path).unwrap_or_default();
-        let generated = plan_keys_markdown();
-        if written != generated {
-            let line = written
-                .lines()
-                .zip(generated.lines())
-                .position(|(a, b)| a != b)
-                .unwrap_or(written.lines().count().min(generated.lines().count()));
-            panic!(
-                "docs/PLAN-KEYS.md differs from the code at line {}: written {:?}, generated \
-                 {:?}; regenerate with `polarimeter plan schema --markdown > docs/PLAN-KEYS.md`",
-                line + 1,
-                written.lines().nth(line),
-                generated.lines().nth(line)
-            );
-        }
-    }
 
     /// The schema knows every kind and every section the parser reads: `kind`'s allowed
     /// values are the six kinds, and each kind's section, `[policy]`, `[suspender]`, `[site]`,
@@ -247,7 +239,7 @@ mod tests {
         ] {
             assert!(props.contains_key(key), "{key} missing: {props:?}");
         }
-        let md = plan_keys_markdown();
+        let md = keys_markdown(&s, "##");
         assert!(
             md.contains("| `kind` | one of \"capture\", \"calibrate-noise\", \"calibrate-analyzer\", \"time-lapse\", \"adaptive\", \"continuous\""),
             "{md}"

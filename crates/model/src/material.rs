@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 pub const BUILTIN_TOML: &str = include_str!("../data/materials.toml");
 
 /// Which pBRDF model a material uses.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum MaterialModel {
     /// Microfacet specular lobe plus Lambertian diffuse from the DHR (Meng (2012) Eqs. 3.4-3.18);
@@ -25,7 +25,7 @@ pub enum MaterialModel {
 }
 
 /// One material. The TOML table is flat; which optional fields are required depends on `model`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Material {
     /// Unique name (lower case, used on the command line).
@@ -88,7 +88,7 @@ impl Material {
 }
 
 /// A list of materials, as stored in TOML (`[[material]]` tables).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct MaterialLibrary {
     /// The materials, in file order.

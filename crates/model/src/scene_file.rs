@@ -48,88 +48,135 @@ pub struct Scene {
     pub materials: Vec<SceneMaterial>,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 struct File {
+    /// The sun: its angles, or a UTC time at `[site]`.
     sun: SunFile,
+    /// Where the scene is (needed with `sun.time_utc`).
     site: Option<SiteFile>,
+    /// The atmosphere (every key optional: a clear continental atmosphere).
     #[serde(default)]
     atmosphere: AtmosphereFile,
+    /// The sky's polarization model (single scattering by default).
     sky: Option<SkyFile>,
+    /// The spectral band: its edges, or a response curve.
     band: BandFile,
+    /// Where the camera looks from.
     sensor: SensorFile,
+    /// The materials in view (`[[material]]`, the first is the target).
     #[serde(rename = "material", default)]
     materials: Vec<MaterialFile>,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 struct SunFile {
+    /// The sun's zenith angle, degrees (with `azimuth_deg`).
     zenith_deg: Option<f64>,
+    /// The sun's azimuth, degrees clockwise from north (with `zenith_deg`).
     azimuth_deg: Option<f64>,
+    /// Or an RFC 3339 UTC instant (`2026-06-21T15:00:00Z`): the sun's position at `[site]`.
     time_utc: Option<String>,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 struct SiteFile {
+    /// Latitude, degrees north.
     latitude_deg: f64,
+    /// Longitude, degrees east.
     longitude_deg: f64,
+    /// Elevation, metres.
     #[serde(default)]
     elevation_m: f64,
 }
 
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 struct AtmosphereFile {
+    /// Aerosol optical depth at 550 nm.
     aerosol_optical_depth_550: Option<f64>,
+    /// Angstrom exponent of the aerosol's optical depth.
     angstrom_exponent: Option<f64>,
+    /// Aerosol single-scattering albedo.
     aerosol_ssa: Option<f64>,
+    /// Aerosol asymmetry parameter (Henyey-Greenstein g).
     aerosol_g: Option<f64>,
+    /// Scale height of the molecular (Rayleigh) atmosphere, metres.
     rayleigh_scale_height_m: Option<f64>,
+    /// Scale height of the aerosol, metres.
     aerosol_scale_height_m: Option<f64>,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 struct SkyFile {
+    /// `"single_scattering"`, `"berry"` or `"table"`.
     model: String,
+    /// Berry's model: the separation of its singular points, degrees.
     separation_deg: Option<f64>,
+    /// Berry's model: the sky's largest DoLP.
     max_dolp: Option<f64>,
+    /// `"table"`: a CSV file of `zenith_deg,azimuth_deg,S0,S1,S2`, relative to the scene file.
     file: Option<String>,
+    /// `"table"`: the Stokes reference of its S1 and S2, `"horizontal"` or `"vertical"`.
     reference: Option<String>,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 struct BandFile {
+    /// The band's lower edge, nm (with `hi_nm`).
     lo_nm: Option<f64>,
+    /// Its upper edge, nm.
     hi_nm: Option<f64>,
+    /// Or a response curve: `[[nm, relative response], ...]`.
     response: Option<Vec<(f64, f64)>>,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 struct SensorFile {
+    /// The camera's height above the ground, metres.
     altitude_m: f64,
+    /// Its look direction from straight down, degrees.
     off_nadir_deg: f64,
+    /// Its look direction's azimuth, degrees clockwise from north.
     look_azimuth_deg: f64,
+    /// Its field of view, degrees, `[across, along]`.
     fov_deg: (f64, f64),
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 struct MaterialFile {
+    /// The material's name in this scene (targets and masks name it).
     name: String,
+    /// A built-in material (`polarimeter model materials` lists them); the keys below
+    /// override its values.
     library: Option<String>,
+    /// The pBRDF model, `"microfacet"` or `"vegetation"` (without `library`).
     model: Option<MaterialModel>,
+    /// Real part of the refractive index.
     n: Option<f64>,
+    /// Extinction coefficient (0 for dielectrics).
     k: Option<f64>,
+    /// Facet-slope roughness `sigma = sigma_h / l` (Meng (2012) Eq. 3.13); microfacet only.
     sigma: Option<f64>,
+    /// Directional-hemispherical reflectance (Eq. 3.17); microfacet only.
     dhr: Option<f64>,
+    /// Unpolarised diffuse BRDF `f00_d`, sr^-1; vegetation only.
     f00_diffuse: Option<f64>,
+    /// Texture: the coefficient of variation of the radiance from pixel to pixel.
     texture_cv: Option<f64>,
+    /// Or the coefficients of variation of S0, S1 and S2.
     texture_stokes_cv: Option<[f64; 3]>,
+}
+
+/// The JSON Schema of a scene file as written (every key, with its description).
+pub fn scene_file_schema() -> schemars::Schema {
+    schemars::schema_for!(File)
 }
 
 fn invalid(field: &'static str, reason: impl Into<String>) -> ModelError {

@@ -57,7 +57,7 @@ pub const MAX_RADIANCE_W_M2_SR: f64 = 1e12;
 pub const MAX_T_INT_S: f64 = 1e5;
 
 /// The rotating analyzer of a camera file (`[polarizer]` table; absent means ideal).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Polarizer {
     /// Extinction ratio `k1 / k2`, `> 1`; absent (or `inf`, which TOML can carry) means ideal
@@ -139,7 +139,7 @@ impl Polarizer {
 /// transmittance = 0.85         # k1, default 1
 /// offset_deg = 0.0             # default 0
 /// ```
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Camera {
     /// A name for reports.

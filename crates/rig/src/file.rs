@@ -40,7 +40,7 @@ use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 
 /// `[stage]`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct StageEntry {
     /// The dialect's registry name.
@@ -57,7 +57,7 @@ pub struct StageEntry {
 }
 
 /// `[camera]`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct CameraEntry {
     /// `sim` or a camera backend's registry name.
@@ -71,7 +71,7 @@ pub struct CameraEntry {
 }
 
 /// `[analyzer]`: inline values, or a calibration file.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct AnalyzerEntry {
     /// Stage angle at which the analyzer's axis is along the camera's x axis, degrees.
@@ -86,7 +86,7 @@ pub struct AnalyzerEntry {
 }
 
 /// An analyzer calibration file (`analyzer.rN.toml`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct AnalyzerFile {
     /// Its revision (N of `analyzer.rN.toml`).
@@ -101,7 +101,7 @@ pub struct AnalyzerFile {
 }
 
 /// A rig file, as written.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct RigFile {
     /// The stage.

@@ -1,7 +1,8 @@
 //! `plan`: plan from the model: `plan scene` (angles, integration time and a forecast for a
 //! scene and a camera), `plan angles` (optimal angles for given class statistics), `plan check`
 //! (a plan file's forecast without running it), `plan continuous` (frames per half turn,
-//! exposure and speed for a spinning analyzer), `plan schema` (every key of a plan file).
+//! exposure and speed for a spinning analyzer), `plan schema` (every key of the files a user
+//! writes).
 
 use super::analyze::AptdArgs;
 use super::errors::in_plan_file;
@@ -32,8 +33,8 @@ enum PlanCommand {
     /// Continuous rotation: frames per half turn, exposure and speed within the camera's and
     /// the stage's limits, which limit binds, and a step-and-shoot set beside it.
     Continuous(ContinuousArgs),
-    /// Every key of a plan file, generated from the parser's own types: a JSON Schema, or
-    /// with --markdown the reference in docs/PLAN-KEYS.md (type, default, description).
+    /// Every key of the files a user writes (plan, rig, scene, camera), generated from the
+    /// parsers' own types: a JSON Schema, or with --markdown the reference docs/FILE-KEYS.md.
     Schema(SchemaArgs),
     /// The same as `analyze aptd`.
     #[command(hide = true)]
@@ -107,7 +108,10 @@ impl CheckArgs {
 /// `plan schema`.
 #[derive(Debug, Args)]
 struct SchemaArgs {
-    /// The Markdown reference (docs/PLAN-KEYS.md) instead of the JSON Schema.
+    /// Which file's JSON Schema.
+    #[arg(long, value_enum, default_value = "plan")]
+    file: polar_cli::file_keys::UserFile,
+    /// The Markdown reference of all four files (docs/FILE-KEYS.md) instead of a schema.
     #[arg(long)]
     markdown: bool,
 }
@@ -115,9 +119,9 @@ struct SchemaArgs {
 impl SchemaArgs {
     fn run(self) -> ExitCode {
         if self.markdown {
-            print!("{}", polar_engine::plan_schema::plan_keys_markdown());
+            print!("{}", polar_cli::file_keys::file_keys_markdown());
         } else {
-            let schema = polar_engine::plan_schema::plan_schema();
+            let schema = self.file.schema();
             println!(
                 "{}",
                 serde_json::to_string_pretty(&schema).unwrap_or_else(|e| format!("{e}"))
