@@ -6,11 +6,12 @@
 //!
 //! The query is a position read that always asks the device: a rotator's
 //! `spin_position_rad` where the driver has one (it never answers from a cache), else its
-//! `position_rad`; a wheel's `slot`. The simulated devices answer at once and send at their
-//! baud rate, so everything above the reply's wire time is overhead: the driver, tokio (whose
-//! timers round each wake up to the next millisecond, and the simulator's pacing uses them),
-//! the kernel's pty and the server. The pty row against the memory row isolates the
-//! pseudo-terminal's share.
+//! `position_rad`; a wheel's `slot`. The simulated devices act on a request once its last byte
+//! is in and send their reply at their line's rate (`Simulator::seconds_per_byte`), so
+//! everything above the request's and the reply's time on the line is overhead: the driver,
+//! tokio (whose timers round each wake up to the next millisecond, and the simulator's pacing
+//! uses them), the kernel's pty and the server. The pty row against the memory row isolates
+//! the pseudo-terminal's share.
 
 use crate::devices::DevicesError;
 use polar_drivers::link::{BoxIo, Connector, FnConnector, SerialPath};
@@ -30,8 +31,8 @@ pub struct SerialRow {
     pub transport: &'static str,
     /// Baud rate of the simulated line.
     pub baud: u32,
-    /// The simulated device's time for one query: its reply bytes at the baud rate (the
-    /// simulators answer queries at once and pace only their output), ms.
+    /// The simulated line's time for one query: its request and reply bytes at the line's
+    /// rate, ms.
     pub wire_ms: f64,
     /// Median round trip, ms.
     pub median_ms: f64,
@@ -59,7 +60,7 @@ fn sim(entry: &SimDialect) -> Result<Box<dyn Simulator>, DevicesError> {
 }
 
 /// Times `n` position queries through `connector` with the dialect's driver; returns the
-/// times and the reply bytes per query.
+/// times and the request and reply bytes per query.
 async fn queries(
     dialect: &Dialect,
     connector: Box<dyn Connector>,
@@ -73,7 +74,7 @@ async fn queries(
         let mut r = connect(connector, dialect.default_address(), policy).await?;
         // The read that never answers from a cache, where the driver has it.
         let fresh = r.spin_position_rad().await.is_ok();
-        bytes_before = server.stats().bytes_out;
+        bytes_before = line_bytes(server);
         for _ in 0..n {
             let t = Instant::now();
             if fresh {
@@ -85,7 +86,7 @@ async fn queries(
         }
     } else if let Some(connect) = dialect.wheel {
         let mut w = connect(connector, dialect.default_address(), policy).await?;
-        bytes_before = server.stats().bytes_out;
+        bytes_before = line_bytes(server);
         for _ in 0..n {
             let t = Instant::now();
             w.slot().await?;
@@ -94,20 +95,26 @@ async fn queries(
     } else {
         return Err(DevicesError(format!("{} has no device", dialect.name)));
     }
-    let bytes_per_query = (server.stats().bytes_out - bytes_before) as f64 / n as f64;
+    let bytes_per_query = (line_bytes(server) - bytes_before) as f64 / n as f64;
     Ok((times, bytes_per_query))
+}
+
+/// The bytes the server has carried both ways.
+fn line_bytes(server: &SimServer) -> u64 {
+    let s = server.stats();
+    s.bytes_in + s.bytes_out
 }
 
 fn row(
     device: &str,
     transport: &'static str,
-    baud: u32,
+    (baud, seconds_per_byte): (u32, f64),
     mut times: Vec<f64>,
     bytes: f64,
 ) -> SerialRow {
     times.sort_by(f64::total_cmp);
     let q = |p: f64| times[((times.len() - 1) as f64 * p).round() as usize] * 1e3;
-    let wire_ms = bytes * 10.0 / baud as f64 * 1e3;
+    let wire_ms = bytes * seconds_per_byte * 1e3;
     SerialRow {
         device: device.to_string(),
         transport,
@@ -136,7 +143,10 @@ pub fn serial(n: usize) -> Result<Vec<SerialRow>, DevicesError> {
                 DevicesError(format!("{}: no driver in the registry", entry.dialect))
             })?;
             let name = format!("{} {}", entry.dialect, entry.models[0]);
-            let baud = sim(entry)?.baud();
+            let (baud, per_byte) = {
+                let s = sim(entry)?;
+                (s.baud(), s.seconds_per_byte())
+            };
             // Through a pseudo-terminal.
             let link = dir.join(name.replace(' ', "-"));
             let server = SimServer::pty(sim(entry)?, FaultProfile::default(), 1, &link)
@@ -146,7 +156,7 @@ pub fn serial(n: usize) -> Result<Vec<SerialRow>, DevicesError> {
                 baud,
             });
             let (times, bytes) = queries(dialect, connector, &server, n).await?;
-            rows.push(row(&name, "pty", baud, times, bytes));
+            rows.push(row(&name, "pty", (baud, per_byte), times, bytes));
             server.shutdown().await;
             // In memory.
             let server = SimServer::memory(sim(entry)?, FaultProfile::default(), 1);
@@ -158,7 +168,7 @@ pub fn serial(n: usize) -> Result<Vec<SerialRow>, DevicesError> {
                 async move { port.open().await.map(|io| Box::new(io) as BoxIo) }
             }));
             let (times, bytes) = queries(dialect, connector, &server, n).await?;
-            rows.push(row(&name, "memory", baud, times, bytes));
+            rows.push(row(&name, "memory", (baud, per_byte), times, bytes));
             server.shutdown().await;
         }
         Ok(rows)

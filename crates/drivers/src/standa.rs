@@ -599,6 +599,19 @@ impl StandaRotator {
         angle_from_counts(usteps, self.info.counts_per_turn)
     }
 
+    /// Writes back the move settings a spin changed and whose stop did not restore them (a
+    /// failed `sstp`), so a move runs at its own speed.
+    async fn restore_move_settings(&mut self) -> Result<(), DeviceError> {
+        if let Some(gmov) = self.spin_restore.take() {
+            self.session.ensure_ready().await?;
+            if let Err(e) = self.session.request(b"smov", &gmov, 0).await {
+                self.spin_restore = Some(gmov);
+                return Err(e);
+            }
+        }
+        Ok(())
+    }
+
     /// `gmov`'s data with the speed set to `deg_s` (full steps and microsteps per second).
     fn move_settings_at(&self, gmov: &[u8], deg_s: f64) -> Vec<u8> {
         let per = self.session.info().map_or(256, |i| i.microsteps);
@@ -617,11 +630,13 @@ impl Rotator for StandaRotator {
     }
 
     async fn home(&mut self) -> Result<(), DeviceError> {
+        self.restore_move_settings().await?;
         self.session.needs_init = true;
         self.session.ensure_ready().await
     }
 
     async fn move_to(&mut self, angle_rad: f64) -> Result<f64, DeviceError> {
+        self.restore_move_settings().await?;
         if !angle_rad.is_finite() {
             return Err(self.session.error(
                 ErrorKind::OutOfRange,
@@ -653,12 +668,17 @@ impl Rotator for StandaRotator {
     /// speed and direction. The move settings of before are written back by `stop_spin`.
     async fn spin(&mut self, rad_per_s: f64) -> Result<(), DeviceError> {
         let deg_s = rad_per_s.to_degrees();
-        if !(deg_s.is_finite() && deg_s != 0.0 && deg_s.abs() <= MAX_SPIN_DEG_PER_S) {
+        // One microstep per second is the slowest speed the controller can be set to.
+        let min_deg_s = 360.0 / f64::from(self.info.counts_per_turn.max(1));
+        let size = deg_s.abs();
+        if !(size.is_finite() && size >= min_deg_s && size <= MAX_SPIN_DEG_PER_S * (1.0 + 1e-9)) {
             return Err(self.session.error(
                 ErrorKind::OutOfRange,
                 format!(
-                    "spin speed {deg_s} deg/s: allowed 0 < |speed| <= {MAX_SPIN_DEG_PER_S} \
-                     deg/s (the 8MPR16-1 profile's move speed)"
+                    "rad_per_s = {rad_per_s} ({deg_s} deg/s) is out of range for the 8MPR16-1: \
+                     allowed {min_deg_s:.3e} <= |deg/s| <= {MAX_SPIN_DEG_PER_S} (one \
+                     microstep per second up to the profile's move speed; the sign is the \
+                     direction)"
                 ),
             ));
         }
@@ -680,9 +700,7 @@ impl Rotator for StandaRotator {
         self.session.request(b"sstp", &[], 0).await?;
         let timeout = self.session.policy.move_timeout;
         self.session.wait_done(timeout).await?;
-        if let Some(gmov) = self.spin_restore.take() {
-            self.session.request(b"smov", &gmov, 0).await?;
-        }
+        self.restore_move_settings().await?;
         let p = self.session.position_usteps().await?;
         Ok(self.angle(p))
     }

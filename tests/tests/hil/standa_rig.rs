@@ -6,7 +6,7 @@
 use super::k10cr1::capture_on_a_rig_file;
 
 /// `polarimeter run --rig examples/rigs/sim_8mpr16.toml` with one set of four angles and a
-/// dark before and after (`tests/fixtures/capture_8mpr16.toml`): done, every frame intact, the
+/// dark before and after (`examples/plans/capture_8mpr16.toml`): done, every frame intact, the
 /// standa dialect recorded, and 93-97.5 % of the set's Stokes products within 2 predicted sigma
 /// of the rendered truth (95.45 % for an unbiased Gaussian estimate; see the K10CR1's test).
 /// The stage homes at its real 1.25 deg/s first (about 140 s from where the seeded simulator

@@ -1,5 +1,5 @@
-//! Continuous rotation with `trigger = "timestamps"`: a simulated Thorlabs K10CR1 (velocity
-//! mode, no trigger output) spins the analyzer, the camera is triggered by software, and each
+//! Continuous rotation with `trigger = "timestamps"`: a simulated Thorlabs K10CR1 or Standa
+//! 8MPR16-1 (velocity mode, no trigger output) spins the analyzer, the camera is triggered by software, and each
 //! frame's span comes from the line through the stage's position reads at the exposure's end.
 //! The run goes with every core of the host busy. The recorded spans are checked against the
 //! simulated camera's true angles, the per-half-turn
@@ -118,7 +118,8 @@ fn run_loaded(plan: &Plan, dir: &Path) -> (Result<Outcome, run::RunError>, Expos
 ///   simulated K10CR1's output lags its counter by half its 0.02 deg backlash while it turns
 ///   forward (`polar_hil_mocks::apt::AptSimConfig::k10cr1`). 95.45 % is the Gaussian
 ///   fraction; the recorded sigma is each frame's own, so the host's scheduling delays on the
-///   reads and the events must be in it;
+///   reads and the events must be in it; and their mean error is within 3/4 of the median
+///   recorded sigma (no bias the sigma does not state);
 /// - the per-half-turn span-row estimates of S1 and S2 from the stored frames, recorded spans
 ///   and the largest recorded sigma are within 2 predicted sigma of the scene's truth for
 ///   95 +/- 2 % of the 7200 values (95.45 % for Gaussian errors; the binomial spread over
@@ -202,6 +203,18 @@ fn timestamps_run_under_load(mut plan: Plan, half_turns: u32, lag_deg: f64, name
         starts.within_2_sigma >= 0.95,
         "{:.1} % of span starts within 2 recorded sigma",
         100.0 * starts.within_2_sigma
+    );
+    // No bias beside the spread: the mean error of the starts within 3/4 of the median
+    // recorded sigma (the line's share of a K10CR1 read left in the bracket put the mean at
+    // -0.006 deg against a median sigma of 0.005 deg; measured since: -0.0014 to -0.0020 deg
+    // against 0.0056).
+    let mut sigmas: Vec<f64> = records.iter().map(|r| r.angle_sigma_deg).collect();
+    sigmas.sort_by(f64::total_cmp);
+    let median_sigma_deg = sigmas[sigmas.len() / 2];
+    assert!(
+        starts.mean_error_deg.abs() <= 0.75 * median_sigma_deg,
+        "mean span-start error {} deg against a median recorded sigma of {median_sigma_deg} deg",
+        starts.mean_error_deg
     );
     assert_eq!(
         store.product_slots().unwrap().len() as u64,

@@ -243,8 +243,8 @@ fn check_trigger<R: Rotator, C: Camera>(
             format!(
                 "a continuous plan needs a stage that spins (velocity mode), and stage \
                  {model} cannot spin (continuous-rotation support \"{support}\"); dialect \
-                 native spins with \"encoder\" or \"timestamps\", apt with \"timestamps\" \
-                 (docs/DEVICES.md)"
+                 native spins with \"encoder\" or \"timestamps\", apt and standa with \
+                 \"timestamps\" (docs/DEVICES.md)"
             ),
         ));
     }

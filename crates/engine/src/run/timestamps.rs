@@ -68,8 +68,13 @@
 //! line, and the map is the line under all pairs that lies closest to them (the lower convex
 //! hull's edge with the least sum of latencies, its rate within [`MAX_RATE_ERROR`] of 1, as
 //! clock-skew estimation from one-way delays does): a late event lies above the line and does
-//! not move it. A frame's end is `host = offset + rate x device`; what is left is the least
-//! latency, which the plan's `timing_sigma_us` states.
+//! not move it. The events bound the ends from above; each frame's software trigger plus its
+//! exposure bounds its end from below (the camera cannot start before it is told to), so the
+//! true offset lies between the line and the line moved earlier by the least room a recent
+//! frame leaves between its two bounds: a frame's end is the middle of that interval, and its
+//! uncertainty the interval's (uniform) beside the plan's `timing_sigma_us`
+//! ([`ClockMap::host_end_s`]). A loaded host, whose triggers leave late and whose events are
+//! seen late, widens the interval as it happens.
 
 use polar_hal::WireTimes;
 use std::collections::VecDeque;
@@ -90,9 +95,17 @@ impl PositionSample {
     /// A read sent at `sent_s` and answered at `received_s` (host clock, seconds), its
     /// position `angle_rad`: the latch lies after the request's bytes reached the device and
     /// before the reply's left it ([`polar_hal::WireTimes`]). A round trip shorter than the
-    /// line's share (a clock read late) keeps the line's proportion of it.
+    /// line's share (a clock read late) keeps the line's proportion of it; a reply before its
+    /// request is kept as it is, for [`SpinTrack::push`] to refuse.
     pub fn bracketed(sent_s: f64, received_s: f64, wire: WireTimes, angle_rad: f64) -> Self {
-        let round_trip_s = (received_s - sent_s).max(0.0);
+        if received_s < sent_s || received_s.is_nan() || sent_s.is_nan() {
+            return PositionSample {
+                request_s: sent_s,
+                reply_s: received_s,
+                angle_rad,
+            };
+        }
+        let round_trip_s = received_s - sent_s;
         let on_line_s = wire.request_s.max(0.0) + wire.reply_s.max(0.0);
         let scale = if on_line_s > round_trip_s && on_line_s > 0.0 {
             round_trip_s / on_line_s
@@ -381,6 +394,9 @@ pub const MAX_RATE_ERROR: f64 = 2e-4;
 #[derive(Debug, Clone)]
 pub struct ClockMap {
     pairs: VecDeque<(f64, f64)>,
+    /// (device time of an exposure's end, the earliest host time it can have ended: its
+    /// trigger plus the exposure).
+    earliest: VecDeque<(f64, f64)>,
     window: usize,
 }
 
@@ -396,6 +412,7 @@ impl ClockMap {
         }
         Ok(ClockMap {
             pairs: VecDeque::with_capacity(window),
+            earliest: VecDeque::with_capacity(window),
             window,
         })
     }
@@ -415,12 +432,54 @@ impl ClockMap {
         }
         if self.pairs.back().is_some_and(|&(d, _)| device_s <= d) {
             self.pairs.clear();
+            self.earliest.clear();
         }
         if self.pairs.len() == self.window {
             self.pairs.pop_front();
         }
         self.pairs.push_back((device_s, host_s));
         Ok(())
+    }
+
+    /// Adds the earliest host time the exposure that ended at `device_s` can have ended (its
+    /// software trigger's host time plus the exposure: the camera cannot start before it is
+    /// told to), both seconds.
+    pub fn push_earliest(&mut self, device_s: f64, earliest_host_s: f64) -> Result<(), FitError> {
+        if !(device_s.is_finite() && earliest_host_s.is_finite()) {
+            return Err(FitError::OutOfRange {
+                field: "earliest exposure end",
+                value: if device_s.is_finite() {
+                    earliest_host_s
+                } else {
+                    device_s
+                },
+                allowed: "finite times in seconds",
+            });
+        }
+        if self.earliest.len() == self.window {
+            self.earliest.pop_front();
+        }
+        self.earliest.push_back((device_s, earliest_host_s));
+        Ok(())
+    }
+
+    /// The host time of device time `device_s` and its standard uncertainty, seconds. The
+    /// map's line lies on the events (the latest the ends can be); every frame's trigger plus
+    /// its exposure is the earliest. The true offset lies between the line and the line moved
+    /// earlier by the least room any recent frame leaves between the two (the *slack*): the
+    /// time is the middle of that interval and its uncertainty the interval's, uniform
+    /// (`slack / sqrt 12`). A host that sees its events late and its triggers leave late has a
+    /// wide interval; the plan's `timing_sigma_us` comes on top.
+    pub fn host_end_s(&self, device_s: f64) -> Option<(f64, f64)> {
+        let (offset, rate) = self.line()?;
+        let mapped = offset + rate * device_s;
+        let slack = self
+            .earliest
+            .iter()
+            .map(|&(d, lower)| (offset + rate * d - lower).max(0.0))
+            .min_by(f64::total_cmp)
+            .unwrap_or(0.0);
+        Some((mapped - 0.5 * slack, slack / 12f64.sqrt()))
     }
 
     /// The line `host = offset + rate x device` under every pair (no latency is negative)
@@ -674,6 +733,36 @@ mod tests {
         let short = PositionSample::bracketed(1.0, 1.0009, wire, 0.5);
         assert!((short.round_trip_s()).abs() < 1e-12, "{short:?}");
         assert!((short.request_s - 1.0003).abs() < 1e-12, "{short:?}");
+    }
+
+    /// The events 100 us after each true end and the triggers' earliest ends 50 us before
+    /// it (a camera clock equal to the host's): the interval is 150 us wide, the end is its
+    /// middle, 25 us after the truth (within half the interval), with sigma 150 / sqrt 12 us
+    /// (to 1e-12 s); without trigger bounds the end is the event line's, sigma 0.
+    #[test]
+    fn triggers_bound_the_clock_map_from_below() {
+        let mut map = ClockMap::new(16).expect("map");
+        for i in 0..8 {
+            let d = 10.0 + 0.5 * f64::from(i);
+            map.push(d, d + 1e-4).expect("event");
+        }
+        let (host, sigma) = map.host_end_s(20.0).expect("mapped");
+        assert!(
+            (host - (20.0 + 1e-4)).abs() < 1e-12 && sigma == 0.0,
+            "{host} {sigma}"
+        );
+        for i in 0..8 {
+            let d = 10.0 + 0.5 * f64::from(i);
+            map.push_earliest(d, d - 5e-5).expect("trigger");
+        }
+        let (host, sigma) = map.host_end_s(20.0).expect("mapped");
+        assert!((host - (20.0 + 2.5e-5)).abs() < 1e-12, "{host}");
+        assert!((sigma - 1.5e-4 / 12f64.sqrt()).abs() < 1e-12, "{sigma}");
+        let e = map
+            .push_earliest(f64::NAN, 1.0)
+            .expect_err("nan")
+            .to_string();
+        assert!(e.contains("earliest exposure end"), "{e}");
     }
 
     /// Bad input is refused with the field named: too few samples, no spread in time, a

@@ -239,14 +239,19 @@ impl<R: Rotator, C: Camera> SpinLoop<'_, R, C> {
                     // The end on the camera's clock, mapped to the host's past the events'
                     // latency (crate::run::timestamps::ClockMap); the event itself without a
                     // device timestamp.
-                    let end_s = match frame.device_timestamp_ns {
+                    // The map's own uncertainty (the room between the events and the triggers)
+                    // comes on top of the plan's timing sigma.
+                    let (end_s, map_sigma_s) = match frame.device_timestamp_ns {
                         Some(ns) => {
                             let device_s = ns as f64 * 1e-9;
                             let line = self.line.as_mut().ok_or_else(no_line)?;
                             line.clocks.push(device_s, event_s).map_err(fit_err)?;
-                            line.clocks.host_s(device_s).unwrap_or(event_s)
+                            line.clocks
+                                .push_earliest(device_s, earliest_end_s)
+                                .map_err(fit_err)?;
+                            line.clocks.host_end_s(device_s).unwrap_or((event_s, 0.0))
                         }
-                        None => event_s,
+                        None => (event_s, 0.0),
                     };
                     if end_s + 3.0 * timing_s < earliest_end_s {
                         return Err(bad(format!(
@@ -256,7 +261,7 @@ impl<R: Rotator, C: Camera> SpinLoop<'_, R, C> {
                             (earliest_end_s - end_s) * 1e6
                         )));
                     }
-                    (end_s, timing_s)
+                    (end_s, timing_s.hypot(map_sigma_s))
                 }
                 None => {
                     // No exposure-end event: the end lies between trigger + exposure and the
