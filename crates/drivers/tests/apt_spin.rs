@@ -5,25 +5,15 @@
 //! the real mounts' top speeds (K10CR1 10 deg/s, PRM1Z8 25 deg/s).
 #![allow(clippy::unwrap_used)]
 
+mod common;
+
+use common::sample;
 use polar_drivers::apt::{self, AptModel, AptRotator, AptSerial};
 use polar_hal::{signed_difference, ContinuousSupport, ErrorKind, Rotator, TURN_RAD};
 use polar_hil_mocks::apt::{AptDevice, AptSimConfig, AptSimModel};
 use polar_hil_mocks::faults::FaultProfile;
 use polar_hil_mocks::serve::SimServer;
-use polar_hil_mocks::sim::Truth;
 use std::time::Duration;
-
-/// The simulator's clock and true angle (deg), the clock read on both sides of the truth
-/// (their midpoint; the reads are microseconds apart).
-fn sample(server: &SimServer) -> (f64, f64, bool) {
-    let t0 = server.now_s();
-    let truth = server.truth();
-    let t1 = server.now_s();
-    match truth {
-        Truth::Angle { output_rad, moving } => (0.5 * (t0 + t1), output_rad.to_degrees(), moving),
-        t => panic!("not a rotator: {t:?}"),
-    }
-}
 
 /// The true speed over `span_s` of the simulator's clock, deg/s (signed).
 async fn true_speed(server: &SimServer, span_s: f64) -> f64 {

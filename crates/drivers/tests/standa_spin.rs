@@ -5,24 +5,15 @@
 //! the test takes seconds; the driver still spins it at most at the profile's 6.25 deg/s.
 #![allow(clippy::unwrap_used)]
 
+mod common;
+
+use common::sample;
 use polar_drivers::standa::{self, StandaRotator, MAX_SPIN_DEG_PER_S};
 use polar_hal::{signed_difference, ContinuousSupport, ErrorKind, Rotator, TURN_RAD};
 use polar_hil_mocks::faults::FaultProfile;
 use polar_hil_mocks::serve::SimServer;
-use polar_hil_mocks::sim::Truth;
 use polar_hil_mocks::standa::{StandaConfig, StandaDevice};
 use std::time::Duration;
-
-/// The simulator's clock and the stage's true angle (deg) and motion.
-fn sample(server: &SimServer) -> (f64, f64, bool) {
-    let t0 = server.now_s();
-    let truth = server.truth();
-    let t1 = server.now_s();
-    match truth {
-        Truth::Angle { output_rad, moving } => (0.5 * (t0 + t1), output_rad.to_degrees(), moving),
-        t => panic!("not a rotator: {t:?}"),
-    }
-}
 
 /// Velocity mode reports `Velocity` support (no trigger output). Speeds of zero, beyond 6.25
 /// deg/s or not finite are refused as OutOfRange naming `rad_per_s` and the limit, without
