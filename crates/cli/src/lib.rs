@@ -20,6 +20,8 @@ pub mod logging;
 pub mod plan;
 pub mod plan_continuous;
 pub mod plan_load;
+pub mod plan_problem;
+pub mod plan_scene;
 mod plot;
 pub mod rig;
 pub mod station_runner;

@@ -61,11 +61,12 @@
 //! improves the objective by more than 1e-6 relative after re-optimising; the improvement is
 //! reported with it.
 
+use crate::log_search::{bisect, scan_then_golden};
 use crate::stokes::STOKES_MAX_CONDITION;
 use crate::PlanError;
 use nalgebra::{Matrix3, Vector3};
 use polar_model::sensor::SensorModel;
-use polar_model::span::{sinc, span_peak, span_signal, SpanExposure};
+use polar_model::span::{sinc, span_peak, span_signal, SpanExposure, SpanSignal};
 use std::f64::consts::PI;
 
 /// Points of the logarithmic speed scan per `N`.
@@ -73,7 +74,7 @@ const SPEED_SCAN: usize = 120;
 /// Golden-section iterations in `log omega` (the bracket shrinks by 0.618 each).
 const GOLDEN_ITERATIONS: usize = 70;
 /// Bisection steps on `log t` for the saturation limit.
-const SATURATION_BISECTIONS: usize = 60;
+pub(crate) const SATURATION_BISECTIONS: usize = 60;
 /// Relative step by which a limit is loosened to see whether it binds.
 pub const LOOSEN: f64 = 0.01;
 /// Relative improvement of the objective above which a loosened limit counts as binding.
@@ -254,31 +255,9 @@ pub struct ContinuousChoice {
     pub binds: Vec<Binding>,
 }
 
-/// A step-and-shoot set on the same rig, for comparison.
-#[derive(Debug, Clone, PartialEq)]
-pub struct StepPrediction {
-    /// The angles, rad.
-    pub angles_rad: Vec<f64>,
-    /// Exposure of each frame: the longest the range and saturation allow, s.
-    pub exposure_s: f64,
-    /// Time per set: per angle a move (trapezoidal, top speed and acceleration), settling,
-    /// exposure and readout, s.
-    pub set_s: f64,
-    /// The target's `K G S0`, DN.
-    pub s0_dn: f64,
-    /// Standard deviations of the target's `S0`, `S1`, `S2` from one set, DN.
-    pub sigma_stokes_dn: [f64; 3],
-    /// Standard deviation of the target's DoLP from one set.
-    pub sigma_dolp: f64,
-    /// Sets to the DoLP target (real, at least 1), if the objective has one.
-    pub sets: Option<f64>,
-    /// Time to the DoLP target, s.
-    pub time_to_target_s: Option<f64>,
-}
-
 /// The limits as the search uses them (loosened copies for the binding test).
 #[derive(Debug, Clone, Copy, PartialEq)]
-struct Limits {
+pub(crate) struct Limits {
     camera: CameraLimits,
     stage: StageLimits,
     saturation_scale: f64,
@@ -302,7 +281,7 @@ fn out_of_range(field: &'static str, value: f64, allowed: &'static str) -> PlanE
     }
 }
 
-fn check(p: &ContinuousProblem) -> Result<(), PlanError> {
+pub(crate) fn check(p: &ContinuousProblem) -> Result<(), PlanError> {
     let c = &p.camera;
     let pos = |field, v: f64| {
         if v.is_finite() && v > 0.0 {
@@ -390,7 +369,7 @@ fn check(p: &ContinuousProblem) -> Result<(), PlanError> {
     Ok(())
 }
 
-fn model(field: &'static str) -> impl Fn(polar_model::ModelError) -> PlanError {
+pub(crate) fn model(field: &'static str) -> impl Fn(polar_model::ModelError) -> PlanError {
     move |e| PlanError::invalid(field, e.to_string())
 }
 
@@ -435,7 +414,12 @@ pub fn dolp_sigma_delta(s: &Vector3<f64>, cov: &Matrix3<f64>) -> f64 {
 
 /// The brightest frame of every class of the scene (target, background and the others), span
 /// `d`, exposure `t`, with its margin, as a fraction of saturation.
-fn peak_fraction(p: &ContinuousProblem, lim: &Limits, d: f64, t: f64) -> Result<f64, PlanError> {
+pub(crate) fn peak_fraction(
+    p: &ContinuousProblem,
+    lim: &Limits,
+    d: f64,
+    t: f64,
+) -> Result<f64, PlanError> {
     let sat = p.sensor.camera().saturation_dn() * lim.saturation_scale;
     let mut worst: f64 = 0.0;
     let classes = [("target", &p.target), ("background", &p.background)]
@@ -473,15 +457,12 @@ fn best_exposure(
     if !fits(c.min_exposure_s)? {
         return Ok(None);
     }
-    let (mut lo, mut hi) = (c.min_exposure_s.ln(), cap.ln());
-    for _ in 0..SATURATION_BISECTIONS {
-        let mid = 0.5 * (lo + hi);
-        if fits(mid.exp())? {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
+    let lo = bisect(
+        c.min_exposure_s.ln(),
+        cap.ln(),
+        SATURATION_BISECTIONS,
+        |x| fits(x.exp()),
+    )?;
     Ok(Some(lo.exp()))
 }
 
@@ -547,20 +528,7 @@ fn score(
     let bkg = signal(&p.background, "background")?;
     let cov = tgt.stokes_cov_dn2;
     let sigma_dolp = dolp_sigma_delta(&tgt.stokes_dn, &cov);
-    // SCR of the half turn (module docs), in DN: d = K G (L_t - L_b).
-    let kg = bkg.dn_from_radiance;
-    let diff = (p.target.mean_w_m2_sr - p.background.mean_w_m2_sr) * kg;
-    let sigma_b =
-        0.5 * (p.background.cov_w2_m4_sr2 + p.background.cov_w2_m4_sr2.transpose()) * (kg * kg);
-    let a = bkg
-        .rows
-        .iter()
-        .zip(&bkg.var_dn2)
-        .fold(Matrix3::zeros(), |acc, (w, v)| acc + w * w.transpose() / *v);
-    let scr = match (a * sigma_b + Matrix3::identity()).try_inverse() {
-        Some(inv) => diff.dot(&(inv * a * diff)).max(0.0),
-        None => 0.0,
-    };
+    let scr = frames_scr(p, &bkg);
     let half_turn_s = PI / omega;
     let scr_per_s = scr / half_turn_s;
     let spin_up_s = omega / lim.stage.acceleration_rad_per_s2;
@@ -589,6 +557,25 @@ fn score(
         spin_up_s,
         value,
     }))
+}
+
+/// The target-background SCR of one set of frames whose background signal is `bkg` (module
+/// docs), in DN: `d^T (A Sigma_b + I)^-1 A d` with `d = K G (L_t - L_b)`; 0 where the matrix
+/// is singular.
+pub(crate) fn frames_scr(p: &ContinuousProblem, bkg: &SpanSignal) -> f64 {
+    let kg = bkg.dn_from_radiance;
+    let diff = (p.target.mean_w_m2_sr - p.background.mean_w_m2_sr) * kg;
+    let sigma_b =
+        0.5 * (p.background.cov_w2_m4_sr2 + p.background.cov_w2_m4_sr2.transpose()) * (kg * kg);
+    let a = bkg
+        .rows
+        .iter()
+        .zip(&bkg.var_dn2)
+        .fold(Matrix3::zeros(), |acc, (w, v)| acc + w * w.transpose() / *v);
+    match (a * sigma_b + Matrix3::identity()).try_inverse() {
+        Some(inv) => diff.dot(&(inv * a * diff)).max(0.0),
+        None => 0.0,
+    }
 }
 
 /// The objective at `n` frames and speed `omega`, the exposure the longest allowed.
@@ -627,63 +614,14 @@ fn best_for_n(p: &ContinuousProblem, lim: &Limits, n: usize) -> Result<Option<Po
         .min(PI * c.max_frame_rate_hz / nf)
         .min(PI / (nf * (c.min_exposure_s + c.readout_s)));
     let lo = (0.5 * PI / (nf * (c.max_exposure_s + c.readout_s))).min(0.5 * hi);
-    let (llo, lhi) = (lo.ln(), hi.ln());
-    let mut scan = Vec::with_capacity(SPEED_SCAN);
     let mut best: Option<Point> = None;
-    for i in 0..SPEED_SCAN {
-        let omega = if i + 1 == SPEED_SCAN {
-            hi
-        } else {
-            (llo + (lhi - llo) * i as f64 / (SPEED_SCAN - 1) as f64).exp()
-        };
+    scan_then_golden(lo.ln(), hi.ln(), SPEED_SCAN, GOLDEN_ITERATIONS, |x| {
+        // The scan's last point is the top speed itself, not its log's exponential.
+        let omega = if x == hi.ln() { hi } else { x.exp() };
         let pt = at_speed(p, lim, n, omega)?;
-        scan.push(pt.map_or(f64::INFINITY, |q| q.value));
         best = better(best, pt);
-    }
-    let Some(b) = best else {
-        return Ok(None);
-    };
-    // Refine between the best grid point's neighbours.
-    let i = scan
-        .iter()
-        .enumerate()
-        .min_by(|x, y| x.1.total_cmp(y.1))
-        .map(|(i, _)| i)
-        .unwrap_or(0);
-    let step = (lhi - llo) / (SPEED_SCAN - 1) as f64;
-    let (mut a, mut z) = (
-        (llo + step * i.saturating_sub(1) as f64).max(llo),
-        (llo + step * (i + 1) as f64).min(lhi),
-    );
-    let g = 0.5 * (5f64.sqrt() - 1.0);
-    let f = |x: f64| -> Result<(f64, Option<Point>), PlanError> {
-        let pt = at_speed(p, lim, n, x.exp())?;
-        Ok((pt.map_or(f64::INFINITY, |q| q.value), pt))
-    };
-    let mut x1 = z - g * (z - a);
-    let mut x2 = a + g * (z - a);
-    let (mut f1, p1) = f(x1)?;
-    let (mut f2, p2) = f(x2)?;
-    best = better(better(Some(b), p1), p2);
-    for _ in 0..GOLDEN_ITERATIONS {
-        if f1 <= f2 {
-            z = x2;
-            x2 = x1;
-            f2 = f1;
-            x1 = z - g * (z - a);
-            let (v, pt) = f(x1)?;
-            f1 = v;
-            best = better(best, pt);
-        } else {
-            a = x1;
-            x1 = x2;
-            f1 = f2;
-            x2 = a + g * (z - a);
-            let (v, pt) = f(x2)?;
-            f2 = v;
-            best = better(best, pt);
-        }
-    }
+        Ok(pt.map_or(f64::INFINITY, |q| q.value))
+    })?;
     Ok(best)
 }
 
@@ -695,7 +633,7 @@ fn optimum(p: &ContinuousProblem, lim: &Limits) -> Result<Option<Point>, PlanErr
     Ok(best)
 }
 
-fn limits_of(p: &ContinuousProblem) -> Limits {
+pub(crate) fn limits_of(p: &ContinuousProblem) -> Limits {
     Limits {
         camera: p.camera,
         stage: p.stage,
@@ -859,99 +797,8 @@ pub fn move_s(angle_rad: f64, v: f64, a: f64) -> f64 {
     }
 }
 
-/// A step-and-shoot set at `angles_rad` on the same camera and stage, for comparison: each
-/// frame the longest exposure the range and saturation allow (a still analyzer, span 0), a
-/// move the short way (modulo pi) from the previous angle (the set repeats, so the first
-/// angle's move comes from the last), `settle_s`, the exposure and the readout. Errors as
-/// [`plan_continuous`], and `angles_rad` when fewer than 3 or not finite, `settle_s` when
-/// negative.
-pub fn step_and_shoot(
-    problem: &ContinuousProblem,
-    angles_rad: &[f64],
-    settle_s: f64,
-) -> Result<StepPrediction, PlanError> {
-    check(problem)?;
-    if angles_rad.len() < 3 || angles_rad.iter().any(|a| !a.is_finite()) {
-        return Err(PlanError::invalid(
-            "angles_rad",
-            format!("{angles_rad:?}: allowed at least 3 finite angles"),
-        ));
-    }
-    if !(settle_s.is_finite() && settle_s >= 0.0) {
-        return Err(out_of_range("settle_s", settle_s, "finite, >= 0"));
-    }
-    let lim = limits_of(problem);
-    let c = &problem.camera;
-    let fits =
-        |t: f64| -> Result<bool, PlanError> { Ok(peak_fraction(problem, &lim, 0.0, t)? <= 1.0) };
-    let t = if fits(c.max_exposure_s)? {
-        c.max_exposure_s
-    } else if !fits(c.min_exposure_s)? {
-        return Err(PlanError::invalid(
-            "limits",
-            "the scene saturates the camera at the shortest exposure",
-        ));
-    } else {
-        let (mut lo, mut hi) = (c.min_exposure_s.ln(), c.max_exposure_s.ln());
-        for _ in 0..SATURATION_BISECTIONS {
-            let mid = 0.5 * (lo + hi);
-            if fits(mid.exp())? {
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-        }
-        lo.exp()
-    };
-    let frames: Vec<(f64, f64)> = angles_rad.iter().map(|&a| (a, a)).collect();
-    let sig = span_signal(
-        &problem.sensor,
-        &frames,
-        &SpanExposure {
-            t_int_s: t,
-            radiance_w_m2_sr: problem.target.mean_w_m2_sr,
-            angle_sigma_rad: 0.0,
-        },
-    )
-    .map_err(model("angles_rad"))?;
-    let (v, a) = (
-        problem.stage.max_speed_rad_per_s,
-        problem.stage.acceleration_rad_per_s2,
-    );
-    let mut set_s = 0.0;
-    let mut at = angles_rad[angles_rad.len() - 1];
-    for &psi in angles_rad {
-        let d = (psi - at).rem_euclid(PI);
-        let d = d.min(PI - d);
-        if d > 0.0 {
-            set_s += move_s(d, v, a) + settle_s;
-        }
-        set_s += (t + c.readout_s).max(1.0 / c.max_frame_rate_hz);
-        at = psi;
-    }
-    let cov = sig.stokes_cov_dn2;
-    let sigma_dolp = dolp_sigma_delta(&sig.stokes_dn, &cov);
-    let (sets, time) = match problem.objective {
-        Objective::TimeToDolpSigma { dolp_sigma } => {
-            let m = (sigma_dolp / dolp_sigma).powi(2).max(1.0);
-            (Some(m), Some(m * set_s))
-        }
-        Objective::ScrPerSecond => (None, None),
-    };
-    Ok(StepPrediction {
-        angles_rad: angles_rad.to_vec(),
-        exposure_s: t,
-        set_s,
-        s0_dn: sig.stokes_dn[0],
-        sigma_stokes_dn: [0, 1, 2].map(|i| cov[(i, i)].max(0.0).sqrt()),
-        sigma_dolp,
-        sets,
-        time_to_target_s: time,
-    })
-}
-
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use polar_model::atmosphere::Band;
     use polar_model::sensor::Camera;
@@ -965,7 +812,7 @@ mod tests {
 
     /// The simulated rig's limits: 360 deg/s at 2880 deg/s^2, 200 Hz, no readout dead time,
     /// exposures 10 us to 1 s.
-    fn problem(scale: f64, objective: Objective) -> ContinuousProblem {
+    pub(crate) fn problem(scale: f64, objective: Objective) -> ContinuousProblem {
         let class = |name: &str, m: [f64; 3]| ClassRadiance {
             name: name.into(),
             mean_w_m2_sr: Vector3::from(m) * scale,
@@ -994,7 +841,7 @@ mod tests {
         }
     }
 
-    const TIME: Objective = Objective::TimeToDolpSigma { dolp_sigma: 1e-3 };
+    pub(crate) const TIME: Objective = Objective::TimeToDolpSigma { dolp_sigma: 1e-3 };
 
     fn limits(c: &ContinuousChoice) -> Vec<Limit> {
         c.binds.iter().map(|b| b.limit).collect()
@@ -1208,27 +1055,6 @@ mod tests {
             "{} rad/s",
             free.speed_rad_per_s
         );
-    }
-
-    /// Step-and-shoot's set time by hand: 4 moves of 45 deg at 360 deg/s and 2880 deg/s^2
-    /// (45 >= 360^2 / 2880 = 45: the trapezoid just reaches top speed, 45/360 + 360/2880 =
-    /// 0.25 s each) plus 4 frames of max(exposure, 5 ms); to 1e-12 relative. Its sigmas
-    /// equal the continuous frames' at zero span (the same model).
-    #[test]
-    fn step_and_shoot_set_time_by_hand() {
-        let p = problem(1.0, TIME);
-        let angles: Vec<f64> = [0.0f64, 45.0, 90.0, 135.0]
-            .iter()
-            .map(|d| d.to_radians())
-            .collect();
-        let s = step_and_shoot(&p, &angles, 0.0).unwrap();
-        let by_hand = 4.0 * 0.25 + 4.0 * s.exposure_s.max(1.0 / 200.0);
-        assert!(
-            (s.set_s / by_hand - 1.0).abs() < 1e-12,
-            "{} {by_hand}",
-            s.set_s
-        );
-        assert!(s.time_to_target_s.unwrap() >= s.set_s);
     }
 
     #[test]

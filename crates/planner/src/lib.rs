@@ -12,14 +12,19 @@
 //!   is compared with.
 //! * [`continuous`]: frames per half turn, exposure and speed of a spinning analyzer under the
 //!   camera's and the stage's limits, and which limit binds.
+//! * [`log_search`]: a scan then golden-section search on a logarithmic axis.
+//! * [`step`]: the step-and-shoot set on the continuous planner's problem, its exposure chosen
+//!   by the same objective and saturation rule (`plan scene` and `plan continuous` share it).
 //! * [`stokes`]: when a set forms a Stokes image, the condition number of the ideal
 //!   analyzer's measurement matrix.
 #![warn(missing_docs)]
 
 pub mod aptd;
 pub mod continuous;
+pub mod log_search;
 pub mod optimize;
 pub mod scr;
+pub mod step;
 pub mod stokes;
 
 pub use optimize::{conventional, optimise, Constraints, Optimum};

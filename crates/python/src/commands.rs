@@ -6,7 +6,7 @@
 use crate::errors::value_error;
 use clap::{ArgMatches, Args, Command, FromArgMatches};
 use polar_cli::commands::{self, CommandError};
-use polar_cli::{acquire, plan, plan_continuous, rig};
+use polar_cli::{acquire, plan, plan_continuous, plan_scene, rig};
 use pyo3::prelude::*;
 use serde_json::Value;
 use std::path::PathBuf;
@@ -60,7 +60,7 @@ fn evaluate(name: &str, argv: Vec<String>) -> Result<Value, String> {
         "model_stokes" => text(commands::stokes(&parse(argv)?)),
         "model_geometry" => text(commands::geometry(&parse(argv)?)),
         "plan_angles" => text(plan::angles(&parse(argv)?)),
-        "plan_scene" => text(plan::scene_plan(&parse(argv)?)),
+        "plan_scene" => text(plan_scene::scene_plan(&parse(argv)?)),
         "plan_continuous" => plan_continuous::plan(&parse(argv)?).map_err(|e| format!("{e:#}")),
         "plan_check" => {
             let a: PlanCheckArgs = parse(argv)?;

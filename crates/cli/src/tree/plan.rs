@@ -8,7 +8,8 @@ use super::analyze::AptdArgs;
 use super::errors::in_plan_file;
 use super::output::print_json;
 use clap::{Args, Subcommand};
-use polar_cli::plan::{self, PlanAnglesArgs, PlanSceneArgs};
+use polar_cli::plan::{self, PlanAnglesArgs};
+use polar_cli::plan_scene::{self, PlanSceneArgs};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -64,7 +65,7 @@ struct SceneArgs {
 
 impl SceneArgs {
     fn run(self) -> ExitCode {
-        print_json(plan::scene_plan(&self.args))
+        print_json(plan_scene::scene_plan(&self.args))
     }
 }
 

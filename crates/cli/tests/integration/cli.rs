@@ -1252,8 +1252,8 @@ fn camera_grab_command() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("exposure_us = 5 is out of range"));
 }
 
-/// `plan scene`: the rooftop panel against asphalt through the CMOS camera, 3 channels at
-/// least 30 deg apart (issue 33's case: the planner chose 67.5/97.5/127.5 with a forecast SCR
+/// `plan scene --objective scr-fraction`: the rooftop panel against asphalt through the CMOS
+/// camera, 3 channels at least 30 deg apart (issue 33's case: the planner chose 67.5/97.5/127.5 with a forecast SCR
 /// of 73.33 while 0/45/90 had 73.45 and 0/60/120 73.55 under the same forecast). The printed
 /// SCR is the forecast's and is at least every conventional set's that the constraints allow,
 /// printed at the same integration time (to 1e-9 relative: the same forecast code scores
@@ -1280,6 +1280,8 @@ fn plan_scene_command() {
         "3",
         "--min-separation-deg",
         "30",
+        "--objective",
+        "scr-fraction",
     ];
     let out = polarimeter(&base);
     assert!(
@@ -1409,4 +1411,89 @@ fn plan_scene_command() {
         err.contains("\"nope\" is not a material") && err.contains("panel, glass, asphalt, grass"),
         "{err}"
     );
+}
+
+fn plan_json(args: &[&str]) -> serde_json::Value {
+    let out = polarimeter(args);
+    assert!(
+        out.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// `plan scene` and `plan continuous` answer the same question the same way: on the same
+/// scene, camera, target and (default) objective they report the same stage limits (the
+/// simulated rig's stage, from its simulator), and `plan scene`'s 4-angle set is the
+/// step-and-shoot set `plan continuous` compares with (0/45/90/135), with the same exposure
+/// and time to the DoLP goal (to 1e-9 relative: the same code chooses both). `plan continuous`
+/// says in one sentence why its spinning exposure differs from the still one. Both refuse an
+/// unknown objective, naming the allowed ones. And the saturation rule is every material's:
+/// on the scene with a metal panel, the limit for panel against asphalt is the least of the
+/// limits with each material as the target (metal is the brightest), to 1e-9 relative.
+#[test]
+fn plan_scene_and_plan_continuous_agree() {
+    let common = [
+        "--scene",
+        "../../examples/rooftop_panels.toml",
+        "--camera",
+        "../../examples/cameras/cmos_modern.toml",
+        "--background",
+        "asphalt",
+    ];
+    let with = |cmd: &[&str], more: &[&str]| -> serde_json::Value {
+        let mut a: Vec<&str> = cmd.to_vec();
+        a.extend(common);
+        a.extend(more);
+        plan_json(&a)
+    };
+    let scene = with(
+        &["plan", "scene"],
+        &["--target", "panel", "--channels", "4"],
+    );
+    let cont = with(&["plan", "continuous", "--json"], &["--target", "panel"]);
+    assert_eq!(scene["stage"], cont["stage"], "one default stage");
+    assert_eq!(scene["stage"]["from"], "the simulated rig's stage");
+    let step = &cont["step_and_shoot"];
+    assert_eq!(scene["angles_deg"], step["angles_deg"], "{scene}");
+    let rel = |a: &serde_json::Value, b: &serde_json::Value| {
+        (a.as_f64().unwrap() / b.as_f64().unwrap() - 1.0).abs()
+    };
+    assert!(rel(&scene["exposure"]["us"], &step["exposure_us"]) < 1e-9);
+    assert!(
+        rel(
+            &scene["objective"]["time_to_target_s"],
+            &step["time_to_target_s"]
+        ) < 1e-9
+    );
+    assert_eq!(scene["exposure"]["rule"], step["exposure_rule"]);
+    let why = cont["exposure_comparison"].as_str().unwrap();
+    assert!(why.contains("saturation") || why.contains("same"), "{why}");
+
+    for cmd in [&["plan", "scene"][..], &["plan", "continuous"][..]] {
+        let mut a: Vec<&str> = cmd.to_vec();
+        a.extend(common);
+        a.extend(["--target", "panel", "--objective", "fastest"]);
+        let out = polarimeter(&a);
+        assert_eq!(out.status.code(), Some(2));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            err.contains("--objective \"fastest\"") && err.contains("time-to-dolp-sigma"),
+            "{err}"
+        );
+    }
+
+    let limit = |target: &str| {
+        with(&["plan", "scene"], &["--target", target])["exposure"]["saturation_limit_us"]
+            .as_f64()
+            .unwrap()
+    };
+    let least = ["panel", "glass", "grass", "metal"]
+        .iter()
+        .map(|m| limit(m))
+        .fold(f64::INFINITY, f64::min);
+    let panel = limit("panel");
+    assert!((panel / least - 1.0).abs() < 1e-9, "{panel} vs {least}");
+    assert!((limit("metal") / least - 1.0).abs() < 1e-9);
 }

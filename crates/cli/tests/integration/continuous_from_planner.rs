@@ -6,6 +6,7 @@
 
 use polar_cli::plan_continuous::{plan, PlanContinuousArgs};
 use polar_cli::plan_load::{load_plan, load_plan_resolved};
+use polar_cli::plan_problem::ProblemArgs;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -42,34 +43,37 @@ fn write_plan(dir: &Path, continuous: &str, simulation: &str) -> PathBuf {
 }
 
 /// `plan continuous`'s arguments for the rooftop panels against the asphalt with the modern
-/// CMOS camera (the simulated rig's scene and camera) and its default limits.
+/// CMOS camera (the simulated rig's scene and camera), the camera's default limits and the
+/// simulated stage at 360 deg/s (2880 deg/s^2).
 fn args(max_frames: usize) -> PlanContinuousArgs {
     PlanContinuousArgs {
-        scene: root().join("examples/rooftop_panels.toml"),
-        camera: Some(root().join("examples/cameras/cmos_modern.toml")),
-        rig: None,
-        target: "panel".into(),
-        background: "asphalt".into(),
-        objective: "time-to-dolp-sigma".into(),
-        dolp_sigma: 1e-3,
-        max_speed_deg_per_s: 360.0,
-        acceleration_deg_per_s2: 2880.0,
-        max_frame_rate_hz: 200.0,
-        readout_us: 0.0,
-        min_exposure_us: 10.0,
-        max_exposure_us: 1e6,
-        saturation_sigma: 3.0,
+        problem: ProblemArgs {
+            scene: root().join("examples/rooftop_panels.toml"),
+            camera: Some(root().join("examples/cameras/cmos_modern.toml")),
+            rig: None,
+            target: "panel".into(),
+            background: "asphalt".into(),
+            objective: "time-to-dolp-sigma".into(),
+            dolp_sigma: 1e-3,
+            max_speed_deg_per_s: Some(360.0),
+            acceleration_deg_per_s2: Some(2880.0),
+            max_frame_rate_hz: 200.0,
+            readout_us: 0.0,
+            min_exposure_us: 10.0,
+            max_exposure_us: 1e6,
+            saturation_sigma: 3.0,
+            settle_s: 0.0,
+            tolerance: 1e-3,
+        },
         timing_sigma_us: 0.0,
         max_frames_per_half_turn: max_frames,
-        settle_s: 0.0,
-        tolerance: 1e-3,
         json: true,
     }
 }
 
 /// The same problem two ways: a plan whose `from_planner` names the rooftop panels against
 /// the asphalt with at most 24 frames per half turn, on the simulated stage at 360 deg/s
-/// (which reaches its speed in 1/8 s: 2880 deg/s^2), and `plan continuous` with its default
+/// (which reaches its speed in 1/8 s: 2880 deg/s^2), and `plan continuous` with the same
 /// limits (360 deg/s, 2880 deg/s^2, 200 Hz, no readout). The plan takes exactly the command's
 /// frames per half turn, exposure and speed (0 tolerance: the same function on the same
 /// inputs), the same binding limits are reported, and the resolved plan is valid and has no

@@ -51,6 +51,13 @@ class ScenePlan:
     """The chosen angles, degrees."""
     t_int_ms: float
     """Integration time, ms."""
+    exposure: dict
+    """The exposure (us), the rule that chose it and the saturation limit (us)."""
+    objective: dict
+    """The objective (``plan continuous``'s): its goal, the set's time, DoLP sigma, SCR per set
+    and per second, and the time to the goal."""
+    stage: dict
+    """The stage's limits used (top speed, acceleration) and where they came from."""
     set: dict
     """The set: kind, rule, conditioning and what the Stokes image costs in SCR."""
     forecast: dict
@@ -72,7 +79,11 @@ class ContinuousPlan:
     """The spinning choice: frames_per_half_turn, exposure_us, speed_deg_per_s,
     time_to_target_s, peak_fraction_of_saturation and ``binds`` (the limits that bind)."""
     step_and_shoot: dict
-    """The step-and-shoot set on the same rig."""
+    """The step-and-shoot set on the same rig, its exposure chosen as ``plan_scene`` chooses."""
+    exposure_comparison: str
+    """Why the spinning exposure differs from the still one (or that they agree)."""
+    stage: dict
+    """The stage's limits used and where they came from."""
     time_to_target_ratio: float
     """Step-and-shoot's time to the goal over the spinning analyzer's."""
     data: dict
