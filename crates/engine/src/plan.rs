@@ -43,6 +43,24 @@ fn invalid(field: &str, value: impl std::fmt::Display, allowed: impl Into<String
 /// message of ours, short of echoing a value of megabytes back.
 const QUOTED_MESSAGE_MAX_CHARS: usize = 400;
 
+/// A TOML parse error as a [`PlanError::Parse`]: the key's path and its line and column.
+fn toml_parse_error(text: &str, e: &serde_path_to_error::Error<toml::de::Error>) -> PlanError {
+    let at = e
+        .inner()
+        .span()
+        .map(|span| polar_model::error::line_column(text, span.start));
+    let field = e.path().to_string();
+    let path = match (field.as_str(), at) {
+        (".", Some(at)) => at,
+        (_, Some(at)) => format!("{field} ({at})"),
+        (_, None) => field,
+    };
+    PlanError::Parse {
+        path,
+        message: shortened(e.inner().message().trim().replace('\n', ", ")),
+    }
+}
+
 /// `message`, or its start and its length when it is longer than
 /// [`QUOTED_MESSAGE_MAX_CHARS`]: an error names a value, it does not echo a file.
 fn shortened(message: String) -> String {
@@ -407,6 +425,30 @@ pub struct Simulation {
     pub cloud_at_set: Option<u64>,
     /// Fractional drop of the illumination under the cloud, (0, 1).
     pub cloud_depth: f64,
+}
+
+impl Simulation {
+    /// Checks the section's ranges; errors name the key, the value and the range.
+    pub fn validate(&self) -> Result<(), PlanError> {
+        check_count("simulation.width", u64::from(self.width), 16, 4096)?;
+        check_count("simulation.height", u64::from(self.height), 16, 4096)?;
+        check(
+            "simulation.stage_deg_per_s",
+            self.stage_deg_per_s,
+            0.0,
+            3600.0,
+            true,
+        )?;
+        check("simulation.cloud_depth", self.cloud_depth, 0.0, 1.0, true)?;
+        if self.cloud_depth >= 1.0 {
+            return Err(invalid(
+                "simulation.cloud_depth",
+                self.cloud_depth,
+                "(0, 1)",
+            ));
+        }
+        Ok(())
+    }
 }
 
 impl Default for Simulation {
@@ -1127,22 +1169,26 @@ impl Plan {
     /// Parses TOML text; errors name the field.
     pub fn from_toml_str(text: &str) -> Result<Plan, PlanError> {
         let de = toml::Deserializer::new(text);
-        Plan::from_file(serde_path_to_error::deserialize(de).map_err(|e| {
-            let at = e
-                .inner()
-                .span()
-                .map(|span| polar_model::error::line_column(text, span.start));
-            let field = e.path().to_string();
-            let path = match (field.as_str(), at) {
-                (".", Some(at)) => at,
-                (_, Some(at)) => format!("{field} ({at})"),
-                (_, None) => field,
-            };
-            PlanError::Parse {
-                path,
-                message: shortened(e.inner().message().trim().replace('\n', ", ")),
-            }
-        }))
+        Plan::from_file(
+            serde_path_to_error::deserialize(de).map_err(|e| toml_parse_error(text, &e)),
+        )
+    }
+
+    /// The `[simulation]` section of a plan's TOML text alone, checked as a plan checks it
+    /// (the default where there is none). The other sections are not read, so an error in
+    /// them does not stop what needs only the simulated devices (the GUI's Connect); errors
+    /// name the key and its line as [`Plan::from_toml_str`]'s do.
+    pub fn simulation_from_toml_str(text: &str) -> Result<Simulation, PlanError> {
+        #[derive(Deserialize)]
+        struct SimulationOnly {
+            #[serde(default)]
+            simulation: Simulation,
+        }
+        let de = toml::Deserializer::new(text);
+        let only: SimulationOnly =
+            serde_path_to_error::deserialize(de).map_err(|e| toml_parse_error(text, &e))?;
+        only.simulation.validate()?;
+        Ok(only.simulation)
     }
 
     /// Parses YAML text; errors name the field.
@@ -1245,21 +1291,7 @@ impl Plan {
             )?;
             check("site.elevation_m", site.elevation_m, -500.0, 9000.0, false)?;
         }
-        let sim = &self.simulation;
-        check_count("simulation.width", u64::from(sim.width), 16, 4096)?;
-        check_count("simulation.height", u64::from(sim.height), 16, 4096)?;
-        check(
-            "simulation.stage_deg_per_s",
-            sim.stage_deg_per_s,
-            0.0,
-            3600.0,
-            true,
-        )?;
-        check("simulation.cloud_depth", sim.cloud_depth, 0.0, 1.0, true)?;
-        if sim.cloud_depth >= 1.0 {
-            return Err(invalid("simulation.cloud_depth", sim.cloud_depth, "(0, 1)"));
-        }
-        Ok(())
+        self.simulation.validate()
     }
 
     /// Replaces a capture's `from_planner` with the angles the planner chose.

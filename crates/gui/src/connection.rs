@@ -99,6 +99,16 @@ impl Connected {
     }
 }
 
+/// What the camera applied, and what was asked where it differs (a camera rounds to its
+/// steps or keeps to its range): the panel then shows the applied value.
+fn applied(what: &str, got: f64, asked: f64, unit: &str) -> String {
+    if (got - asked).abs() <= 1e-9 * asked.abs().max(1.0) {
+        format!("{what} {got:.1}{unit}")
+    } else {
+        format!("{what} {got:.1}{unit} (asked {asked:.1}{unit})")
+    }
+}
+
 /// Carries out a device command on `c`; the status after it (with the error, if any).
 pub(crate) async fn device_command(
     c: &mut Connected,
@@ -122,12 +132,12 @@ pub(crate) async fn device_command(
             Command::SetExposure { exposure_us } => {
                 let e = c.rig.camera.set_exposure_us(exposure_us).await?;
                 settings.0 = Some(e);
-                Ok(format!("exposure {e:.1} us"))
+                Ok(applied("exposure", e, exposure_us, " us"))
             }
             Command::SetGain { gain } => {
                 let g = c.rig.camera.set_gain(gain).await?;
                 settings.1 = Some(g);
-                Ok(format!("gain {g:.2}"))
+                Ok(applied("gain", g, gain, ""))
             }
             Command::Snapshot => {
                 let cam = &mut c.rig.camera;
@@ -177,12 +187,14 @@ pub(crate) async fn device_command(
 }
 
 /// Connects `devices`: on hardware the rig `polarimeter run` would use; simulated, the rig
-/// of `plan`'s `[simulation]` section (its pseudo-terminal link under `link_dir`).
+/// of `plan`'s `[simulation]` section (its pseudo-terminal link under `link_dir`, its noise
+/// stream `noise_stream`).
 pub(crate) async fn connect(
     devices: &Devices,
     plan: &Plan,
     plan_dir: &Path,
     link_dir: &Path,
+    noise_stream: u64,
 ) -> Result<Connected, String> {
     match devices {
         Devices::Hardware(hw) => {
@@ -198,9 +210,9 @@ pub(crate) async fn connect(
             })
         }
         Devices::Simulated => {
-            // The GUI starts new runs only (noise stream 0); one connection's frame ids
+            // Each connection draws its own noise stream, and one connection's frame ids
             // keep counting over its runs, so no draw repeats.
-            let (sim, r) = SimRig::start_rig(plan, plan_dir, link_dir, 0)
+            let (sim, r) = SimRig::start_rig(plan, plan_dir, link_dir, noise_stream)
                 .await
                 .map_err(|e| format!("simulated rig: {e}"))?;
             let rig = Rig {

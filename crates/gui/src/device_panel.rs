@@ -1,9 +1,13 @@
 //! The device panel: connect, home, move, exposure and gain, a snapshot, and the live modes
 //! ([`crate::live`]).
 
+use crate::fields::{number_field, show_notes};
 use crate::messages::Command;
 use crate::{colour, fit_texture, live, App, ShownSnapshot};
 use eframe::egui;
+
+/// The simulated camera's exposure range, us, shown before a camera has said its own.
+const SIM_EXPOSURE_RANGE_US: (f64, f64) = (10.0, 1e7);
 
 impl App {
     pub(crate) fn device_panel(&mut self, ui: &mut egui::Ui) {
@@ -75,35 +79,43 @@ impl App {
         if let Some(e) = &d.error {
             ui.colored_label(ui.visuals().error_fg_color, format!("Device error: {e}"));
         }
+        // Before Connect the camera's ranges are not known: the simulated camera's.
         let (exp_range, gain_range) = (
-            d.exposure_range_us.unwrap_or([1.0, 1e7]),
-            d.gain_range.unwrap_or([0.0, 48.0]),
+            d.exposure_range_us
+                .map_or(SIM_EXPOSURE_RANGE_US, |r| (r[0], r[1])),
+            d.gain_range.map_or((0.0, 48.0), |r| (r[0], r[1])),
         );
+        let mut notes = Vec::new();
         egui::Grid::new("device controls")
             .num_columns(3)
             .show(ui, |ui| {
-                let l = ui.label("Analyzer angle (deg)");
-                ui.add(
-                    egui::DragValue::new(&mut self.move_deg)
-                        .range(0.0..=180.0)
-                        .speed(0.5),
-                )
-                .labelled_by(l.id);
-                if ui.add_enabled(can, egui::Button::new("Move")).clicked() {
+                let ok = number_field(
+                    ui,
+                    "Analyzer angle (deg)",
+                    &mut self.move_deg,
+                    (0.0, 180.0),
+                    0.5,
+                    &mut notes,
+                );
+                if ui
+                    .add_enabled(can && ok, egui::Button::new("Move"))
+                    .clicked()
+                {
                     self.device(Command::MoveAnalyzer {
                         angle_deg: self.move_deg,
                     });
                 }
                 ui.end_row();
-                let l = ui.label("Exposure (us)");
-                ui.add(
-                    egui::DragValue::new(&mut self.exposure_us)
-                        .range(exp_range[0]..=exp_range[1])
-                        .speed(5.0),
-                )
-                .labelled_by(l.id);
+                let ok = number_field(
+                    ui,
+                    "Exposure (us)",
+                    &mut self.exposure_us,
+                    exp_range,
+                    5.0,
+                    &mut notes,
+                );
                 if ui
-                    .add_enabled(can_set, egui::Button::new("Set exposure"))
+                    .add_enabled(can_set && ok, egui::Button::new("Set exposure"))
                     .clicked()
                 {
                     self.device(Command::SetExposure {
@@ -111,21 +123,16 @@ impl App {
                     });
                 }
                 ui.end_row();
-                let l = ui.label("Gain");
-                ui.add(
-                    egui::DragValue::new(&mut self.gain)
-                        .range(gain_range[0]..=gain_range[1])
-                        .speed(0.1),
-                )
-                .labelled_by(l.id);
+                let ok = number_field(ui, "Gain", &mut self.gain, gain_range, 0.1, &mut notes);
                 if ui
-                    .add_enabled(can_set, egui::Button::new("Set gain"))
+                    .add_enabled(can_set && ok, egui::Button::new("Set gain"))
                     .clicked()
                 {
                     self.device(Command::SetGain { gain: self.gain });
                 }
                 ui.end_row();
             });
+        show_notes(ui, &notes);
         if ui.add_enabled(can, egui::Button::new("Snapshot")).clicked() {
             self.device(Command::Snapshot);
         }

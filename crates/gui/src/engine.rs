@@ -100,6 +100,8 @@ async fn worker(
     // The exposure and gain last applied (the camera trait has no getters).
     let mut settings = (None, None);
     let mut plan_dir = PathBuf::from(".");
+    // Connections made so far: each simulated one draws its own noise stream.
+    let mut connections: u64 = 0;
     // Commands a live mode left for this loop.
     let mut pending: std::collections::VecDeque<Command> = std::collections::VecDeque::new();
     loop {
@@ -174,15 +176,21 @@ async fn worker(
                     base_dir: &base_dir,
                     plan_dir: &plan_dir,
                 };
-                run_one(plan, held, &devices, &mut commands, &out, places).await;
+                let kept = std::mem::take(&mut settings);
+                run_one(plan.clone(), held, &devices, &mut commands, &out, places).await;
                 if had {
-                    settings = (None, None);
-                    out.send(Reply::Devices(disconnected(
-                        "not connected: the run has released the devices",
-                        "run ended",
-                        None,
-                    )))
-                    .await;
+                    // The run released the devices: connect them again with the panel's
+                    // settings, so the user goes on where they were.
+                    connections += 1;
+                    let link_dir = base_dir.join(".polarimeter-gui-sim");
+                    connected =
+                        reconnect(&devices, &plan, places, &link_dir, connections, kept, &out)
+                            .await;
+                    settings = if connected.is_some() {
+                        kept
+                    } else {
+                        (None, None)
+                    };
                 }
             }
             Command::Connect {
@@ -191,13 +199,18 @@ async fn worker(
                 gain,
             } => {
                 if connected.is_none() {
-                    let plan = match Plan::from_toml_str(&plan_text) {
-                        Ok(p) => p,
+                    let plan = match connect_plan(&plan_text) {
+                        Ok((p, note)) => {
+                            if let Some(n) = note {
+                                out.send(Reply::Log(n)).await;
+                            }
+                            p
+                        }
                         Err(e) => {
                             out.send(Reply::Devices(disconnected(
                                 "not connected",
                                 "connect failed",
-                                Some(format!("the plan (its [simulation] section): {e}")),
+                                Some(e),
                             )))
                             .await;
                             continue;
@@ -209,7 +222,8 @@ async fn worker(
                     };
                     out.send(Reply::Log(format!("connecting {what}"))).await;
                     let link_dir = base_dir.join(".polarimeter-gui-sim");
-                    match connect(&devices, &plan, &plan_dir, &link_dir).await {
+                    connections += 1;
+                    match connect(&devices, &plan, &plan_dir, &link_dir, connections).await {
                         Ok(c) => connected = Some(c),
                         Err(e) => {
                             out.send(Reply::Devices(disconnected(
@@ -294,6 +308,70 @@ async fn worker(
     if let Some(c) = connected.take() {
         c.release().await;
     }
+}
+
+/// The plan Connect builds the devices from: the editor's plan when it parses; else the
+/// default plan with the editor's `[simulation]` section, so an error elsewhere in the plan
+/// (which Start and the forecast name) does not stop Connect, and a note saying so. An error
+/// names the `[simulation]` key and its line.
+pub fn connect_plan(plan_text: &str) -> Result<(Plan, Option<String>), String> {
+    match Plan::from_toml_str(plan_text) {
+        Ok(p) => Ok((p, None)),
+        Err(plan_error) => {
+            let simulation = Plan::simulation_from_toml_str(plan_text)
+                .map_err(|e| format!("the plan's [simulation] section: {e}"))?;
+            let mut p = Plan::from_toml_str(crate::DEFAULT_PLAN).map_err(|e| e.to_string())?;
+            p.simulation = simulation;
+            Ok((
+                p,
+                Some(format!(
+                    "connecting from the plan's [simulation] section; the plan itself does not \
+                     load yet: {plan_error}"
+                )),
+            ))
+        }
+    }
+}
+
+/// Connects `devices` again after a run released them and applies the panel's `kept`
+/// exposure and gain; the status says so. `None` (with the error shown) if they do not
+/// answer.
+async fn reconnect(
+    devices: &Devices,
+    plan: &Plan,
+    places: Places<'_>,
+    link_dir: &Path,
+    noise_stream: u64,
+    kept: (Option<f64>, Option<f64>),
+    out: &Out,
+) -> Option<Connected> {
+    let mut c = match connect(devices, plan, places.plan_dir, link_dir, noise_stream).await {
+        Ok(c) => c,
+        Err(e) => {
+            out.send(Reply::Devices(disconnected(
+                "not connected: the run released the devices and they did not answer again",
+                "reconnect failed",
+                Some(e),
+            )))
+            .await;
+            return None;
+        }
+    };
+    let mut settings = (None, None);
+    let mut st = c.status("connected again after the run".into()).await;
+    if let Some(exposure_us) = kept.0 {
+        st = device_command(&mut c, &Command::SetExposure { exposure_us }, &mut settings)
+            .await
+            .0;
+    }
+    if let (Some(gain), None) = (kept.1, &st.error) {
+        st = device_command(&mut c, &Command::SetGain { gain }, &mut settings)
+            .await
+            .0;
+    }
+    st.last = "connected again after the run, with the panel's settings".into();
+    out.send(Reply::Devices(st)).await;
+    Some(c)
 }
 
 /// A new run directory under `base` for `plan`.
@@ -405,7 +483,7 @@ async fn run_one(
                 plan.name
             )))
             .await;
-            match connect(devices, &plan, plan_dir, &run_dir.join(".sim")).await {
+            match connect(devices, &plan, plan_dir, &run_dir.join(".sim"), 0).await {
                 Ok(c) => c,
                 Err(e) => {
                     out.send(Reply::Error(e)).await;

@@ -17,6 +17,7 @@ pub mod colour;
 mod connection;
 mod device_panel;
 pub mod engine;
+mod fields;
 mod forecast;
 pub mod live;
 mod live_worker;
@@ -59,6 +60,9 @@ const MAX_PLAN_BYTES: u64 = 1 << 20;
 
 /// Lines the log keeps.
 const LOG_LINES: usize = 500;
+
+/// The least height of the log's view, points (about eight lines).
+const LOG_MIN_HEIGHT: f32 = 120.0;
 
 /// Where the UI's idea of the run is.
 #[derive(Debug, Clone, PartialEq)]
@@ -153,6 +157,8 @@ pub struct App {
     /// The plan file's path (the Open and Save buttons).
     pub plan_path: String,
     plan_file_note: Option<Result<String, String>>,
+    /// The plan text of the last start (a failed start's state goes once the text changes).
+    started_text: Option<String>,
     forecast: Option<Result<String, String>>,
     forecast_for: Option<String>,
     forecast_pending: bool,
@@ -206,6 +212,7 @@ impl App {
             plan_text: DEFAULT_PLAN.to_string(),
             plan_path: String::new(),
             plan_file_note: None,
+            started_text: None,
             forecast: None,
             forecast_for: None,
             forecast_pending: false,
@@ -567,6 +574,7 @@ impl App {
         if self.engine.send(Command::Start {
             plan_text: self.plan_text.clone(),
         }) {
+            self.started_text = Some(self.plan_text.clone());
             self.active = true;
             self.status = Status::Run(RunState::Starting);
             self.done = 0;
@@ -590,6 +598,14 @@ impl App {
     pub fn show(&mut self, ui: &mut egui::Ui) {
         self.poll();
         let stale = self.forecast_for.as_deref() != Some(self.plan_text.as_str());
+        if !self.active
+            && matches!(self.status, Status::Failed(_))
+            && self.started_text.as_deref() != Some(self.plan_text.as_str())
+        {
+            // The plan was edited since a start failed: the failure (kept in the log) no
+            // longer describes the plan shown.
+            self.status = Status::Idle;
+        }
         if !self.active
             && !self.forecast_pending
             && stale
@@ -791,15 +807,31 @@ impl App {
         self.plan_file_note.as_ref()
     }
 
+    /// The left panel: the plan file, the editor, the forecast and the log. It scrolls both
+    /// ways as a whole, so at any window size the log's newest lines (done, errors) can be
+    /// reached; the editor and the log keep a useful height of their own.
     fn plan_panel(&mut self, ui: &mut egui::Ui) {
+        let height = ui.available_height();
+        egui::ScrollArea::both()
+            .id_salt("plan panel")
+            .auto_shrink([false, false])
+            .show(ui, |ui| self.plan_panel_inner(ui, height));
+    }
+
+    fn plan_panel_inner(&mut self, ui: &mut egui::Ui, height: f32) {
         ui.horizontal(|ui| {
             let l = ui.label("Plan file");
-            ui.add(
-                egui::TextEdit::singleline(&mut self.plan_path)
-                    .hint_text("path/to/plan.toml or .yaml")
-                    .desired_width(200.0),
-            )
-            .labelled_by(l.id);
+            let path = ui
+                .add(
+                    egui::TextEdit::singleline(&mut self.plan_path)
+                        .hint_text("path/to/plan.toml or .yaml")
+                        .desired_width(200.0),
+                )
+                .labelled_by(l.id);
+            if path.changed() {
+                // What the last Open or Save said was about another path.
+                self.plan_file_note = None;
+            }
             if ui
                 .add_enabled(!self.active, egui::Button::new("Open"))
                 .clicked()
@@ -822,7 +854,7 @@ impl App {
         let label = ui.label("Plan (TOML)");
         egui::ScrollArea::vertical()
             .id_salt("plan editor")
-            .max_height(ui.available_height() * 0.45)
+            .max_height((height * 0.4).max(160.0))
             .show(ui, |ui| {
                 ui.add_enabled(
                     !self.active,
@@ -851,6 +883,8 @@ impl App {
         egui::ScrollArea::vertical()
             .id_salt("log")
             .stick_to_bottom(true)
+            .min_scrolled_height(LOG_MIN_HEIGHT)
+            .max_height((height * 0.3).max(LOG_MIN_HEIGHT))
             .show(ui, |ui| {
                 for l in &self.log {
                     ui.label(egui::RichText::new(l.as_str()).monospace().small());

@@ -16,6 +16,7 @@
 //! The device I/O of both modes runs on the engine's worker (module `live_worker`); this
 //! module holds what the UI keeps of it ([`LivePanel`]) and draws it, never waiting.
 
+use crate::fields::{number_field, show_notes};
 use crate::messages::{Command, LiveProducts};
 use crate::{colour, fit_texture, render, rooftop, Rendered, View};
 use eframe::egui;
@@ -222,6 +223,18 @@ impl LivePanel {
         self.stopping = false;
         self.error = None;
         self.note = None;
+        // The other mode's last image is not this mode's: it goes, so a stopped mode shows
+        // its own last output, never an older one.
+        match mode {
+            LiveMode::Camera => {
+                self.half_turn = None;
+                self.half_turn_live = None;
+            }
+            LiveMode::Polarimetry => {
+                self.frame = None;
+                self.frame_texture = None;
+            }
+        }
         Command::LiveStart {
             mode,
             spin: self.spin,
@@ -232,6 +245,13 @@ impl LivePanel {
     pub fn stop(&mut self) -> Command {
         self.stopping = true;
         Command::LiveStop
+    }
+
+    /// Whether the spin settings are inside their ranges.
+    fn spin_settings_ok(&self) -> bool {
+        let s = &self.spin;
+        (SPEED_RANGE_DEG_PER_S.0..=SPEED_RANGE_DEG_PER_S.1).contains(&s.speed_deg_per_s)
+            && (FRAMES_RANGE.0..=FRAMES_RANGE.1).contains(&s.frames_per_half_turn)
     }
 
     /// The start command was not sent (the queue was full).
@@ -281,8 +301,10 @@ impl LivePanel {
             {
                 cmd = Some(self.start(LiveMode::Camera));
             }
+            // The spin settings below must be in their ranges (their notes say which is not).
+            let spin_ok = self.spin_settings_ok();
             if ui
-                .add_enabled(can_start, egui::Button::new("Live polarimetry"))
+                .add_enabled(can_start && spin_ok, egui::Button::new("Live polarimetry"))
                 .on_hover_text("spin the analyzer: S0, DoLP and AoP every half turn")
                 .clicked()
             {
@@ -302,28 +324,33 @@ impl LivePanel {
                 ui.label(format!("{} running", m.label()));
             }
         });
+        let mut notes = Vec::new();
         ui.horizontal(|ui| {
             let editable = self.running.is_none();
             ui.add_enabled_ui(editable, |ui| {
-                let l = ui.label("Spin (deg/s)");
-                ui.add(
-                    egui::DragValue::new(&mut self.spin.speed_deg_per_s)
-                        .range(SPEED_RANGE_DEG_PER_S.0..=SPEED_RANGE_DEG_PER_S.1)
-                        .speed(1.0),
-                )
-                .labelled_by(l.id);
-                let l = ui.label("Frames per half turn");
-                ui.add(
-                    egui::DragValue::new(&mut self.spin.frames_per_half_turn)
-                        .range(FRAMES_RANGE.0..=FRAMES_RANGE.1),
-                )
-                .labelled_by(l.id);
+                number_field(
+                    ui,
+                    "Spin (deg/s)",
+                    &mut self.spin.speed_deg_per_s,
+                    SPEED_RANGE_DEG_PER_S,
+                    1.0,
+                    &mut notes,
+                );
+                number_field(
+                    ui,
+                    "Frames per half turn",
+                    &mut self.spin.frames_per_half_turn,
+                    FRAMES_RANGE,
+                    0.1,
+                    &mut notes,
+                );
                 ui.checkbox(
                     &mut self.spin.hardware_trigger,
                     "camera trigger wired to stage",
                 );
             });
         });
+        show_notes(ui, &notes);
         if let Some(n) = &self.note {
             ui.label(n.as_str());
         }

@@ -657,6 +657,7 @@ impl PlannerPanel {
             Err(_) => Vec::new(),
         };
         let mut pressed = false;
+        let (mut ok, mut notes) = (true, Vec::new());
         egui::Grid::new("planner_inputs")
             .num_columns(2)
             .spacing([12.0, 4.0])
@@ -677,13 +678,14 @@ impl PlannerPanel {
                         .labelled_by(l.id);
                     ui.end_row();
                 }
-                let l = ui.label("Exposure (us)");
-                ui.add(
-                    egui::DragValue::new(&mut self.inputs.exposure_us)
-                        .range(1.0..=1e7)
-                        .speed(5.0),
-                )
-                .labelled_by(l.id);
+                ok &= crate::fields::number_field(
+                    ui,
+                    "Exposure (us)",
+                    &mut self.inputs.exposure_us,
+                    (1.0, 1e7),
+                    5.0,
+                    &mut notes,
+                );
                 ui.end_row();
                 let l = ui.label("Angles N");
                 ui.add(egui::Slider::new(
@@ -692,20 +694,22 @@ impl PlannerPanel {
                 ))
                 .labelled_by(l.id);
                 ui.end_row();
-                let l = ui.label("Min separation (deg)");
-                ui.add(
-                    egui::DragValue::new(&mut self.inputs.min_separation_deg)
-                        .range(0.0..=89.0)
-                        .speed(0.5),
-                )
-                .labelled_by(l.id);
+                ok &= crate::fields::number_field(
+                    ui,
+                    "Min separation (deg)",
+                    &mut self.inputs.min_separation_deg,
+                    (0.0, 89.0),
+                    0.5,
+                    &mut notes,
+                );
                 ui.end_row();
                 let l = ui.label("Pfa for Pd");
                 ui.add(egui::Slider::new(&mut self.inputs.pfa, 1e-6..=0.5).logarithmic(true))
                     .labelled_by(l.id);
                 ui.end_row();
             });
-        if ui.button("Compute").clicked() {
+        crate::fields::show_notes(ui, &notes);
+        if ui.add_enabled(ok, egui::Button::new("Compute")).clicked() {
             pressed = true;
         }
         pressed

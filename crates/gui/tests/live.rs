@@ -156,3 +156,44 @@ fn live_polarimetry_half_turns_match_truth() {
     assert_eq!(h.state().live_panel().error(), None);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// After Live then Live polarimetry, the stopped panel shows polarimetry's last half turn,
+/// never the older raw frame of the camera stream (which it showed before: a stopped mode
+/// fell back to the last camera frame whatever ran last); and the other way round.
+#[test]
+fn a_stopped_mode_shows_its_own_last_output() {
+    let (dir, mut h) = connected("stale");
+    let stop = |h: &mut Harness<'static, App>| {
+        h.get_by_label("Stop").click();
+        step_until(h, Duration::from_secs(30), "stopped", |h| {
+            h.state().live_panel().running().is_none()
+        });
+        h.run_steps(2);
+    };
+    h.get_by_label("Live").click();
+    step_until(&mut h, Duration::from_secs(60), "frames", |h| {
+        h.state()
+            .live_panel()
+            .frame()
+            .is_some_and(|f| f.frames >= 3)
+    });
+    stop(&mut h);
+    h.get_by_label("Live polarimetry").click();
+    step_until(&mut h, Duration::from_secs(120), "a half turn", |h| {
+        h.state().live_panel().error().is_some() || h.state().live_panel().half_turn().is_some()
+    });
+    stop(&mut h);
+    assert!(h.state().live_panel().frame().is_none());
+    assert!(
+        h.query_by_label_contains("live frame image").is_none(),
+        "the camera's old frame is shown after live polarimetry"
+    );
+    h.get_by_label("Live").click();
+    step_until(&mut h, Duration::from_secs(60), "frames", |h| {
+        h.state().live_panel().frame().is_some()
+    });
+    stop(&mut h);
+    assert!(h.state().live_panel().half_turn().is_none());
+    assert!(h.query_by_label_contains("live frame image").is_some());
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -3,7 +3,7 @@
 #![allow(clippy::unwrap_used)]
 
 use eframe::egui;
-use egui_kittest::kittest::Queryable;
+use egui_kittest::kittest::{NodeT, Queryable};
 use egui_kittest::Harness;
 use polar_engine::run::RunState;
 use polar_gui::{App, Status};
@@ -179,7 +179,8 @@ fn view_selector_by_label() {
 }
 
 /// The device panel by its labels: connect the simulated devices, move the analyzer, set the
-/// exposure, take a snapshot; then a run takes the devices over and releases them.
+/// exposure, take a snapshot; then a run takes the devices over, and they are connected again
+/// with the panel's settings when it ends.
 #[test]
 fn devices_connect_move_snapshot_then_run() {
     let (dir, mut h) = start("devices");
@@ -226,14 +227,21 @@ fn devices_connect_move_snapshot_then_run() {
     h.run_steps(2);
     assert!(label_shows(&h, "snapshot image"));
 
-    // A run on the connected devices; the devices are released when it ends.
+    // A run on the connected devices; when it ends they are connected again with the
+    // panel's exposure (250 us), so the user goes on without Connect, Home and Set exposure.
     h.get_by_label("Start").click();
     step_until(&mut h, Duration::from_secs(60), "Done", |h| {
         label_shows(h, "State: Done")
     });
-    step_until(&mut h, Duration::from_secs(10), "released", |h| {
-        !h.state().devices().connected
+    step_until(&mut h, Duration::from_secs(30), "connected again", |h| {
+        h.state().devices().connected
+            && h.state()
+                .log_lines()
+                .any(|l| l.contains("connected again after the run"))
     });
+    let e = h.state().devices().exposure_us.unwrap();
+    assert!((e - 250.0).abs() < 1.0, "exposure {e} us after the run");
+    assert!(label_shows(&h, "Devices: connected"));
     assert!(h
         .state()
         .log_lines()
@@ -531,6 +539,141 @@ fn continuous_from_planner_resolves_in_the_gui() {
     assert!(
         app.log_lines().any(|l| l.contains(&said)),
         "the log names the choice {said:?}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Connect needs only the plan's `[simulation]` section: an error elsewhere in the editor
+/// (here `capture.repeats = -1`) does not stop it, and the log says the plan itself does not
+/// load; an error in `[simulation]` is refused naming that section, the key and its line.
+#[test]
+fn connect_reads_only_the_simulation_section() {
+    let (dir, mut h) = start("connect-section");
+    let good = h.state().plan_text.clone();
+    h.state_mut().plan_text = good.replace("repeats = 3", "repeats = -1");
+    connect(&mut h);
+    assert!(
+        h.state().devices().error.is_none(),
+        "{:?}",
+        h.state().devices()
+    );
+    assert!(h
+        .state()
+        .log_lines()
+        .any(|l| l.contains("[simulation] section") && l.contains("repeats")));
+    h.get_by_label("Disconnect").click();
+    step_until(&mut h, Duration::from_secs(10), "disconnected", |h| {
+        !h.state().devices().connected && !h.state().device_pending()
+    });
+    // Line 12 of the default plan is `width = 96` in [simulation].
+    h.state_mut().plan_text = good.replace("width = 96", "width = \"wide\"");
+    h.get_by_label("Connect").click();
+    step_until(&mut h, Duration::from_secs(10), "refused", |h| {
+        h.state().devices().error.is_some() && !h.state().device_pending()
+    });
+    let e = h.state().devices().error.clone().unwrap();
+    assert!(
+        e.contains("[simulation]") && e.contains("simulation.width") && e.contains("line 12"),
+        "{e}"
+    );
+    assert!(!h.state().devices().connected);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Numbers outside their range are never clamped without a word: an exposure of 1 us (the
+/// simulated camera's range starts at 10 us) stays as typed, a note names the field, the
+/// value and the range, and Set exposure stays disabled until it is fixed.
+#[test]
+fn out_of_range_numbers_are_named_not_clamped() {
+    let (dir, mut h) = start("ranges");
+    connect(&mut h);
+    h.get_by_label("Exposure (us)").set_value_accesskit(1.0);
+    h.run_steps(2);
+    assert!(
+        label_shows(
+            &h,
+            "Exposure (us) = 1 is outside the allowed range [10, 10000000]"
+        ),
+        "no note"
+    );
+    let shown = h.get_by_label("Exposure (us)").value().unwrap_or_default();
+    assert!(
+        shown.trim() == "1",
+        "the field shows {shown:?}, not what was typed"
+    );
+    let disabled = |h: &Harness<'static, App>| {
+        h.get_by_label("Set exposure")
+            .accesskit_node()
+            .is_disabled()
+    };
+    assert!(disabled(&h));
+    h.get_by_label("Exposure (us)").set_value_accesskit(20.0);
+    h.run_steps(2);
+    assert!(!label_shows(&h, "is outside the allowed range"));
+    assert!(!disabled(&h));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A failed start's state goes once the plan is edited (the log keeps it), and a TOML error
+/// in the forecast names its line.
+#[test]
+fn stale_failure_goes_and_toml_errors_name_the_line() {
+    let (dir, mut h) = start("stale");
+    let good = h.state().plan_text.clone();
+    h.state_mut().plan_text = good.replace("repeats = 3", "repeats = [3");
+    h.get_by_label("Start").click();
+    step_until(&mut h, Duration::from_secs(10), "Failed", |h| {
+        label_shows(h, "State: Failed")
+    });
+    step_until(&mut h, Duration::from_secs(20), "the plan error", |h| {
+        label_shows(h, "plan error")
+    });
+    // `repeats = [3` is on line 6 of the default plan; TOML finds the array unclosed where the
+    // next key starts, line 8, column 1.
+    assert!(
+        label_shows(&h, "line 8, column 1"),
+        "no line in the forecast's error"
+    );
+    h.state_mut().plan_text = good;
+    h.run_steps(2);
+    assert!(label_shows(&h, "State: Idle"));
+    assert!(h.state().log_lines().any(|l| l.contains("error")));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// At 900 x 650 (a laptop's small window) the whole left panel scrolls: after a run, the
+/// log's newest line (done) is brought into the window by scrolling the panel (before, the
+/// panel did not scroll and the log's end lay below the window).
+#[test]
+fn the_log_is_reachable_in_a_small_window() {
+    let dir = temp_dir("small");
+    let app = App::new(dir.clone(), None).unwrap();
+    let mut h = Harness::builder()
+        .with_size(egui::vec2(900.0, 650.0))
+        .build_ui_state(|ui, app: &mut App| app.show(ui), app);
+    h.step();
+    h.get_by_label("Start").click();
+    step_until(&mut h, Duration::from_secs(60), "Done", |h| {
+        label_shows(h, "State: Done")
+    });
+    h.run_steps(3);
+    // The mouse wheel over the panel (at its "Forecast" heading), 100 points a turn.
+    h.get_by_label("Forecast").hover();
+    h.run_steps(2);
+    for _ in 0..10 {
+        h.event(egui::Event::MouseWheel {
+            unit: egui::MouseWheelUnit::Point,
+            delta: egui::vec2(0.0, -100.0),
+            phase: egui::TouchPhase::Move,
+            source: egui::MouseWheelSource::Unknown,
+            modifiers: egui::Modifiers::NONE,
+        });
+        h.run_steps(2);
+    }
+    let r = h.get_by_label_contains("done: 13 frames").rect();
+    assert!(
+        r.min.y >= 0.0 && r.max.y <= 650.0 && r.min.x >= 0.0 && r.min.x < 900.0,
+        "the log's last line is at {r:?}, outside the 900x650 window"
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
