@@ -12,14 +12,15 @@ cd "$(dirname "$0")/.."
 # * Its tests run Aravis's fake GigE Vision camera, arv-fake-gv-camera-0.8, which Debian 12
 #   ships in aravis-tools (aravis-tools-cli has arv-tool-0.8 only).
 # * The GUI's screenshot tour runs polarimeter-gui under Xvfb (xvfb-run needs xauth) with
-#   Mesa's software OpenGL; winit loads the X11 client libraries at run time.
+#   Mesa's software OpenGL; winit loads the X11 client libraries at run time. xdotool sends
+#   the real pointer and keyboard events of scripts/gui_real_input.py.
 # * polar-camera-uvc (nokhwa) builds its Linux V4L2 bindings with bindgen, which loads libclang
 #   (libclang-dev); only that crate, and the CLI's `uvc` feature, need it.
 # * The station's TLS test makes a self-signed certificate with the openssl command; its status
 #   page is tested in headless Chromium (Debian's chromium).
 APT_PACKAGES=(libaravis-dev libusb-1.0-0-dev aravis-tools-cli aravis-tools libclang-dev
   xvfb xauth libgl1-mesa-dri libegl1 libgl1 libx11-xcb1 libxcursor1 libxrandr2 libxi6
-  libxkbcommon-x11-0 openssl chromium)
+  libxkbcommon-x11-0 openssl chromium xdotool)
 if ((${#APT_PACKAGES[@]})); then
   missing=()
   for p in "${APT_PACKAGES[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
@@ -93,6 +94,12 @@ rm -rf target/gui-screenshots target/gui-runs && mkdir -p target/gui-runs
 xvfb-run -a -s "-screen 0 1400x900x24" \
   cargo run --release --locked -q -p polar-gui -- --simulate --out target/gui-runs \
   --screenshots target/gui-screenshots
+
+# The GUI as a user drives it: real X pointer and keyboard events (xdotool) on the window at
+# 900x650 under Xvfb: connect, an exposure typed below the camera's minimum, live polarimetry,
+# a run paused, resumed and aborted while it runs, the log's last line brought into view with
+# the wheel, the left panel dragged narrower. One line per step with its time.
+timeout 600 python3 scripts/gui_real_input.py --bin target/release/polarimeter-gui </dev/null
 
 # The file schemas judged by jsonschema: every example plan, rig, scene and camera validates, and
 # bad plans are refused.

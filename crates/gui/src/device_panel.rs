@@ -27,7 +27,7 @@ impl App {
             && !self.device_pending
             && matches!(live, None | Some(live::LiveMode::Camera));
         ui.horizontal(|ui| {
-            if ui
+            let r = ui
                 .add_enabled(
                     idle && !connected && !self.device_pending,
                     egui::Button::new("Connect"),
@@ -36,9 +36,9 @@ impl App {
                     "connect the stage and the camera given on the command line"
                 } else {
                     "start the simulated devices of the plan's [simulation] section"
-                })
-                .clicked()
-            {
+                });
+            crate::state_report::place(ui, "Connect", &r);
+            if r.clicked() {
                 self.device(Command::Connect {
                     plan_text: self.plan_text.clone(),
                     exposure_us: self.exposure_us,

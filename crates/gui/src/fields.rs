@@ -17,8 +17,10 @@ pub(crate) fn number_field<T: Numeric + std::fmt::Display>(
     notes: &mut Vec<String>,
 ) -> bool {
     let l = ui.label(label);
-    ui.add(egui::DragValue::new(value).speed(speed))
+    let r = ui
+        .add(egui::DragValue::new(value).speed(speed))
         .labelled_by(l.id);
+    crate::state_report::place(ui, label, &r);
     let v = value.to_f64();
     let ok = v.is_finite() && v >= range.0.to_f64() && v <= range.1.to_f64();
     if !ok {
@@ -38,6 +40,7 @@ pub(crate) fn out_of_range<T: std::fmt::Display>(label: &str, value: T, range: (
 /// Shows `notes` in the error colour.
 pub(crate) fn show_notes(ui: &mut egui::Ui, notes: &[String]) {
     for n in notes {
-        ui.colored_label(ui.visuals().error_fg_color, n.as_str());
+        let r = ui.colored_label(ui.visuals().error_fg_color, n.as_str());
+        crate::state_report::place(ui, &format!("note: {n}"), &r);
     }
 }

@@ -24,6 +24,7 @@ mod live_worker;
 pub mod messages;
 pub mod planner_panel;
 pub mod rooftop;
+pub mod state_report;
 pub mod station_panel;
 pub mod view;
 
@@ -597,6 +598,7 @@ impl App {
     /// Draws the whole application into `ui` (and polls the engine first).
     pub fn show(&mut self, ui: &mut egui::Ui) {
         self.poll();
+        state_report::clear(ui.ctx());
         let stale = self.forecast_for.as_deref() != Some(self.plan_text.as_str());
         if !self.active
             && matches!(self.status, Status::Failed(_))
@@ -624,14 +626,16 @@ impl App {
             ui.ctx().request_repaint_after(Duration::from_millis(100));
         }
         egui::Panel::top("controls").show(ui, |ui| self.controls(ui));
-        egui::Panel::left("plan")
+        let panel = egui::Panel::left("plan")
             .resizable(true)
             .default_size(380.0)
             .show(ui, |ui| self.plan_panel(ui));
+        state_report::place(ui, "plan panel", &panel.response);
         egui::CentralPanel::default_margins().show(ui, |ui| {
             ui.horizontal(|ui| {
                 for t in Tab::ALL {
-                    ui.selectable_value(&mut self.tab, t, t.label());
+                    let r = ui.selectable_value(&mut self.tab, t, t.label());
+                    state_report::place(ui, t.label(), &r);
                 }
             });
             ui.separator();
@@ -672,35 +676,24 @@ impl App {
                 (false, true) => "Devices: hardware, connected at start",
                 (false, false) => "Devices: simulated rig per run",
             });
-            if ui
-                .add_enabled(!self.active, egui::Button::new("Start"))
-                .clicked()
-            {
+            let button = |ui: &mut egui::Ui, enabled: bool, name: &str| {
+                let r = ui.add_enabled(enabled, egui::Button::new(name));
+                state_report::place(ui, name, &r);
+                r
+            };
+            if button(ui, !self.active, "Start").clicked() {
                 self.start();
             }
-            if ui
-                .add_enabled(self.active && running, egui::Button::new("Pause"))
-                .clicked()
-            {
+            if button(ui, self.active && running, "Pause").clicked() {
                 self.control(Control::Pause);
             }
-            if ui
-                .add_enabled(self.active && running, egui::Button::new("Pause now"))
-                .clicked()
-            {
+            if button(ui, self.active && running, "Pause now").clicked() {
                 self.control(Control::PauseNow);
             }
-            if ui
-                .add_enabled(self.active && paused, egui::Button::new("Resume"))
-                .clicked()
-            {
+            if button(ui, self.active && paused, "Resume").clicked() {
                 self.control(Control::Resume);
             }
-            if ui
-                .add_enabled(
-                    self.active && (paused || running),
-                    egui::Button::new("Abort"),
-                )
+            if button(ui, self.active && (paused || running), "Abort")
                 .on_hover_text(
                     "end the run for good, now (the operation in flight is cancelled; what was \
                      acquired stays)",
@@ -866,7 +859,8 @@ impl App {
                 .labelled_by(label.id);
             });
         ui.separator();
-        ui.label("Forecast");
+        let r = ui.label("Forecast");
+        state_report::place(ui, "Forecast", &r);
         match &self.forecast {
             Some(Ok(f)) => {
                 ui.label(f.as_str());
@@ -887,7 +881,8 @@ impl App {
             .max_height((height * 0.3).max(LOG_MIN_HEIGHT))
             .show(ui, |ui| {
                 for l in &self.log {
-                    ui.label(egui::RichText::new(l.as_str()).monospace().small());
+                    let r = ui.label(egui::RichText::new(l.as_str()).monospace().small());
+                    state_report::place(ui, "log last line", &r);
                 }
             });
     }

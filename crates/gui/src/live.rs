@@ -294,29 +294,28 @@ impl LivePanel {
         let mut cmd = None;
         ui.horizontal(|ui| {
             let can_start = connected && idle && self.running.is_none();
-            if ui
+            let r = ui
                 .add_enabled(can_start, egui::Button::new("Live"))
-                .on_hover_text("stream the camera (the analyzer stays still): aim and focus")
-                .clicked()
-            {
+                .on_hover_text("stream the camera (the analyzer stays still): aim and focus");
+            crate::state_report::place(ui, "Live (camera)", &r);
+            if r.clicked() {
                 cmd = Some(self.start(LiveMode::Camera));
             }
             // The spin settings below must be in their ranges (their notes say which is not).
             let spin_ok = self.spin_settings_ok();
-            if ui
+            let r = ui
                 .add_enabled(can_start && spin_ok, egui::Button::new("Live polarimetry"))
-                .on_hover_text("spin the analyzer: S0, DoLP and AoP every half turn")
-                .clicked()
-            {
+                .on_hover_text("spin the analyzer: S0, DoLP and AoP every half turn");
+            crate::state_report::place(ui, "Live polarimetry", &r);
+            if r.clicked() {
                 cmd = Some(self.start(LiveMode::Polarimetry));
             }
-            if ui
-                .add_enabled(
-                    self.running.is_some() && !self.stopping,
-                    egui::Button::new("Stop"),
-                )
-                .clicked()
-            {
+            let r = ui.add_enabled(
+                self.running.is_some() && !self.stopping,
+                egui::Button::new("Stop"),
+            );
+            crate::state_report::place(ui, "Stop", &r);
+            if r.clicked() {
                 cmd = Some(self.stop());
             }
             if let Some(m) = self.running {

@@ -43,6 +43,29 @@ struct GuiArgs {
     /// The station key's file (`polarimeter station key create --key-out FILE`).
     #[arg(long)]
     key_file: Option<PathBuf>,
+    /// The window's size in points, WIDTHxHEIGHT (default 1280x860).
+    #[arg(long, value_parser = window_size, default_value = "1280x860")]
+    window_size: (f32, f32),
+    /// Write the UI's state (run state, progress, devices, live mode, the log's last lines)
+    /// and where its controls are to this JSON file five times a second, for scripts and
+    /// tests that drive the window (scripts/gui_real_input.py).
+    #[arg(long)]
+    state_file: Option<PathBuf>,
+}
+
+/// `WIDTHxHEIGHT` in points, each 320..=8192.
+fn window_size(s: &str) -> Result<(f32, f32), String> {
+    let bad = || format!("{s:?}: allowed WIDTHxHEIGHT, each 320 to 8192 (e.g. 900x650)");
+    let (w, h) = s.split_once('x').ok_or_else(bad)?;
+    let n = |v: &str| -> Result<f32, String> {
+        v.trim()
+            .parse::<u32>()
+            .ok()
+            .filter(|v| (320..=8192).contains(v))
+            .map(|v| v as f32)
+            .ok_or_else(bad)
+    };
+    Ok((n(w)?, n(h)?))
 }
 
 /// How long the screenshot tour may take before it gives up.
@@ -66,6 +89,7 @@ fn main() -> std::process::ExitCode {
         }
     }
     let (out, plan, shots) = (args.out, args.plan, args.screenshots);
+    let state_file = args.state_file;
     let station = args.station.zip(args.key_file);
     if let Some(d) = &shots {
         if let Err(e) = std::fs::create_dir_all(d) {
@@ -75,7 +99,7 @@ fn main() -> std::process::ExitCode {
     let options = eframe::NativeOptions {
         viewport: egui::ViewportBuilder::default()
             .with_title("polarimeter")
-            .with_inner_size([1280.0, 860.0]),
+            .with_inner_size([args.window_size.0, args.window_size.1]),
         ..Default::default()
     };
     let report: Arc<Mutex<Vec<Result<PathBuf, String>>>> = Arc::default();
@@ -97,7 +121,11 @@ fn main() -> std::process::ExitCode {
                 app.set_tab(Tab::Station);
             }
             let tour = shots.map(|dir| Tour::new(dir, tour_report));
-            Ok(Box::new(Gui { app, tour }))
+            let state = state_file.map(|path| StateFile {
+                path,
+                written: None,
+            });
+            Ok(Box::new(Gui { app, tour, state }))
         }),
     );
     if let Err(e) = result {
@@ -127,10 +155,57 @@ fn usage(msg: &str) -> std::process::ExitCode {
     std::process::ExitCode::from(2)
 }
 
-/// The window: the app, and the screenshot tour when asked for.
+/// The window: the app, and the screenshot tour and the state file when asked for.
 struct Gui {
     app: App,
     tour: Option<Tour>,
+    state: Option<StateFile>,
+}
+
+/// `--state-file`: where, and when it was last written.
+struct StateFile {
+    path: PathBuf,
+    written: Option<Instant>,
+}
+
+/// How often the state file is written.
+const STATE_EVERY: Duration = Duration::from_millis(200);
+
+impl StateFile {
+    /// Writes the app's state (atomically: a temporary file renamed over it) if the last
+    /// write is older than [`STATE_EVERY`]; keeps the frames coming meanwhile.
+    fn write(&mut self, ctx: &egui::Context, app: &App) {
+        ctx.request_repaint_after(STATE_EVERY);
+        if self.written.is_some_and(|t| t.elapsed() < STATE_EVERY) {
+            return;
+        }
+        self.written = Some(Instant::now());
+        let (done, planned) = app.progress();
+        let log: Vec<&str> = app.log_lines().collect();
+        let tail = &log[log.len().saturating_sub(8)..];
+        let screen = ctx.content_rect();
+        let v = serde_json::json!({
+            "status": app.status().text(),
+            "active": app.is_active(),
+            "done": done,
+            "planned": planned,
+            "connected": app.devices().connected,
+            "device_pending": app.device_pending(),
+            "live": app.live_panel().running().map(|m| m.label()),
+            "half_turns": app.live_panel().half_turn().map(|h| h.index),
+            "live_frame_shown": app.live_panel().frame().is_some(),
+            "log_tail": tail,
+            "window": [screen.width(), screen.height()],
+            "pixels_per_point": ctx.pixels_per_point(),
+            "controls": polar_gui::state_report::places(ctx),
+        });
+        let tmp = self.path.with_extension("tmp");
+        let ok =
+            std::fs::write(&tmp, v.to_string()).and_then(|()| std::fs::rename(&tmp, &self.path));
+        if let Err(e) = ok {
+            eprintln!("polarimeter-gui: --state-file {}: {e}", self.path.display());
+        }
+    }
 }
 
 impl eframe::App for Gui {
@@ -142,6 +217,9 @@ impl eframe::App for Gui {
         self.app.show(ui);
         if let Some(t) = &mut self.tour {
             t.step(ui.ctx(), &mut self.app);
+        }
+        if let Some(s) = &mut self.state {
+            s.write(ui.ctx(), &self.app);
         }
     }
 }
@@ -394,4 +472,23 @@ fn save_png(path: &Path, image: &egui::ColorImage) -> Result<(), String> {
     writer
         .finish()
         .map_err(|e| format!("{}: {e}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::window_size;
+
+    /// `--window-size` takes WIDTHxHEIGHT in points within 320..=8192 each; anything else is
+    /// refused naming the form and the range.
+    #[test]
+    fn window_sizes_are_checked() {
+        assert_eq!(window_size("900x650"), Ok((900.0, 650.0)));
+        for bad in ["900", "10x650", "900x9000", "axb", "-900x650"] {
+            let e = window_size(bad).unwrap_err();
+            assert!(
+                e.contains("WIDTHxHEIGHT") && e.contains("320 to 8192"),
+                "{bad}: {e}"
+            );
+        }
+    }
 }
