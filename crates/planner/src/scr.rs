@@ -343,6 +343,27 @@ impl Contrast {
         self.scr_and_gradient(angles_rad, None)
     }
 
+    /// The information one frame at `psi_rad` adds about the Stokes difference,
+    /// `w w^T / v` (its row over its noise variance): a set's is the sum of its frames', and
+    /// [`Contrast::scr_of_information`] of that sum is the set's SCR.
+    pub fn frame_information(&self, psi_rad: f64) -> Matrix3<f64> {
+        let (w, dw) = self.instrument.row_and_derivative(psi_rad);
+        let v = self.noise_var + self.instrument.shot(&w, &dw).0;
+        w * w.transpose() / v
+    }
+
+    /// The SCR of a set whose frames' summed information is `a`
+    /// ([`Contrast::frame_information`]): `d^T (A Sigma_b + I)^-1 A d`, the matched filter on
+    /// frames whose Stokes estimate has covariance `Sigma_b + A^-1`. It rises with `a` in the
+    /// Loewner order (more information never lowers it), which bounds what frames not yet
+    /// chosen can add. 0 where `A Sigma_b + I` is singular.
+    pub fn scr_of_information(&self, a: &Matrix3<f64>) -> f64 {
+        match (a * self.sigma_b + Matrix3::identity()).try_inverse() {
+            Some(inv) => self.d.dot(&(inv * a * self.d)).max(0.0),
+            None => 0.0,
+        }
+    }
+
     /// The SCR and, into `gradient` (one entry per angle), its derivative per radian.
     pub fn scr_and_gradient(&self, angles_rad: &[f64], gradient: Option<&mut [f64]>) -> f64 {
         if angles_rad.is_empty() {
