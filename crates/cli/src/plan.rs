@@ -3,6 +3,7 @@
 //! the optimiser against an exhaustive grid, in the same run.
 
 use crate::commands::CommandError;
+use crate::plan_problem::planner_error;
 use clap::Args;
 use nalgebra::{Matrix3, Vector3};
 use polar_planner::optimize::{grid_search, MAX_CHANNELS};
@@ -91,10 +92,6 @@ fn mat3(field: &str, v: &[f64]) -> Result<Matrix3<f64>, CommandError> {
         )));
     }
     Ok(Matrix3::from_row_slice(v))
-}
-
-fn planner_error(e: polar_planner::PlanError) -> CommandError {
-    CommandError(e.to_string())
 }
 
 /// The matched filter's ROC of the set at `pfa` ([`polar_planner::scr::matched_filter_roc`]).
