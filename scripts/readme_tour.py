@@ -2,7 +2,7 @@
 """Run every command the README's tour and the examples' headers show, as a new user would.
 
 Usage: python3 scripts/readme_tour.py --bin PATH/TO/polarimeter [--scratch DIR] [--limit-s S]
-       [--list]
+       [--jobs N] [--list]
 
 What a user is shown must work: each `polarimeter ...` line of README.md's indented code
 blocks (before its "Lab hardware" section) and each command in the examples' header comments
@@ -22,7 +22,13 @@ station) in the background, and the
 it is stopped (SIGTERM) at the end, and no `polarimeter-*` entry it or any other command made
 may be left in the temporary directory.
 
-Prints one line per command (status, seconds, command) and a JSON summary; exits 1 when any
+Up to N commands (`--jobs`, default 3) run at once: a command waits for every earlier one that
+shares a `/tmp/` folder or a file of the scratch directory with it, and every command that
+starts, probes or talks to serial devices or the station runs in the README's order with the
+others of its kind, so what a line depends on has run before it, as for a user typing them.
+
+Prints one line per command (status, seconds, command) in the README's order and a JSON
+summary (with the sum of the commands' seconds and the wall time); exits 1 when any
 command failed, hung or left files behind, 2 on a usage error.
 """
 
@@ -34,6 +40,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -110,8 +117,163 @@ def temp_entries():
     return {e for e in os.listdir(tmp) if e.startswith("polarimeter-")}
 
 
+SHARED_DEVICES = "serial ports, simulators and the station"
+
+
+def resources(command):
+    """What a command reads or writes that a later command may use: its `/tmp/NAME` folders,
+    the files it names outside examples/ and target/, and (for anything that starts,
+    probes or talks to simulated serial devices or the station) one shared token. Commands
+    that share nothing run side by side; the rest keep the README's order."""
+    text = strip_comment(command)
+    tokens = set()
+    for word in re.split(r"[\s=>]+", text):
+        if word.startswith("/tmp/"):
+            tokens.add("/tmp/" + word[len("/tmp/"):].split("/")[0])
+        elif (not word.startswith("-") and not word.startswith(("examples/", "target/"))
+              and re.match(r"^[\w./-]+$", word) and re.search(r"[A-Za-z]", word)
+              and re.search(r"/|\.[A-Za-z]+$", word)):
+            tokens.add(word.rstrip("/"))
+    if re.search(r"\b(acquire )?run\b", text) and "--out" not in text \
+            and re.search(r"\.toml\b", text):
+        # A run without --out goes to the default folder, named after the plan and the time.
+        tokens.add("the default run folder")
+    if re.search(r"\b(devices (list|stage)|simulate stage|station|bench serial)\b", text) \
+            or "polarimeter-sim-PID" in text:
+        tokens.add(SHARED_DEVICES)
+    return tokens
+
+
+def run_one(run, expected, scratch, env, limit_s):
+    """Runs one command; returns (status, seconds, stderr tail, resumed)."""
+    t0 = time.monotonic()
+    resumed = None
+    try:
+        r = subprocess.run(["bash", "-o", "pipefail", "-c", run], cwd=scratch, env=env,
+                           stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, timeout=limit_s)
+        status = (0 if r.returncode == expected
+                  else r.returncode or f"exited 0, expected {expected}")
+        tail = r.stderr.decode(errors="replace").strip().splitlines()[-3:]
+        if r.returncode == PAUSED and expected == 0:
+            # A run that paused (exit 3: a device fault its retries did not clear, such as
+            # a trigger the camera missed on a loaded host) is resumed, as the README tells
+            # a user to; the resume must finish it.
+            resumed = resume_paused(r.stdout.decode(errors="replace"), scratch, env, limit_s)
+            if resumed is not None:
+                status = 0 if resumed == 0 else f"paused, resume exited {resumed}"
+    except subprocess.TimeoutExpired:
+        status = f"hung past {limit_s:.0f} s"
+        tail = []
+    return status, time.monotonic() - t0, tail, resumed
+
+
+def start_background(run, scratch, env):
+    """Starts `COMMAND &`; returns (process, status, the simulator's port or None)."""
+    p = subprocess.Popen(["bash", "-c", "exec " + run[:-1]], cwd=scratch, env=env,
+                         stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    line = p.stdout.readline()
+    try:
+        # A simulator prints its port; a station, the URL it listens on.
+        printed = json.loads(line)
+        return p, 0, (None if "listening" in printed else printed["port"])
+    except (ValueError, KeyError):
+        return p, "no port or address printed", None
+
+
+def plan_jobs(commands):
+    """Each command as a job: skipped (needs hardware), the same as an earlier one, run in the
+    background (`... &`), or run; with the earlier jobs it must wait for."""
+    jobs, seen, last_user = [], {}, {}
+    for where, command in commands:
+        job = {"where": where, "command": command, "after": set()}
+        jobs.append(job)
+        if needs_hardware(command):
+            job["kind"] = "skip"
+            continue
+        same = same_as(command)
+        if same in seen:
+            job["kind"], job["as"] = "same", seen[same]
+            continue
+        seen[same] = where
+        job["kind"] = "background" if strip_comment(command).endswith("&") else "run"
+        for token in resources(command):
+            if token in last_user:
+                job["after"].add(last_user[token])
+            last_user[token] = len(jobs) - 1
+    return jobs
+
+
+def result_line(job):
+    """The job's line as the tour prints it, and the lines of its stderr tail on a failure."""
+    kind, command, where = job["kind"], job["command"], job["where"]
+    if kind == "skip":
+        return [f"skip  {'':>7}  {command}  ({where}: needs hardware)"]
+    if kind == "same":
+        return [f"same  {'':>7}  {command}  ({where}: ran as {job['as']})"]
+    status, seconds = job["status"], job["seconds"]
+    if kind == "background":
+        return [f"{status!s:>4}  {0.0:7.1f}  {command}  (background)"]
+    note = ("  (paused, then resumed: " + "; ".join(job["tail"]) + ")"
+            if job["resumed"] == 0 else "")
+    lines = [f"{status!s:>4}  {seconds:7.1f}  {command}{note}"]
+    if status != 0:
+        lines += [f"        {t}" for t in job["tail"]]
+    return lines
+
+
+def run_jobs(jobs, scratch, env, limit_s, workers):
+    """Runs the jobs, up to `workers` at once, each after the jobs it waits for; prints each
+    job's line in the README's order as soon as it and the jobs before it are done. Returns
+    the background processes."""
+    lock = threading.Condition()
+    done = [j["kind"] in ("skip", "same") for j in jobs]
+    started = list(done)
+    background, sim = [], {"port": None}
+    printed = 0
+
+    def work(i):
+        job = jobs[i]
+        run = strip_comment(job["command"]).replace("/tmp/", scratch + "/tmp/")
+        if sim["port"]:
+            run = re.sub(r"\S*/polarimeter-sim-PID/\S+", sim["port"], run)
+        if job["kind"] == "background":
+            p, job["status"], port = start_background(run, scratch, env)
+            job["seconds"], job["resumed"], job["tail"] = 0.0, None, []
+            background.append(p)
+            if port:
+                sim["port"] = port
+        else:
+            expected = re.search(r"#.*\bexits (\d+)", job["command"])
+            expected = int(expected.group(1)) if expected else 0
+            job["status"], job["seconds"], job["tail"], job["resumed"] = run_one(
+                run, expected, scratch, env, limit_s)
+        with lock:
+            done[i] = True
+            lock.notify_all()
+
+    with lock:
+        while printed < len(jobs):
+            running = sum(1 for i in range(len(jobs)) if started[i] and not done[i])
+            for i, job in enumerate(jobs):
+                if running >= workers:
+                    break
+                if not started[i] and all(done[a] for a in job["after"]):
+                    started[i] = True
+                    running += 1
+                    threading.Thread(target=work, args=(i,), daemon=True).start()
+            while printed < len(jobs) and done[printed]:
+                for line in result_line(jobs[printed]):
+                    print(line, flush=True)
+                printed += 1
+            if printed < len(jobs):
+                lock.wait(timeout=1.0)
+    return background
+
+
 def main(argv):
-    args = {"--bin": None, "--scratch": None, "--limit-s": "900"}
+    args = {"--bin": None, "--scratch": None, "--limit-s": "900", "--jobs": "3"}
     listing = "--list" in argv
     it = iter(a for a in argv[1:] if a != "--list")
     for a in it:
@@ -124,7 +286,7 @@ def main(argv):
         for where, c in commands:
             print(f"{where}: {c}")
         return 0
-    if not args["--bin"]:
+    if not args["--bin"] or not (args["--jobs"] or "").isdigit() or int(args["--jobs"]) < 1:
         print(__doc__, file=sys.stderr)
         return 2
     binary = os.path.abspath(args["--bin"])
@@ -144,80 +306,21 @@ def main(argv):
     env = dict(os.environ, PATH=bindir + os.pathsep + os.environ.get("PATH", ""))
     before = temp_entries()
 
+    t0 = time.monotonic()
+    jobs = plan_jobs(commands)
+    background = run_jobs(jobs, scratch, env, limit_s, int(args["--jobs"]))
+    failed = sum(1 for j in jobs if j["kind"] in ("run", "background") and j["status"] != 0)
     results = []
-    background = []
-    sim_port = None
-    failed = 0
-    seen = {}
-    for where, command in commands:
-        if needs_hardware(command):
-            results.append({"where": where, "command": command, "status": "skipped",
-                            "reason": "needs hardware"})
-            print(f"skip  {'':>7}  {command}  ({where}: needs hardware)", flush=True)
-            continue
-        same = same_as(command)
-        if same in seen:
-            results.append({"where": where, "command": command, "status": "same",
-                            "as": seen[same]})
-            print(f"same  {'':>7}  {command}  ({where}: ran as {seen[same]})", flush=True)
-            continue
-        seen[same] = where
-        run = strip_comment(command).replace("/tmp/", scratch + "/tmp/")
-        if sim_port:
-            run = re.sub(r"\S*/polarimeter-sim-PID/\S+", sim_port, run)
-        if run.endswith("&"):
-            p = subprocess.Popen(["bash", "-c", "exec " + run[:-1]], cwd=scratch, env=env,
-                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                 stderr=subprocess.PIPE, text=True)
-            line = p.stdout.readline()
-            try:
-                # A simulator prints its port; a station, the URL it listens on.
-                printed = json.loads(line)
-                if "listening" not in printed:
-                    sim_port = printed["port"]
-                status = 0
-            except (ValueError, KeyError):
-                status = "no port or address printed"
-            background.append(p)
-            results.append({"where": where, "command": command, "status": status,
-                            "seconds": 0.0})
-            print(f"{status!s:>4}  {0.0:7.1f}  {command}  (background)", flush=True)
-            if status != 0:
-                failed += 1
-            continue
-        expected = re.search(r"#.*\bexits (\d+)", command)
-        expected = int(expected.group(1)) if expected else 0
-        t0 = time.monotonic()
-        try:
-            r = subprocess.run(["bash", "-o", "pipefail", "-c", run], cwd=scratch, env=env,
-                               stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, timeout=limit_s)
-            status = (0 if r.returncode == expected
-                      else r.returncode or f"exited 0, expected {expected}")
-            tail = r.stderr.decode(errors="replace").strip().splitlines()[-3:]
-            resumed = None
-            if r.returncode == PAUSED and expected == 0:
-                # A run that paused (exit 3: a device fault its retries did not clear, such as
-                # a trigger the camera missed on a loaded host) is resumed, as the README tells
-                # a user to; the resume must finish it.
-                resumed = resume_paused(r.stdout.decode(errors="replace"), scratch, env,
-                                        limit_s)
-                if resumed is not None:
-                    status = 0 if resumed == 0 else f"paused, resume exited {resumed}"
-        except subprocess.TimeoutExpired:
-            status = f"hung past {limit_s:.0f} s"
-            tail = []
-            resumed = None
-        seconds = time.monotonic() - t0
-        results.append({"where": where, "command": command, "status": status,
-                        "seconds": round(seconds, 2),
-                        **({"paused_then_resumed": True} if resumed == 0 else {})})
-        note = "  (paused, then resumed: " + "; ".join(tail) + ")" if resumed == 0 else ""
-        print(f"{status!s:>4}  {seconds:7.1f}  {command}{note}", flush=True)
-        if status != 0:
-            failed += 1
-            for t in tail:
-                print(f"        {t}", flush=True)
+    for j in jobs:
+        r = {"where": j["where"], "command": j["command"]}
+        if j["kind"] == "skip":
+            r.update(status="skipped", reason="needs hardware")
+        elif j["kind"] == "same":
+            r.update(status="same", **{"as": j["as"]})
+        else:
+            r.update(status=j["status"], seconds=round(j["seconds"], 2),
+                     **({"paused_then_resumed": True} if j["resumed"] == 0 else {}))
+        results.append(r)
     for p in background:
         p.send_signal(signal.SIGTERM)
         try:
@@ -239,6 +342,8 @@ def main(argv):
         "failed": failed,
         "left_in_temp": left,
         "total_s": round(sum(r.get("seconds", 0.0) for r in results), 1),
+        "wall_s": round(time.monotonic() - t0, 1),
+        "jobs": int(args["--jobs"]),
     }
     with open(os.path.join(scratch, "tour.json"), "w", encoding="utf-8") as f:
         json.dump({"summary": summary, "results": results}, f, indent=1)

@@ -52,8 +52,12 @@ export POLARIMETER_PYTHON="$PWD/$PY_VENV/bin/python"
 rustup target add thumbv7em-none-eabihf >/dev/null
 cargo build -p polar-firmware-protocol --target thumbv7em-none-eabihf --locked
 
-# Optimised tests: the property and quadrature tests evaluate the model ~1e7 times.
-cargo test --workspace --release --locked
+# Optimised tests: the property and quadrature tests evaluate the model ~1e7 times. The
+# hardware-in-the-loop binary (tests/tests/hil.rs, every test named `hil::...`) mostly waits on
+# simulated stages moving at their real speeds, so it runs apart with 8 tests at a time; the
+# rest run one per core. Both commands build the same workspace, so nothing is built twice.
+cargo test --workspace --release --locked -- --skip hil::
+cargo test --workspace --release --locked --test hil -- --test-threads 8
 
 # The Python package (crates/python) as a user installs it: `pip install ./crates/python`
 # (maturin, through pip's isolated build) into a fresh venv with the pinned test requirements,
@@ -89,10 +93,12 @@ ROOT="$PWD"
 
 # The GUI end to end under Xvfb: run the default plan on the simulated devices, then save a
 # PNG of each tab (live view, devices, planner, rooftop) and of the live camera and live
-# polarimetry. It fails if the run fails, a tab cannot be drawn or a PNG cannot be written. docs/gui/ holds the committed shots.
+# polarimetry. It fails if the run fails, a tab cannot be drawn or a PNG cannot be written.
+# docs/gui/ holds the committed shots. The binary is the one `cargo test --workspace` built for
+# the GUI's own tests (`cargo run -p polar-gui` would build it again with other features).
 rm -rf target/gui-screenshots target/gui-runs && mkdir -p target/gui-runs
 xvfb-run -a -s "-screen 0 1400x900x24" \
-  cargo run --release --locked -q -p polar-gui -- --simulate --out target/gui-runs \
+  target/release/polarimeter-gui --simulate --out target/gui-runs \
   --screenshots target/gui-screenshots
 
 # The GUI as a user drives it: real X pointer and keyboard events (xdotool) on the window at
@@ -109,5 +115,7 @@ timeout 600 python3 scripts/gui_real_input.py --bin target/release/polarimeter-g
 # stdin closed, in a scratch directory holding a copy of examples/, each under a time limit;
 # any failure, hang or file left in the temporary directory fails the tests. It prints one line
 # per command (exit status, seconds, command).
+# Up to three commands run at once, each after the earlier ones it shares a file, a folder or
+# the serial devices with.
 python3 scripts/readme_tour.py --bin target/release/polarimeter --scratch target/readme-tour \
-  --limit-s 600
+  --limit-s 600 --jobs 3

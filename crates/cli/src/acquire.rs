@@ -19,8 +19,8 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-fn err(e: impl std::fmt::Display) -> CommandError {
-    CommandError(e.to_string())
+fn err(e: impl std::error::Error + Send + Sync + 'static) -> CommandError {
+    CommandError::of(e)
 }
 
 /// What a caller other than the terminal (the Python package) hears of a run and how it
@@ -344,7 +344,7 @@ fn runtime() -> Result<tokio::runtime::Runtime, CommandError> {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
-        .map_err(|e| CommandError(format!("cannot start the async runtime: {e}")))
+        .map_err(|e| CommandError::failed(format!("cannot start the async runtime: {e}")))
 }
 
 fn outcome_json(o: &Outcome, run_dir: &Path) -> (Value, i32) {
@@ -464,11 +464,14 @@ pub fn run_cmd(
     }
     let run_dir = out.unwrap_or_else(|| run::default_run_dir(Path::new("."), &plan));
     if run_dir.exists() && !run_dir.is_dir() {
-        return Err(CommandError(format!(
-            "--out {}: is a file, not a directory; a run needs a new directory (or an empty \
+        return Err(CommandError::input(
+            "--out",
+            format!(
+                " {}: is a file, not a directory; a run needs a new directory (or an empty \
              one) of its own",
-            run_dir.display()
-        )));
+                run_dir.display()
+            ),
+        ));
     }
     let simulated_camera = hardware.as_ref().is_none_or(|h| h.camera == "sim");
     let start_warnings = if simulated_camera {
@@ -554,7 +557,7 @@ pub fn resume_cmd(
                 Some(hw)
             }
             None => {
-                return Err(CommandError(format!(
+                return Err(CommandError::failed(format!(
                     "the run was started on {} devices without a rig file: give --rig, or \
                      --port, --dialect, --camera and --camera-file, to resume it",
                     devices["kind"].as_str().unwrap_or("unknown")
@@ -608,7 +611,7 @@ fn refuse_changed_devices(run_dir: &Path, differences: &[String]) -> Result<(), 
     if changed.is_empty() {
         return Ok(());
     }
-    Err(CommandError(format!(
+    Err(CommandError::failed(format!(
         "the rig file changed since run {} started, in values its frames depend on: {}. \
          Restore them, or give --rig and flags to resume with these devices deliberately",
         run_dir.display(),
@@ -704,10 +707,13 @@ pub fn demo_stage(name: &str) -> Result<Option<SimStage>, CommandError> {
             })
         })
         .ok_or_else(|| {
-            CommandError(format!(
-                "--stage {name:?} is not a simulated rotation stage: allowed {}",
-                demo_stages().join(", ")
-            ))
+            CommandError::input(
+                "--stage",
+                format!(
+                    " {name:?} is not a simulated rotation stage: allowed {}",
+                    demo_stages().join(", ")
+                ),
+            )
         })
 }
 
@@ -727,14 +733,17 @@ pub fn demo_on_stage(out: &Path, stage: &str, ui: Ui) -> Result<String, CommandE
     if !run::run_parts(out).is_empty() {
         let earlier_demo = run::plan_of(out).is_ok_and(|p| p.name == plan.name);
         if !earlier_demo {
-            return Err(CommandError(format!(
-                "--out {}: holds a run that is not an earlier demo; nothing was changed \
+            return Err(CommandError::input(
+                "--out",
+                format!(
+                    " {}: holds a run that is not an earlier demo; nothing was changed \
                  (choose another --out directory)",
-                out.display()
-            )));
+                    out.display()
+                ),
+            ));
         }
         std::fs::remove_dir_all(out).map_err(|e| {
-            CommandError(format!(
+            CommandError::failed(format!(
                 "{}: cannot replace the old demo run: {e}",
                 out.display()
             ))
@@ -782,12 +791,14 @@ pub fn demo_on_stage(out: &Path, stage: &str, ui: Ui) -> Result<String, CommandE
     let summary = match outcome {
         Outcome::Done(s) => s,
         Outcome::Paused(r) => {
-            return Err(CommandError(format!(
+            return Err(CommandError::failed(format!(
                 "the demo paused: {r}; continue with `polarimeter acquire resume {}`",
                 out.display()
             )))
         }
-        Outcome::Aborted(r) => return Err(CommandError(format!("the demo was aborted: {r}"))),
+        Outcome::Aborted(r) => {
+            return Err(CommandError::failed(format!("the demo was aborted: {r}")))
+        }
     };
     let models = (&sensor, &camera_model);
     demo_report(out, &plan, &stage_line, &summary, &truth, models, t0)
@@ -967,7 +978,9 @@ fn demo_detection(
         .materials
         .iter()
         .position(|m| *m == target_name)
-        .ok_or_else(|| CommandError(format!("target {} is not in the layout", target_name)))?;
+        .ok_or_else(|| {
+            CommandError::failed(format!("target {} is not in the layout", target_name))
+        })?;
     let radiance: Vec<Vector3<f64>> = truth
         .stokes
         .iter()
@@ -980,7 +993,7 @@ fn demo_detection(
         .collect();
     let outside: Vec<bool> = in_target.iter().map(|t| !t).collect();
     let few = || {
-        CommandError(format!(
+        CommandError::failed(format!(
             "target {}: fewer than 4 pixels in a class",
             target_name
         ))
@@ -1074,11 +1087,11 @@ pub async fn run_to_end(
         match o {
             Outcome::Done(s) => return Ok((s, resumes, reasons)),
             Outcome::Paused(r) => reasons.push(r),
-            Outcome::Aborted(r) => return Err(CommandError(format!("aborted: {r}"))),
+            Outcome::Aborted(r) => return Err(CommandError::failed(format!("aborted: {r}"))),
         }
         resume = true;
     }
-    Err(CommandError(format!(
+    Err(CommandError::failed(format!(
         "{}: still paused after {max_resumes} resumes: {reasons:?}",
         run_dir.display()
     )))
@@ -1136,15 +1149,19 @@ fn ideal_s(angles_deg: &[f64], exposure_us: f64, plan: &Plan) -> f64 {
 /// `bench run`: a simulated capture's wall time against the device-bound ideal.
 pub fn bench_run(sets: u32, exposure_us: f64) -> Result<String, CommandError> {
     if !(1..=1000).contains(&sets) {
-        return Err(CommandError(format!(
-            "--sets = {sets} is out of range: allowed 1..=1000"
-        )));
+        return Err(CommandError::input(
+            "--sets",
+            format!(" = {sets} is out of range: allowed 1..=1000"),
+        ));
     }
     if !(10.0..=1e6).contains(&exposure_us) {
-        return Err(CommandError(format!(
-            "--exposure-us = {exposure_us} is out of range: allowed [10, 1000000] (the rooftop \
+        return Err(CommandError::input(
+            "--exposure-us",
+            format!(
+                " = {exposure_us} is out of range: allowed [10, 1000000] (the rooftop \
              scene's brightest pixel reaches half the full well at about 300 us)"
-        )));
+            ),
+        ));
     }
     let text = format!(
         "name = \"bench\"\nkind = \"capture\"\n[capture]\nangles_deg = [0, 45, 90, 135]\n\
@@ -1393,9 +1410,10 @@ pub fn campaign(faults: u64, seed: u64, base: &Path) -> Result<Campaign, Command
 /// `bench faults`: the campaign as Markdown.
 pub fn bench_faults(faults: u64, seed: u64) -> Result<String, CommandError> {
     if !(1..=1_000_000).contains(&faults) {
-        return Err(CommandError(format!(
-            "--faults = {faults} is out of range: allowed 1..=1000000"
-        )));
+        return Err(CommandError::input(
+            "--faults",
+            format!(" = {faults} is out of range: allowed 1..=1000000"),
+        ));
     }
     let base = std::env::temp_dir().join(format!("polarimeter-faults-{}", std::process::id()));
     let t0 = Instant::now();

@@ -84,7 +84,7 @@ fn parse<T: DeserializeOwned>(line: &str) -> Result<T, CommandError> {
         let field = e.path().to_string();
         let inner = json_message(e.inner());
         if field == "." || field.is_empty() {
-            CommandError(inner)
+            CommandError::failed(inner)
         } else {
             let base = field.split(['[', '.']).next().unwrap_or(&field).to_string();
             // An unknown key is the path: a long one is cut like any echoed text.
@@ -94,14 +94,14 @@ fn parse<T: DeserializeOwned>(line: &str) -> Result<T, CommandError> {
                 field
             };
             match allowed(&base) {
-                Some(a) => CommandError(format!("{field}: {inner}; allowed {a}")),
-                None => CommandError(format!("{field}: {inner}")),
+                Some(a) => CommandError::input(field, format!(": {inner}; allowed {a}")),
+                None => CommandError::input(field, format!(": {inner}")),
             }
         }
     })?;
     // Only white space may follow the object.
     de.end().map_err(|e| {
-        CommandError(format!(
+        CommandError::failed(format!(
             "trailing text after the JSON object at column {}: allowed one JSON object per line",
             e.column()
         ))
@@ -112,8 +112,8 @@ fn parse<T: DeserializeOwned>(line: &str) -> Result<T, CommandError> {
 /// Evaluates one batch line.
 pub fn eval_line(kind: Kind, line: &str, cache: &mut DiffuseCache) -> Result<Value, CommandError> {
     if line.trim().is_empty() {
-        return Err(CommandError(
-            "empty line: allowed one JSON object per line".into(),
+        return Err(CommandError::failed(
+            "empty line: allowed one JSON object per line",
         ));
     }
     match kind {
@@ -161,7 +161,7 @@ pub fn run<R: BufRead, W: Write>(
         summary.lines += 1;
         let result = match std::str::from_utf8(&raw) {
             Ok(line) => eval_line(kind, line, &mut cache),
-            Err(e) => Err(CommandError(format!(
+            Err(e) => Err(CommandError::failed(format!(
                 "not valid UTF-8 (byte {} of the line): allowed one JSON object per line, in \
                  UTF-8",
                 e.valid_up_to() + 1
@@ -172,7 +172,7 @@ pub fn run<R: BufRead, W: Write>(
             Err(e) => {
                 summary.errors += 1;
                 let n = summary.lines;
-                json!({"line": n, "error": format!("line {n}: {}", tidy(&e.0))})
+                json!({"line": n, "error": format!("line {n}: {}", tidy(&e.to_string()))})
             }
         };
         buf.clear();
@@ -254,11 +254,11 @@ mod tests {
             r#"{"angles_deg":[0,45,90],"intensities":[1,2]}"#,
             &mut cache,
         )
-        .unwrap_err();
+        .unwrap_err()
+        .to_string();
         assert!(
-            v.0.contains("intensities") && v.0.contains("one per angle"),
-            "{}",
-            v.0
+            v.contains("intensities") && v.contains("one per angle"),
+            "{v}"
         );
     }
 }

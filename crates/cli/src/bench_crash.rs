@@ -200,7 +200,7 @@ fn spawn(binary: &Path, args: &[&str]) -> Result<Child, CommandError> {
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
-        .map_err(|e| CommandError(format!("{}: {e}", binary.display())))
+        .map_err(|e| CommandError::layer(format!("{}: ", binary.display()), e))
 }
 
 /// How a process of the campaign ended.
@@ -249,7 +249,7 @@ fn wait_for(child: &mut Child, limit: Duration) -> Result<bool, CommandError> {
         match child.try_wait() {
             Ok(Some(s)) => return Ok(s.success()),
             Ok(None) => std::thread::sleep(Duration::from_millis(5)),
-            Err(e) => return Err(CommandError(e.to_string())),
+            Err(e) => return Err(CommandError::of(e)),
         }
     }
     let _ = child.kill();
@@ -385,7 +385,7 @@ fn check_dataset(cfg: &CrashConfig, dir: &Path) -> Vec<String> {
 pub fn campaign(cfg: &CrashConfig) -> Result<CrashReport, CommandError> {
     let t0 = Instant::now();
     std::fs::create_dir_all(&cfg.base)
-        .map_err(|e| CommandError(format!("{}: {e}", cfg.base.display())))?;
+        .map_err(|e| CommandError::layer(format!("{}: ", cfg.base.display()), e))?;
     let mut dice = Dice::new(cfg.seed);
     let mut kinds = Vec::new();
     for (kind, text) in PLANS {
@@ -394,7 +394,7 @@ pub fn campaign(cfg: &CrashConfig) -> Result<CrashReport, CommandError> {
         }
         let plan = cfg.base.join(format!("{kind}.toml"));
         std::fs::write(&plan, text)
-            .map_err(|e| CommandError(format!("{}: {e}", plan.display())))?;
+            .map_err(|e| CommandError::layer(format!("{}: ", plan.display()), e))?;
         let mut tally = KindTally {
             kind: kind.to_string(),
             ..KindTally::default()
@@ -404,7 +404,7 @@ pub fn campaign(cfg: &CrashConfig) -> Result<CrashReport, CommandError> {
         while kills_left > 0 || n == 0 {
             let dir = cfg.base.join(format!("{kind}-{n}"));
             if dir.exists() {
-                return Err(CommandError(format!(
+                return Err(CommandError::failed(format!(
                     "{} exists: give the campaign an empty --out directory",
                     dir.display()
                 )));

@@ -60,7 +60,7 @@ pub fn from_rig(
     let name = camera
         .or_else(|| rig.as_ref().and_then(polar_rig::Rig::camera_name))
         .ok_or_else(|| {
-            crate::commands::CommandError(match &rig {
+            crate::commands::CommandError::failed(match &rig {
                 Some(r) => format!(
                     "rig {}: camera.backend is missing (or give --camera)",
                     r.path.display()

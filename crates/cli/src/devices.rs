@@ -562,7 +562,7 @@ pub fn list_cmd(
 ) -> Result<Value, DevicesError> {
     let mut out = list(simulate)?;
     if let Some(path) = rig {
-        let rig = crate::rig::load(path).map_err(|e| DevicesError(e.0))?;
+        let rig = crate::rig::load(path).map_err(|e| DevicesError(e.to_string()))?;
         let stage = match &rig.file.stage {
             None => Value::Null,
             Some(s) if s.is_simulated() => json!({ "simulated": s.dialect }),
@@ -614,8 +614,8 @@ pub fn list_cmd(
                 model: Some(model.into()),
             });
         }
-        out["rig_written"] =
-            write_starting_rig(path, found, &out["cameras"]).map_err(|e| DevicesError(e.0))?;
+        out["rig_written"] = write_starting_rig(path, found, &out["cameras"])
+            .map_err(|e| DevicesError(e.to_string()))?;
     }
     Ok(out)
 }
@@ -631,7 +631,7 @@ pub fn stage_target(
     let rig = rig
         .map(crate::rig::load)
         .transpose()
-        .map_err(|e| DevicesError(e.0))?;
+        .map_err(|e| DevicesError(e.to_string()))?;
     let entry = rig.as_ref().and_then(|r| r.file.stage.clone());
     let missing = |key: &str, flag: &str| match &rig {
         Some(r) => DevicesError(format!(
@@ -715,10 +715,10 @@ fn simulated_bench(
     let camera_path = rig_path.parent().unwrap_or(Path::new(".")).join(&name);
     polar_rig::file::write_new(&camera_path, polar_rig::simulated::DEFAULT_CAMERA).map_err(
         |e| {
-            CommandError(format!(
-                "--write-rig {}: the camera file: {e}",
-                rig_path.display()
-            ))
+            CommandError::input(
+                "--write-rig",
+                format!(" {}: the camera file: {e}", rig_path.display()),
+            )
         },
     )?;
     note.push_str(&format!(
@@ -768,19 +768,26 @@ pub fn write_starting_rig(
         .create_new(true)
         .open(path)
         .map_err(|e| {
-            CommandError(format!(
-                "--write-rig {}: {}",
-                path.display(),
-                if e.kind() == std::io::ErrorKind::AlreadyExists {
-                    "the file exists: allowed a new file (a rig file is never overwritten)"
-                        .to_string()
-                } else {
-                    format!("cannot create: {e}")
-                }
-            ))
+            CommandError::input(
+                "--write-rig",
+                format!(
+                    " {}: {}",
+                    path.display(),
+                    if e.kind() == std::io::ErrorKind::AlreadyExists {
+                        "the file exists: allowed a new file (a rig file is never overwritten)"
+                            .to_string()
+                    } else {
+                        format!("cannot create: {e}")
+                    }
+                ),
+            )
         })?;
-    f.write_all(text.as_bytes())
-        .map_err(|e| CommandError(format!("--write-rig {}: cannot write: {e}", path.display())))?;
+    f.write_all(text.as_bytes()).map_err(|e| {
+        CommandError::input(
+            "--write-rig",
+            format!(" {}: cannot write: {e}", path.display()),
+        )
+    })?;
     Ok(json!({
         "written": path.display().to_string(),
         "stage": stage.map(|s| json!({ "dialect": s.dialect, "port": s.port, "model": s.model })),

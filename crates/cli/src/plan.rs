@@ -77,19 +77,19 @@ pub struct PlanAnglesArgs {
 fn vec3(field: &str, v: &[f64]) -> Result<Vector3<f64>, CommandError> {
     match v {
         [a, b, c] => Ok(Vector3::new(*a, *b, *c)),
-        _ => Err(CommandError(format!(
-            "{field} has {} values: allowed 3 (S0,S1,S2)",
-            v.len()
-        ))),
+        _ => Err(CommandError::input(
+            field,
+            format!(" has {} values: allowed 3 (S0,S1,S2)", v.len()),
+        )),
     }
 }
 
 fn mat3(field: &str, v: &[f64]) -> Result<Matrix3<f64>, CommandError> {
     if v.len() != 9 {
-        return Err(CommandError(format!(
-            "{field} has {} values: allowed 9 (3x3 row-major)",
-            v.len()
-        )));
+        return Err(CommandError::input(
+            field,
+            format!(" has {} values: allowed 9 (3x3 row-major)", v.len()),
+        ));
     }
     Ok(Matrix3::from_row_slice(v))
 }
@@ -116,18 +116,24 @@ pub(crate) fn intensity_roc(
 /// `plan angles`.
 pub fn angles(args: &PlanAnglesArgs) -> Result<Value, CommandError> {
     if !(1..=MAX_CHANNELS).contains(&args.channels) {
-        return Err(CommandError(format!(
-            "channels = {} is out of range: allowed 1 to {MAX_CHANNELS}",
-            args.channels
-        )));
+        return Err(CommandError::input(
+            "channels",
+            format!(
+                " = {} is out of range: allowed 1 to {MAX_CHANNELS}",
+                args.channels
+            ),
+        ));
     }
     let stokes = !args.detection_only;
     if stokes && args.channels < 3 {
-        return Err(CommandError(format!(
-            "--channels {} is out of range for a Stokes set: allowed 3 to {MAX_CHANNELS} (a \
+        return Err(CommandError::input(
+            "--channels",
+            format!(
+                " {} is out of range for a Stokes set: allowed 3 to {MAX_CHANNELS} (a \
              linear Stokes vector has 3 unknowns), or add --detection-only for 1 or 2 channels",
-            args.channels
-        )));
+                args.channels
+            ),
+        ));
     }
     let t_mean = vec3("target_mean", &args.target_mean)?;
     let b_mean = vec3("background_mean", &args.background_mean)?;
@@ -141,10 +147,10 @@ pub fn angles(args: &PlanAnglesArgs) -> Result<Value, CommandError> {
         None => None,
         Some(v) if v.len() == 2 => Some((v[0].to_radians(), v[1].to_radians())),
         Some(v) => {
-            return Err(CommandError(format!(
-                "angle_range_deg has {} values: allowed 2 (LO,HI)",
-                v.len()
-            )))
+            return Err(CommandError::input(
+                "angle_range_deg",
+                format!(" has {} values: allowed 2 (LO,HI)", v.len()),
+            ))
         }
     };
     let constraints = Constraints {
@@ -269,7 +275,7 @@ pub fn bench(max_n: usize, runs: usize) -> Result<Vec<PlannerRow>, CommandError>
         times.sort();
         let ours = (
             times[times.len() / 2],
-            answer.ok_or_else(|| CommandError("no run".into()))?,
+            answer.ok_or_else(|| CommandError::failed("no run"))?,
         );
         let t0 = Instant::now();
         let grid = grid_search(&contrast, n, 1f64.to_radians());
@@ -369,7 +375,7 @@ fn read_stack_list(
         col("file"),
         col("angle_deg").or_else(|| col("commanded_angle_deg")),
     ) else {
-        return Err(CommandError(format!(
+        return Err(CommandError::failed(format!(
             "{}: the header {:?} lacks a column: allowed file and angle_deg (or an export's \
              file and commanded_angle_deg)",
             list.display(),
@@ -388,7 +394,7 @@ fn read_stack_list(
             continue;
         }
         let (Some(file), Some(angle)) = (cell(file_col), cell(angle_col)) else {
-            return Err(CommandError(format!(
+            return Err(CommandError::failed(format!(
                 "{} line {}: expected the columns {}",
                 list.display(),
                 i + 1,
@@ -400,7 +406,7 @@ fn read_stack_list(
             .ok()
             .filter(|a: &f64| a.is_finite())
             .ok_or_else(|| {
-                CommandError(format!(
+                CommandError::failed(format!(
                     "{} line {}: {} = {angle:?} is not a finite number",
                     list.display(),
                     i + 1,
@@ -422,21 +428,20 @@ pub fn aptd_offline(args: &PlanAptdArgs) -> Result<Value, CommandError> {
     let dir = &args.frames;
     let list = dir.join("frames.csv");
     let text = std::fs::read_to_string(&list)
-        .map_err(|e| CommandError(format!("{}: cannot read: {e}", list.display())))?;
+        .map_err(|e| CommandError::file(format!("{}: cannot read", list.display()), e))?;
     let stack = read_stack_list(&list, &text)?;
     if stack.len() < 3 {
-        return Err(CommandError(format!(
+        return Err(CommandError::failed(format!(
             "{}: {} frames; allowed at least 3 at distinct angles",
             list.display(),
             stack.len()
         )));
     }
     let (width, height) = polar_engine::tiff_io::dimensions(&stack[0].1)
-        .map_err(|e| CommandError(format!("{}: {e}", stack[0].1.display())))?;
+        .map_err(|e| CommandError::failed(format!("{}: {e}", stack[0].1.display())))?;
     let mut images = Vec::with_capacity(stack.len());
     for (angle, path) in &stack {
-        let px = crate::calibrate::read_tiff(path, width, height)
-            .map_err(|e| CommandError(e.to_string()))?;
+        let px = crate::calibrate::read_tiff(path, width, height).map_err(CommandError::of)?;
         images.push((
             *angle,
             px.iter()
@@ -456,8 +461,8 @@ pub fn aptd_offline(args: &PlanAptdArgs) -> Result<Value, CommandError> {
             TargetSpec::Region(mask)
         }
         Some(r) => {
-            return Err(CommandError(format!(
-                "target_region = {r:?} is invalid: allowed X0,Y0,X1,Y1 with X0 < X1 <= {width}, Y0 < Y1 <= {height}"
+            return Err(CommandError::input("target_region", format!(
+                " = {r:?} is invalid: allowed X0,Y0,X1,Y1 with X0 < X1 <= {width}, Y0 < Y1 <= {height}"
             )))
         }
         None => TargetSpec::Anomalies {
@@ -474,11 +479,14 @@ pub fn aptd_offline(args: &PlanAptdArgs) -> Result<Value, CommandError> {
         .collect();
     for a in &initial {
         if !available.iter().any(|b| (a - b).abs() < 1e-6) {
-            return Err(CommandError(format!(
-                "initial_angles_deg: {} is not an angle of the stack (allowed {:?})",
-                a.to_degrees(),
-                available.iter().map(|b| b.to_degrees()).collect::<Vec<_>>()
-            )));
+            return Err(CommandError::input(
+                "initial_angles_deg",
+                format!(
+                    ": {} is not an angle of the stack (allowed {:?})",
+                    a.to_degrees(),
+                    available.iter().map(|b| b.to_degrees()).collect::<Vec<_>>()
+                ),
+            ));
         }
     }
     let (mut aptd, mut step) = Aptd::new(AptdConfig {
@@ -511,7 +519,9 @@ pub fn aptd_offline(args: &PlanAptdArgs) -> Result<Value, CommandError> {
                     reused += 1;
                     (0..images.len()).find(|i| same(i))
                 })
-                .ok_or_else(|| CommandError(format!("no frame at {} deg", a.to_degrees())))?;
+                .ok_or_else(|| {
+                    CommandError::failed(format!("no frame at {} deg", a.to_degrees()))
+                })?;
             used[pick] = true;
             frames.push(AptdFrame {
                 angle_rad: *a,

@@ -8,8 +8,8 @@ use polar_engine::plan::Plan;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 
-fn err(e: impl std::fmt::Display) -> CommandError {
-    CommandError(e.to_string())
+fn err(e: impl std::error::Error + Send + Sync + 'static) -> CommandError {
+    CommandError::of(e)
 }
 
 /// Reads a plan and resolves its `from_planner` table with the model ([`load_plan_resolved`]).
@@ -57,19 +57,19 @@ pub fn forecast_models(
     let sim = &plan.simulation;
     let scene_text = match &sim.scene {
         Some(s) => std::fs::read_to_string(dir.join(s))
-            .map_err(|e| CommandError(format!("simulation.scene = {s}: {e}")))?,
+            .map_err(|e| CommandError::input("simulation.scene", format!(" = {s}: {e}")))?,
         None => polar_rig::simulated::DEFAULT_SCENE.to_string(),
     };
     let scene = polar_model::scene_file::Scene::from_toml_str_with_files(&scene_text, &|name| {
         std::fs::read_to_string(dir.join(name)).map_err(|e| e.to_string())
     })
-    .map_err(|e| CommandError(format!("simulation.scene: {e}")))?;
+    .map_err(|e| CommandError::input("simulation.scene", format!(": {e}")))?;
     let camera_text = match &sim.camera {
         Some(c) => std::fs::read_to_string(dir.join(c))
-            .map_err(|e| CommandError(format!("simulation.camera = {c}: {e}")))?,
+            .map_err(|e| CommandError::input("simulation.camera", format!(" = {c}: {e}")))?,
         None => polar_rig::simulated::DEFAULT_CAMERA.to_string(),
     };
     let camera = polar_model::sensor::Camera::from_toml_str(&camera_text)
-        .map_err(|e| CommandError(format!("simulation.camera: {e}")))?;
+        .map_err(|e| CommandError::input("simulation.camera", format!(": {e}")))?;
     Ok((scene, camera))
 }

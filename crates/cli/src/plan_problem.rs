@@ -90,9 +90,10 @@ pub fn flag(flag: &str, value: f64, lo: f64, hi: f64, lo_open: bool) -> Result<f
         Ok(value)
     } else {
         let open = if lo_open { "(" } else { "[" };
-        Err(CommandError(format!(
-            "--{flag} {value} is out of range: allowed {open}{lo}, {hi}]"
-        )))
+        Err(CommandError::input(
+            format!("--{flag}"),
+            format!(" {value} is out of range: allowed {open}{lo}, {hi}]"),
+        ))
     }
 }
 
@@ -104,28 +105,30 @@ pub fn objective(args: &ProblemArgs) -> Result<Objective, CommandError> {
             dolp_sigma: flag("dolp-sigma", args.dolp_sigma, 0.0, 0.999, true)?,
         }),
         "scr-per-second" => Ok(Objective::ScrPerSecond),
-        other => Err(CommandError(format!(
-            "--objective {other:?} is not known here: allowed time-to-dolp-sigma, \
+        other => Err(CommandError::input(
+            "--objective",
+            format!(
+                " {other:?} is not known here: allowed time-to-dolp-sigma, \
              scr-per-second{}",
-            if other == "scr-fraction" {
-                " (scr-fraction is `plan scene`'s: a spinning analyzer's exposure is the \
+                if other == "scr-fraction" {
+                    " (scr-fraction is `plan scene`'s: a spinning analyzer's exposure is the \
                  longest its limits allow)"
-            } else {
-                ""
-            }
-        ))),
+                } else {
+                    ""
+                }
+            ),
+        )),
     }
 }
 
 /// The stage's limits and where they came from: the flags, else the simulated rig's stage.
 pub fn stage(args: &ProblemArgs) -> Result<(StageLimits, &'static str), CommandError> {
     let sim = polar_rig::sim_stage::stage_limits(&Simulation::default())
-        .map_err(|e| CommandError(e.to_string()))?
+        .map_err(CommandError::of)?
         .ok_or_else(|| {
-            CommandError(
+            CommandError::failed(
                 "the simulated rig's stage does not say how it moves: give \
-                 --max-speed-deg-per-s and --acceleration-deg-per-s2"
-                    .into(),
+                 --max-speed-deg-per-s and --acceleration-deg-per-s2",
             )
         })?;
     let source = match (args.max_speed_deg_per_s, args.acceleration_deg_per_s2) {
@@ -178,17 +181,21 @@ fn camera_path(args: &ProblemArgs) -> Result<PathBuf, CommandError> {
         return Ok(p.clone());
     }
     let Some(rig) = &args.rig else {
-        return Err(CommandError(
-            "--camera is missing: allowed a camera file, or --rig with a [camera] file".into(),
+        return Err(CommandError::input(
+            "--camera",
+            " is missing: allowed a camera file, or --rig with a [camera] file",
         ));
     };
     let rig = crate::rig::load(rig)?;
     rig.camera_file.clone().ok_or_else(|| {
-        CommandError(format!(
-            "--rig {}: its [camera] names no file: add file = \"cameras/NAME.toml\" or give \
+        CommandError::input(
+            "--rig",
+            format!(
+                " {}: its [camera] names no file: add file = \"cameras/NAME.toml\" or give \
              --camera",
-            rig.path.display()
-        ))
+                rig.path.display()
+            ),
+        )
     })
 }
 
@@ -207,16 +214,16 @@ pub fn problem(
     flag("settle-s", args.settle_s, 0.0, 60.0, false)?;
     flag("tolerance", args.tolerance, 1e-8, 0.1, false)?;
     let scene = crate::commands::load_scene(&args.scene)
-        .map_err(|e| CommandError(format!("--scene: {e}")))?;
+        .map_err(|e| CommandError::input("--scene", format!(": {e}")))?;
     let camera_path = camera_path(args)?;
     let text = std::fs::read_to_string(&camera_path).map_err(|e| {
-        CommandError(format!(
-            "--camera {}: cannot read: {e}",
-            camera_path.display()
-        ))
+        CommandError::input(
+            "--camera",
+            format!(" {}: cannot read: {e}", camera_path.display()),
+        )
     })?;
     let camera = Camera::from_toml_str(&text)
-        .map_err(|e| CommandError(format!("--camera {}: {e}", camera_path.display())))?;
+        .map_err(|e| CommandError::input("--camera", format!(" {}: {e}", camera_path.display())))?;
     let settings = Settings {
         camera: camera_limits,
         stage,
@@ -238,15 +245,19 @@ pub fn problem(
                 Role::Target => "target",
                 Role::Background => "background",
             };
-            CommandError(format!("--{flag} {e}"))
+            CommandError::input(format!("--{flag}"), format!(" {e}"))
         }
-        ProblemError::Scene(m) => CommandError(format!("--scene {}: {m}", args.scene.display())),
-        ProblemError::Camera(m) => CommandError(format!("--camera {}: {m}", camera_path.display())),
+        ProblemError::Scene(m) => {
+            CommandError::input("--scene", format!(" {}: {m}", args.scene.display()))
+        }
+        ProblemError::Camera(m) => {
+            CommandError::input("--camera", format!(" {}: {m}", camera_path.display()))
+        }
     })?;
     Ok((problem, source))
 }
 
 /// A planner error as the commands print it.
 pub fn planner_error(e: polar_planner::PlanError) -> CommandError {
-    CommandError(e.to_string())
+    CommandError::of(e)
 }

@@ -94,9 +94,10 @@ fn goal(args: &PlanSceneArgs) -> Result<Goal, CommandError> {
         "time-to-dolp-sigma" | "scr-per-second" => {
             Ok(Goal::Planner(plan_problem::objective(&args.problem)?))
         }
-        other => Err(CommandError(format!(
-            "--objective {other:?} is not known: allowed {OBJECTIVES}"
-        ))),
+        other => Err(CommandError::input(
+            "--objective",
+            format!(" {other:?} is not known: allowed {OBJECTIVES}"),
+        )),
     }
 }
 
@@ -105,22 +106,26 @@ fn goal(args: &PlanSceneArgs) -> Result<Goal, CommandError> {
 fn set_shape(args: &PlanSceneArgs, goal: Goal) -> Result<(usize, bool, f64), CommandError> {
     let n = args.channels;
     if !(1..=MAX_CHANNELS).contains(&n) {
-        return Err(CommandError(format!(
-            "--channels {n} is out of range: allowed 1 to {MAX_CHANNELS}"
-        )));
+        return Err(CommandError::input(
+            "--channels",
+            format!(" {n} is out of range: allowed 1 to {MAX_CHANNELS}"),
+        ));
     }
     let stokes = !args.detection_only;
     if stokes && n < 3 {
-        return Err(CommandError(format!(
-            "--channels {n} is out of range for a Stokes set: allowed 3 to {MAX_CHANNELS} (a \
+        return Err(CommandError::input(
+            "--channels",
+            format!(
+                " {n} is out of range for a Stokes set: allowed 3 to {MAX_CHANNELS} (a \
              linear Stokes vector has 3 unknowns), or add --detection-only for 1 or 2 channels"
-        )));
+            ),
+        ));
     }
     if !stokes && matches!(goal, Goal::Planner(Objective::TimeToDolpSigma { .. })) {
-        return Err(CommandError(
-            "--detection-only goes with --objective scr-per-second or scr-fraction: a DoLP \
-             goal needs a Stokes set"
-                .into(),
+        return Err(CommandError::input(
+            "--detection-only",
+            " goes with --objective scr-per-second or scr-fraction: a DoLP \
+             goal needs a Stokes set",
         ));
     }
     let widest = 180.0 / n as f64;
@@ -128,11 +133,14 @@ fn set_shape(args: &PlanSceneArgs, goal: Goal) -> Result<(usize, bool, f64), Com
         None => 0.0,
         Some(v) if v.is_finite() && (0.0..=widest).contains(&v) && v < 90.0 => v,
         Some(v) => {
-            return Err(CommandError(format!(
-                "--min-separation-deg {v} is out of range for {n} angles: allowed [0, {}] \
+            return Err(CommandError::input(
+                "--min-separation-deg",
+                format!(
+                    " {v} is out of range for {n} angles: allowed [0, {}] \
                  ({n} angles that far apart must fit in 180 deg)",
-                widest.min(89.99)
-            )))
+                    widest.min(89.99)
+                ),
+            ))
         }
     };
     plan_problem::flag("pfa", args.pfa, 0.0, 0.5, true)?;
@@ -240,7 +248,7 @@ fn by_dolp_goal(ctx: &Ctx) -> Result<Choice, CommandError> {
         }
         phase_deg += 1.0;
     }
-    let step = best.ok_or_else(|| CommandError("no phase was scored".into()))?;
+    let step = best.ok_or_else(|| CommandError::failed("no phase was scored"))?;
     Ok(Choice::from_step(step, Vec::new()))
 }
 
@@ -352,11 +360,14 @@ fn budget_exposure_s(ctx: &Ctx, budget_s: f64) -> Result<f64, CommandError> {
     let overhead = n * (move_s + ctx.settle_s + p.camera.readout_s);
     let t = (budget_s - overhead) / n;
     if t < p.camera.min_exposure_s {
-        return Err(CommandError(format!(
-            "--time-budget-s {budget_s} does not cover {} moves and settles ({overhead:.3} s) \
+        return Err(CommandError::input(
+            "--time-budget-s",
+            format!(
+                " {budget_s} does not cover {} moves and settles ({overhead:.3} s) \
              and {} shortest exposures: allowed more than that",
-            ctx.n, ctx.n
-        )));
+                ctx.n, ctx.n
+            ),
+        ));
     }
     Ok(t)
 }
@@ -622,7 +633,7 @@ pub fn scene_plan(args: &PlanSceneArgs) -> Result<Value, CommandError> {
         .map_err(planner_error)?
         .scr;
     if limit <= 0.0 {
-        return Err(CommandError(format!(
+        return Err(CommandError::failed(format!(
             "no contrast between {} and {}: their Stokes means are equal, so no analyzer set \
              or exposure separates them",
             problem.target.name, problem.background.name

@@ -9,7 +9,7 @@ use std::path::Path;
 
 /// Reads a rig file; the error names `--rig` and the file.
 pub fn load(path: &Path) -> Result<Rig, CommandError> {
-    Rig::load(path).map_err(|e| CommandError(format!("--rig: {e}")))
+    Rig::load(path).map_err(|e| CommandError::input("--rig", format!(": {e}")))
 }
 
 /// The rig a run was started with, from what its store recorded (the `devices` attribute's
@@ -26,7 +26,7 @@ pub fn recorded(devices: &Value) -> Result<Option<(Rig, Hardware, Vec<String>)>,
         return Ok(None);
     };
     let rig = Rig::load(Path::new(path)).map_err(|e| {
-        CommandError(format!(
+        CommandError::failed(format!(
             "the run was started with the rig file {path}, which cannot be read now ({e}): \
              give --rig (and any flags) to resume it"
         ))
@@ -34,8 +34,8 @@ pub fn recorded(devices: &Value) -> Result<Option<(Rig, Hardware, Vec<String>)>,
     let overrides = polar_rig::Overrides::from_json(&recorded["overrides"]);
     let hw = rig
         .hardware(&overrides)
-        .map_err(|e| CommandError(e.to_string()))?
-        .ok_or_else(|| CommandError(format!("rig {path} names no devices now")))?;
+        .map_err(CommandError::of)?
+        .ok_or_else(|| CommandError::failed(format!("rig {path} names no devices now")))?;
     let mut differences = Vec::new();
     if let Some(then) = recorded["content_xxh3"].as_str() {
         if then != rig.content_xxh3 {
@@ -94,14 +94,14 @@ pub fn camera_model(rig: &Rig) -> Result<Option<polar_model::sensor::Camera>, Co
 /// The rig's camera file at `path`, as written (errors name the rig and `camera.file`).
 fn read_camera_file(rig: &Rig, path: &Path) -> Result<polar_model::sensor::Camera, CommandError> {
     let text = std::fs::read_to_string(path).map_err(|e| {
-        CommandError(format!(
+        CommandError::failed(format!(
             "rig {}: camera.file = {}: cannot read: {e}",
             rig.path.display(),
             path.display()
         ))
     })?;
     polar_model::sensor::Camera::from_toml_str(&text).map_err(|e| {
-        CommandError(format!(
+        CommandError::failed(format!(
             "rig {}: camera.file = {}: {e}",
             rig.path.display(),
             path.display()
@@ -139,10 +139,10 @@ pub fn write_back(
         return Ok(None);
     }
     let store = polar_engine::store::RunStore::open(run_dir)
-        .map_err(|e| CommandError(format!("{}: {e}", run_dir.display())))?;
+        .map_err(|e| CommandError::layer(format!("{}: ", run_dir.display()), e))?;
     let attrs = store
         .attributes()
-        .map_err(|e| CommandError(format!("{}: {e}", run_dir.display())))?;
+        .map_err(|e| CommandError::layer(format!("{}: ", run_dir.display()), e))?;
     let cal = &attrs
         .get("calibration")
         .and_then(|c| c.get("analyzer"))
@@ -152,7 +152,7 @@ pub fn write_back(
         cal["zero_offset_deg"].as_f64(),
         cal["extinction_ratio"].as_f64(),
     ) else {
-        return Err(CommandError(format!(
+        return Err(CommandError::failed(format!(
             "{}: the run finished without an analyzer calibration to write to the rig",
             run_dir.display()
         )));
@@ -160,7 +160,7 @@ pub fn write_back(
     let zero = corrected_zero_offset_deg(used_zero_offset_deg, delta);
     let path = rig
         .record_analyzer(zero, er, Some(run_dir))
-        .map_err(|e| CommandError(e.to_string()))?;
+        .map_err(CommandError::of)?;
     Ok(Some(json!({
         "rig": rig.path.display().to_string(),
         "analyzer_file": path.display().to_string(),
@@ -174,24 +174,26 @@ pub fn write_back(
 /// (never over an existing file), then as the camera file's new revision.
 fn write_back_noise(rig: &Rig, run_dir: &Path) -> Result<Value, CommandError> {
     let store = polar_engine::store::RunStore::open(run_dir)
-        .map_err(|e| CommandError(format!("{}: {e}", run_dir.display())))?;
+        .map_err(|e| CommandError::layer(format!("{}: ", run_dir.display()), e))?;
     let attrs = store
         .attributes()
-        .map_err(|e| CommandError(format!("{}: {e}", run_dir.display())))?;
+        .map_err(|e| CommandError::layer(format!("{}: ", run_dir.display()), e))?;
     let noise = attrs
         .get("calibration")
         .and_then(|c| c.get("noise"))
         .cloned()
         .ok_or_else(|| {
-            CommandError(format!(
+            CommandError::failed(format!(
                 "{}: the run finished without a noise calibration to write to the rig",
                 run_dir.display()
             ))
         })?;
-    let fit: polar_model::calibration::PhotonTransfer = serde_json::from_value(noise)
-        .map_err(|e| CommandError(format!("{}: calibration.noise: {e}", run_dir.display())))?;
+    let fit: polar_model::calibration::PhotonTransfer =
+        serde_json::from_value(noise).map_err(|e| {
+            CommandError::layer(format!("{}: calibration.noise: ", run_dir.display()), e)
+        })?;
     let base_path = rig.camera_file.as_ref().ok_or_else(|| {
-        CommandError(format!(
+        CommandError::failed(format!(
             "rig {}: camera.file is missing: the measured camera needs a base camera file",
             rig.path.display()
         ))
@@ -199,14 +201,14 @@ fn write_back_noise(rig: &Rig, run_dir: &Path) -> Result<Value, CommandError> {
     let base = read_camera_file(rig, base_path)?;
     let measured = run_dir.join("measured_camera.toml");
     if measured.exists() {
-        return Err(CommandError(format!(
+        return Err(CommandError::failed(format!(
             "{}: exists; not overwritten (the rig keeps its camera file)",
             measured.display()
         )));
     }
     let mut warnings = Vec::new();
     crate::calibrate::measured_camera(&base, &fit, &measured, &mut warnings)
-        .map_err(|e| CommandError(e.to_string()))?;
+        .map_err(CommandError::of)?;
     let mut written = record_camera_file(rig, &measured)?;
     written["gain_dn_per_e"] = json!(fit.k_dn_per_e.value);
     written["warnings"] = json!(warnings);
@@ -216,9 +218,7 @@ fn write_back_noise(rig: &Rig, run_dir: &Path) -> Result<Value, CommandError> {
 /// `calibrate noise --rig`: the measured camera file written as a new revision beside the
 /// rig's camera file, and the rig pointed at it.
 pub fn record_camera_file(rig: &Rig, measured: &Path) -> Result<Value, CommandError> {
-    let path = rig
-        .record_camera_file(measured)
-        .map_err(|e| CommandError(e.to_string()))?;
+    let path = rig.record_camera_file(measured).map_err(CommandError::of)?;
     Ok(json!({
         "rig": rig.path.display().to_string(),
         "camera_file": path.display().to_string(),

@@ -145,7 +145,7 @@ pub enum StudyError {
 
 impl From<CommandError> for StudyError {
     fn from(e: CommandError) -> Self {
-        StudyError::Input(e.0)
+        StudyError::Input(e.to_string())
     }
 }
 

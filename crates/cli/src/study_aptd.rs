@@ -75,27 +75,27 @@ pub struct Case {
     pub scores: Vec<Score>,
 }
 
-fn err(e: impl std::fmt::Display) -> CommandError {
-    CommandError(e.to_string())
+fn err(e: impl std::error::Error + Send + Sync + 'static) -> CommandError {
+    CommandError::of(e)
 }
 
 /// Runs every case.
 pub fn run(args: &StudyArgs) -> Result<Vec<Case>, CommandError> {
     let text = std::fs::read_to_string(&args.scene).map_err(|e| {
-        CommandError(format!(
-            "--scene {}: cannot read: {e}",
-            args.scene.display()
-        ))
+        CommandError::input(
+            "--scene",
+            format!(" {}: cannot read: {e}", args.scene.display()),
+        )
     })?;
     let scene = polar_model::scene_file::Scene::from_toml_str(&text)
-        .map_err(|e| CommandError(format!("--scene {}: {e}", args.scene.display())))?;
+        .map_err(|e| CommandError::input("--scene", format!(" {}: {e}", args.scene.display())))?;
     let camera = Camera::from_toml_str(&std::fs::read_to_string(&args.camera).map_err(|e| {
-        CommandError(format!(
-            "--camera {}: cannot read: {e}",
-            args.camera.display()
-        ))
+        CommandError::input(
+            "--camera",
+            format!(" {}: cannot read: {e}", args.camera.display()),
+        )
     })?)
-    .map_err(|e| CommandError(format!("--camera {}: {e}", args.camera.display())))?;
+    .map_err(|e| CommandError::input("--camera", format!(" {}: {e}", args.camera.display())))?;
     let names: Vec<String> = scene.materials.iter().map(|m| m.name.clone()).collect();
     let layout = Layout::panels_on_ground(&names);
     let ground = ["asphalt", "grass"];
@@ -105,10 +105,13 @@ pub fn run(args: &StudyArgs) -> Result<Vec<Case>, CommandError> {
         .cloned()
         .collect();
     if targets.is_empty() {
-        return Err(CommandError(format!(
-            "--scene {}: no panel material besides asphalt and grass",
-            args.scene.display()
-        )));
+        return Err(CommandError::input(
+            "--scene",
+            format!(
+                " {}: no panel material besides asphalt and grass",
+                args.scene.display()
+            ),
+        ));
     }
     let mut cases = Vec::new();
     for (k, &(zenith, azimuth)) in SUNS.iter().enumerate() {
@@ -182,7 +185,7 @@ pub(crate) fn true_stats(
         .materials
         .iter()
         .position(|m| m == target)
-        .ok_or_else(|| CommandError(format!("target {target} is not in the layout")))?;
+        .ok_or_else(|| CommandError::failed(format!("target {target} is not in the layout")))?;
     let region: Vec<bool> = truth
         .region
         .iter()
@@ -201,7 +204,7 @@ pub(crate) fn true_stats(
     let to_dn = |s: &[f64; 3]| Vector3::new(s[0], s[1], s[2]) * (k * g);
     let dn: Vec<Vector3<f64>> = truth.stokes.iter().map(to_dn).collect();
     let background: Vec<bool> = region.iter().map(|r| !r).collect();
-    let few = || CommandError(format!("target {target}: fewer than 4 pixels in a class"));
+    let few = || CommandError::failed(format!("target {target}: fewer than 4 pixels in a class"));
     let (mu_t, cov_t) = mean_cov(&dn, &region).ok_or_else(few)?;
     let (mu_b, cov_b) = mean_cov(&dn, &background).ok_or_else(few)?;
     let e_bg = mu_b[0] / (k * 2.0);
@@ -414,10 +417,10 @@ pub fn draw(cases: &[Case], path: &Path) -> Result<(), CommandError> {
 pub fn execute(args: &StudyArgs) -> Result<Vec<PathBuf>, CommandError> {
     let cases = run(args)?;
     std::fs::create_dir_all(&args.out)
-        .map_err(|e| CommandError(format!("--out {}: {e}", args.out.display())))?;
+        .map_err(|e| CommandError::input("--out", format!(" {}: {e}", args.out.display())))?;
     let csv_path = args.out.join("aptd.csv");
     std::fs::write(&csv_path, csv(&cases))
-        .map_err(|e| CommandError(format!("{}: {e}", csv_path.display())))?;
+        .map_err(|e| CommandError::layer(format!("{}: ", csv_path.display()), e))?;
     let png = args.out.join("aptd.png");
     draw(&cases, &png)?;
     Ok(vec![csv_path, png])

@@ -67,6 +67,6 @@ fn evaluate(name: &str, argv: Vec<String>) -> Result<Value, String> {
             let rig = a.rig.as_deref().map(rig::load).transpose();
             text(rig.and_then(|r| acquire::plan_check(&a.file, r.as_ref())))
         }
-        other => Err(CommandError(format!("no command {other:?}")).to_string()),
+        other => Err(CommandError::failed(format!("no command {other:?}")).to_string()),
     }
 }

@@ -5,14 +5,17 @@
 //! bad value gets the same message (field, value, allowed range) from a flag and from a batch line.
 
 mod args;
+mod error;
 mod optics;
 mod scene;
 mod sensor;
+mod text;
 
-pub use args::{compact, echo, tidy, CommandError, ECHO_MAX};
+pub use error::{CommandError, LayerError};
 pub use optics::*;
 pub use scene::*;
 pub use sensor::*;
+pub use text::{compact, echo, tidy, ECHO_MAX};
 
 #[cfg(test)]
 mod tests {

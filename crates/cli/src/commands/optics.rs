@@ -2,7 +2,9 @@
 //! BRDF (`model pbrdf`), the Stokes estimate from analyzer intensities (`model stokes`) and an
 //! analyzer set's conditioning (`model polarimeter`).
 
-use super::args::{compact, deg_to_rad, echo, required, CommandError};
+use super::args::{deg_to_rad, required};
+use super::error::CommandError;
+use super::text::{compact, echo};
 use clap::Args;
 use polar_model::analyzer::{AnalyzerModel, AnalyzerSet};
 use polar_model::fresnel::{amplitudes, RefractiveIndex};
@@ -116,7 +118,7 @@ impl PbrdfArgs {
         let lib = MaterialLibrary::builtin();
         let m = lib
             .get(name)
-            .map_err(|e| CommandError(format!("material: {e}")))?;
+            .map_err(|e| CommandError::input("material", format!(": {e}")))?;
         let vegetation = self.vegetation || m.model == MaterialModel::Vegetation;
         Ok(PbrdfArgs {
             n: self.n.or(Some(m.n)),
@@ -252,10 +254,13 @@ pub(super) fn analyzer_set(
         .iter()
         .find(|a| !a.is_finite() || a.abs() > 3600.0)
     {
-        return Err(CommandError(format!(
-            "angles_deg contains {}: allowed finite values in [-3600, 3600]",
-            compact(*bad)
-        )));
+        return Err(CommandError::input(
+            "angles_deg",
+            format!(
+                " contains {}: allowed finite values in [-3600, 3600]",
+                compact(*bad)
+            ),
+        ));
     }
     let rad: Vec<f64> = angles_deg.iter().map(|a| a.to_radians()).collect();
     Ok(AnalyzerSet::new(&rad, model)?)
@@ -271,20 +276,26 @@ pub fn stokes(a: &StokesArgs) -> Result<Value, CommandError> {
         .enumerate()
         .find(|(_, v)| !v.is_finite())
     {
-        return Err(CommandError(format!(
-            "intensities[{i}] = {} is out of range: allowed finite values >= 0",
-            compact(*v)
-        )));
+        return Err(CommandError::input(
+            format!("intensities[{i}]"),
+            format!(
+                " = {} is out of range: allowed finite values >= 0",
+                compact(*v)
+            ),
+        ));
     }
     let s = set.reconstruct(&a.intensities)?;
     if s.0[0].is_nan() || s.0[0] <= 0.0 {
         let list: Vec<String> = a.intensities.iter().map(|v| compact(*v)).collect();
-        return Err(CommandError(format!(
-            "intensities = {} give S0 = {}: allowed values >= 0 (measured powers) whose fit \
+        return Err(CommandError::input(
+            "intensities",
+            format!(
+                " = {} give S0 = {}: allowed values >= 0 (measured powers) whose fit \
              has S0 > 0",
-            echo(&list.join(",")),
-            compact(s.0[0])
-        )));
+                echo(&list.join(",")),
+                compact(s.0[0])
+            ),
+        ));
     }
     let warnings: Vec<String> = a
         .intensities

@@ -1,7 +1,9 @@
 //! The scene: the sun (`model sun`), the sky (`model sky`, `model sky-table`), the sensor's
 //! ground geometry (`model geometry`) and a scene file's class radiances (`model scene`).
 
-use super::args::{echo, required, CommandError};
+use super::args::required;
+use super::error::CommandError;
+use super::text::echo;
 use clap::Args;
 use polar_model::ModelError;
 use serde::Deserialize;
@@ -53,10 +55,13 @@ pub fn parse_utc(text: &str) -> Result<polar_model::sun::UtcTime, CommandError> 
     use chrono::{Datelike, Timelike};
     let t = chrono::DateTime::parse_from_rfc3339(text)
         .map_err(|e| {
-            CommandError(format!(
-                "time = {} is invalid ({e}): allowed RFC 3339, e.g. 2026-06-21T15:00:00Z",
-                echo(text)
-            ))
+            CommandError::input(
+                "time",
+                format!(
+                    " = {} is invalid ({e}): allowed RFC 3339, e.g. 2026-06-21T15:00:00Z",
+                    echo(text)
+                ),
+            )
         })?
         .naive_utc();
     Ok(polar_model::sun::UtcTime {
@@ -204,28 +209,30 @@ pub fn sky(a: &SkyArgs) -> Result<Value, CommandError> {
             )
         }
         "table" => {
-            let path = a
-                .table
-                .as_ref()
-                .ok_or_else(|| CommandError("model = \"table\" needs --table FILE.csv".into()))?;
+            let path = a.table.as_ref().ok_or_else(|| {
+                CommandError::input("model", " = \"table\" needs --table FILE.csv")
+            })?;
             let reference = match a.reference.as_str() {
                 "horizontal" => polar_model::sky::table::StokesReference::Horizontal,
                 "vertical" => polar_model::sky::table::StokesReference::Vertical,
                 other => {
-                    return Err(CommandError(format!(
-                        "reference = {} is invalid: allowed horizontal or vertical",
-                        echo(other)
-                    )))
+                    return Err(CommandError::input(
+                        "reference",
+                        format!(
+                            " = {} is invalid: allowed horizontal or vertical",
+                            echo(other)
+                        ),
+                    ))
                 }
             };
             let text = std::fs::read_to_string(path).map_err(|e| {
-                CommandError(format!(
-                    "table = {:?}: cannot read ({e})",
-                    path.display().to_string()
-                ))
+                CommandError::input(
+                    "table",
+                    format!(" = {:?}: cannot read ({e})", path.display().to_string()),
+                )
             })?;
             let t = polar_model::sky::table::SkyTable::from_csv_str(&text, reference)
-                .map_err(|e| CommandError(format!("{}: {e}", path.display())))?;
+                .map_err(|e| CommandError::layer(format!("{}: ", path.display()), e))?;
             let s = t.stokes_at_deg(z, az);
             return Ok(json!({
                 "s": [s.0[0], s.0[1], s.0[2]],
@@ -238,10 +245,13 @@ pub fn sky(a: &SkyArgs) -> Result<Value, CommandError> {
             }));
         }
         other => {
-            return Err(CommandError(format!(
-                "model = {} is invalid: allowed rayleigh, berry or table",
-                echo(other)
-            )))
+            return Err(CommandError::input(
+                "model",
+                format!(
+                    " = {} is invalid: allowed rayleigh, berry or table",
+                    echo(other)
+                ),
+            ))
         }
     };
     Ok(json!({
@@ -293,10 +303,13 @@ fn default_tiles() -> String {
 /// Parses `NxM` tile counts.
 pub fn parse_tiles(text: &str) -> Result<(usize, usize), CommandError> {
     let bad = || {
-        CommandError(format!(
-            "tiles = {} is invalid: allowed NxM with N, M >= 1, e.g. 3x3",
-            echo(text)
-        ))
+        CommandError::input(
+            "tiles",
+            format!(
+                " = {} is invalid: allowed NxM with N, M >= 1, e.g. 3x3",
+                echo(text)
+            ),
+        )
     };
     let (a, b) = text.split_once(['x', 'X']).ok_or_else(bad)?;
     Ok((
@@ -312,10 +325,13 @@ pub fn geometry(a: &GeometryArgs) -> Result<Value, CommandError> {
         [x, y] => (*x, *y),
         [x] => (*x, *x),
         other => {
-            return Err(CommandError(format!(
-            "fov_deg has {} values: allowed one (square) or two (across,along), each in (0, 120]",
-            other.len()
-        )))
+            return Err(CommandError::input(
+                "fov_deg",
+                format!(
+                    " has {} values: allowed one (square) or two (across,along), each in (0, 120]",
+                    other.len()
+                ),
+            ))
         }
     };
     let pointing = Pointing {
@@ -430,14 +446,14 @@ pub fn read_relative(base: &std::path::Path, path: &str) -> Result<String, Strin
 /// name the file.
 pub fn load_scene(path: &std::path::Path) -> Result<polar_model::scene_file::Scene, CommandError> {
     let text = std::fs::read_to_string(path).map_err(|e| {
-        CommandError(format!(
-            "scene = {:?}: cannot read ({e})",
-            path.display().to_string()
-        ))
+        CommandError::input(
+            "scene",
+            format!(" = {:?}: cannot read ({e})", path.display().to_string()),
+        )
     })?;
     let base = path.parent().unwrap_or(std::path::Path::new("."));
     polar_model::scene_file::Scene::from_toml_str_with_files(&text, &|p| read_relative(base, p))
-        .map_err(|e| CommandError(format!("{}: {e}", path.display())))
+        .map_err(|e| CommandError::layer(format!("{}: ", path.display()), e))
 }
 
 /// Evaluates a parsed scene to JSON.
@@ -461,9 +477,10 @@ pub fn scene_json(
 pub fn sky_table_csv(path: &std::path::Path, step_deg: f64) -> Result<String, CommandError> {
     let step = ModelError::check_range("step_deg", step_deg, 1.0, 30.0, "[1, 30]")?;
     if (90.0 / step).fract().abs() > 1e-9 || (360.0 / step).fract().abs() > 1e-9 {
-        return Err(CommandError(format!(
-            "step_deg = {step} is invalid: allowed a divisor of 90 in [1, 30]"
-        )));
+        return Err(CommandError::input(
+            "step_deg",
+            format!(" = {step} is invalid: allowed a divisor of 90 in [1, 30]"),
+        ));
     }
     let scene = load_scene(path)?;
     let prepared = polar_model::scene::Prepared::new(&scene.spec, 1e-6)?;
@@ -495,5 +512,5 @@ pub fn sky_table_csv(path: &std::path::Path, step_deg: f64) -> Result<String, Co
 pub fn scene(a: &SceneArgs) -> Result<Value, CommandError> {
     let scene = load_scene(&a.scene)?;
     scene_json(&scene, a.tolerance)
-        .map_err(|e| CommandError(format!("{}: {}", a.scene.display(), e.0)))
+        .map_err(|e| CommandError::failed(format!("{}: {e}", a.scene.display())))
 }

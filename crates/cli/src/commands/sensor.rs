@@ -1,8 +1,9 @@
 //! The sensor and detection: the frames' mean and covariance (`model sensor`), the DoLP and AoP
 //! statistics of a Stokes estimate (`model dolp-stats`) and a detector's ROC (`model roc`).
 
-use super::args::{compact, echo, CommandError};
+use super::error::CommandError;
 use super::optics::analyzer_set;
+use super::text::{compact, echo};
 use clap::Args;
 use polar_model::analyzer::AnalyzerModel;
 use serde::Deserialize;
@@ -63,16 +64,20 @@ fn class_stats(
     use nalgebra::{DMatrix, DVector};
     let n = mean.len();
     if n == 0 {
-        return Err(CommandError(format!(
-            "{mean_field} is empty: allowed 1 or more values"
-        )));
+        return Err(CommandError::input(
+            mean_field,
+            " is empty: allowed 1 or more values",
+        ));
     }
     if cov.len() != n * n {
-        return Err(CommandError(format!(
-            "{cov_field} has {} values: allowed {} (a {n}x{n} matrix, row-major)",
-            cov.len(),
-            n * n
-        )));
+        return Err(CommandError::input(
+            cov_field,
+            format!(
+                " has {} values: allowed {} (a {n}x{n} matrix, row-major)",
+                cov.len(),
+                n * n
+            ),
+        ));
     }
     Ok(polar_model::metrics::ClassStats::new(
         cov_field,
@@ -96,10 +101,13 @@ pub fn roc(a: &RocArgs) -> Result<Value, CommandError> {
         // Each class's DoLP moments from its Stokes mean and covariance.
         use polar_model::stats::{dolp_aop_stats, RegimeChoice};
         if t.mean.len() != 3 {
-            return Err(CommandError(format!(
-                "target_mean has {} values: the dolp detector needs Stokes S0,S1,S2",
-                t.mean.len()
-            )));
+            return Err(CommandError::input(
+                "target_mean",
+                format!(
+                    " has {} values: the dolp detector needs Stokes S0,S1,S2",
+                    t.mean.len()
+                ),
+            ));
         }
         let moments = |c: &metrics::ClassStats| -> Result<(f64, f64, Vec<String>), CommandError> {
             let mean = nalgebra::Vector3::new(c.mean[0], c.mean[1], c.mean[2]);
@@ -126,10 +134,13 @@ pub fn roc(a: &RocArgs) -> Result<Value, CommandError> {
         (t, b)
     } else {
         if t.mean.len() != 3 {
-            return Err(CommandError(format!(
-                "target_mean has {} values: with angles_deg allowed 3 (S0, S1, S2)",
-                t.mean.len()
-            )));
+            return Err(CommandError::input(
+                "target_mean",
+                format!(
+                    " has {} values: with angles_deg allowed 3 (S0, S1, S2)",
+                    t.mean.len()
+                ),
+            ));
         }
         let set = analyzer_set(&a.angles_deg, &AnalyzerModel::IDEAL)?;
         let w = set.intensities_from_stokes();
@@ -143,10 +154,10 @@ pub fn roc(a: &RocArgs) -> Result<Value, CommandError> {
         "mf" => metrics::matched_filter(&t, &b, a.pfa)?,
         "rx" => metrics::rx(&t, &b, a.pfa)?,
         other => {
-            return Err(CommandError(format!(
-                "detector = {} is invalid: allowed mf, rx, dolp",
-                echo(other)
-            )))
+            return Err(CommandError::input(
+                "detector",
+                format!(" = {} is invalid: allowed mf, rx, dolp", echo(other)),
+            ))
         }
     };
     Ok(json!({
@@ -204,30 +215,40 @@ pub struct SensorArgs {
 /// Evaluates [`SensorArgs`].
 pub fn sensor(a: &SensorArgs) -> Result<Value, CommandError> {
     use polar_model::sensor::{Camera, Exposure, NoiseFactor, SensorModel};
-    let text = std::fs::read_to_string(&a.camera)
-        .map_err(|e| CommandError(format!("--camera {}: cannot read: {e}", a.camera.display())))?;
+    let text = std::fs::read_to_string(&a.camera).map_err(|e| {
+        CommandError::input(
+            "--camera",
+            format!(" {}: cannot read: {e}", a.camera.display()),
+        )
+    })?;
     let camera = Camera::from_toml_str(&text)
-        .map_err(|e| CommandError(format!("--camera {}: {e}", a.camera.display())))?;
+        .map_err(|e| CommandError::input("--camera", format!(" {}: {e}", a.camera.display())))?;
     let [lo, hi] = a.band_nm[..] else {
-        return Err(CommandError(format!(
-            "band_nm has {} values: allowed 2 (lower,upper)",
-            a.band_nm.len()
-        )));
+        return Err(CommandError::input(
+            "band_nm",
+            format!(" has {} values: allowed 2 (lower,upper)", a.band_nm.len()),
+        ));
     };
     let band = polar_model::atmosphere::Band::flat(lo, hi)?;
     let model = SensorModel::new(&camera, &band)?;
     let [s0, s1, s2] = a.radiance_mean[..] else {
-        return Err(CommandError(format!(
-            "radiance_mean has {} values: allowed 3 (S0,S1,S2)",
-            a.radiance_mean.len()
-        )));
+        return Err(CommandError::input(
+            "radiance_mean",
+            format!(
+                " has {} values: allowed 3 (S0,S1,S2)",
+                a.radiance_mean.len()
+            ),
+        ));
     };
     // The model checks seconds; the user gave milliseconds.
     if !(a.t_int_ms.is_finite() && a.t_int_ms > 0.0 && a.t_int_ms <= 1e8) {
-        return Err(CommandError(format!(
-            "t_int_ms = {} is out of range: allowed > 0 and <= 1e8 ms",
-            compact(a.t_int_ms)
-        )));
+        return Err(CommandError::input(
+            "t_int_ms",
+            format!(
+                " = {} is out of range: allowed > 0 and <= 1e8 ms",
+                compact(a.t_int_ms)
+            ),
+        ));
     }
     let mut exposure = Exposure::new(
         a.t_int_ms * 1e-3,
@@ -237,19 +258,20 @@ pub fn sensor(a: &SensorArgs) -> Result<Value, CommandError> {
         0 => {}
         9 => exposure.radiance_cov_w2_m4_sr2 = nalgebra::Matrix3::from_row_slice(&a.radiance_cov),
         n => {
-            return Err(CommandError(format!(
-                "radiance_cov has {n} values: allowed 9 (3x3 row-major) or none"
-            )))
+            return Err(CommandError::input(
+                "radiance_cov",
+                format!(" has {n} values: allowed 9 (3x3 row-major) or none"),
+            ))
         }
     }
     exposure.noise_factor = match a.noise_factor_scales.as_str() {
         "variance" => NoiseFactor::Variance(a.noise_factor),
         "std" => NoiseFactor::StdDev(a.noise_factor),
         other => {
-            return Err(CommandError(format!(
-                "noise_factor_scales = {} is invalid: allowed variance, std",
-                echo(other)
-            )))
+            return Err(CommandError::input(
+                "noise_factor_scales",
+                format!(" = {} is invalid: allowed variance, std", echo(other)),
+            ))
         }
     };
     exposure.eps_cal = a.drift;
@@ -341,35 +363,44 @@ fn stokes_moments(
     sigma_i: f64,
 ) -> Result<StokesMoments, CommandError> {
     let [s0, s1, s2] = stokes[..] else {
-        return Err(CommandError(format!(
-            "stokes has {} values: allowed 3 (S0,S1,S2)",
-            stokes.len()
-        )));
+        return Err(CommandError::input(
+            "stokes",
+            format!(" has {} values: allowed 3 (S0,S1,S2)", stokes.len()),
+        ));
     };
     if !(s0.is_finite() && s0 > 0.0 && s1.is_finite() && s2.is_finite()) {
-        return Err(CommandError(format!(
-            "stokes = {},{},{} is out of range: allowed finite values with S0 > 0",
-            compact(s0),
-            compact(s1),
-            compact(s2)
-        )));
+        return Err(CommandError::input(
+            "stokes",
+            format!(
+                " = {},{},{} is out of range: allowed finite values with S0 > 0",
+                compact(s0),
+                compact(s1),
+                compact(s2)
+            ),
+        ));
     }
     let dolp = s1.hypot(s2) / s0;
     if dolp > 1.0 + 1e-12 {
-        return Err(CommandError(format!(
-            "stokes = {},{},{} has DoLP = sqrt(S1^2 + S2^2) / S0 = {}: allowed DoLP <= 1 \
+        return Err(CommandError::input(
+            "stokes",
+            format!(
+                " = {},{},{} has DoLP = sqrt(S1^2 + S2^2) / S0 = {}: allowed DoLP <= 1 \
              (a Stokes vector of light)",
-            compact(s0),
-            compact(s1),
-            compact(s2),
-            compact(dolp)
-        )));
+                compact(s0),
+                compact(s1),
+                compact(s2),
+                compact(dolp)
+            ),
+        ));
     }
     if !(sigma_i.is_finite() && sigma_i > 0.0) {
-        return Err(CommandError(format!(
-            "sigma_i = {} is out of range: allowed > 0 and finite",
-            compact(sigma_i)
-        )));
+        return Err(CommandError::input(
+            "sigma_i",
+            format!(
+                " = {} is out of range: allowed > 0 and finite",
+                compact(sigma_i)
+            ),
+        ));
     }
     let set = analyzer_set(angles_deg, &AnalyzerModel::IDEAL)?;
     let w = set.intensities_from_stokes();
@@ -388,10 +419,10 @@ pub fn dolp_stats(a: &DolpStatsArgs) -> Result<Value, CommandError> {
         "taylor" => RegimeChoice::Taylor,
         "rice" => RegimeChoice::Rice,
         other => {
-            return Err(CommandError(format!(
-                "regime = {} is invalid: allowed auto, taylor, rice",
-                echo(other)
-            )))
+            return Err(CommandError::input(
+                "regime",
+                format!(" = {} is invalid: allowed auto, taylor, rice", echo(other)),
+            ))
         }
     };
     let s = stats::dolp_aop_stats(&mean, &cov, choice)?;

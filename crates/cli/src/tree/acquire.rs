@@ -1,7 +1,6 @@
 //! `acquire`: runs on simulated or real devices: `run` a plan, `resume` a paused or crashed run,
 //! `check` a run directory, the `demo`, `export` a run.
 
-use super::errors::in_plan_file;
 use super::output::{print_json, print_run, refused};
 use clap::{Args, Subcommand};
 use polar_cli::acquire::{self, Ui};
@@ -105,7 +104,7 @@ impl RunArgs {
         }
         print_run(
             acquire::run_cmd(&self.plan, hw, rig.as_ref(), self.out, Ui::terminal())
-                .map_err(|e| in_plan_file(&self.plan, e)),
+                .map_err(|e| e.in_plan_file(&self.plan)),
         )
     }
 }

@@ -71,7 +71,7 @@ impl RunArgs {
     fn run(self) -> ExitCode {
         print_text(
             polar_cli::bench_continuous::run(&self.args)
-                .map_err(|e| polar_cli::commands::CommandError(format!("{e:#}"))),
+                .map_err(|e| polar_cli::commands::CommandError::failed(format!("{e:#}"))),
         )
     }
 }

@@ -74,15 +74,18 @@ fn calibrate_noise_cmd(
     if let Some(r) = &rig {
         if opts.base_camera.is_none() {
             opts.base_camera = Some(r.camera_file.clone().ok_or_else(|| {
-                CommandError(format!(
-                    "--rig {}: camera.file is missing: the noise calibration needs a base camera \
+                CommandError::input(
+                    "--rig",
+                    format!(
+                        " {}: camera.file is missing: the noise calibration needs a base camera \
                      (name it there, or give --base-camera)",
-                    r.path.display()
-                ))
+                        r.path.display()
+                    ),
+                )
             })?);
         }
     }
-    let report = calibrate::calibrate_noise(&opts).map_err(|e| CommandError(e.to_string()))?;
+    let report = calibrate::calibrate_noise(&opts).map_err(CommandError::of)?;
     let mut v = report.to_json();
     if let Some(r) = &rig {
         let measured = opts

@@ -132,10 +132,30 @@ fn command_flags() -> Vec<String> {
         .collect()
 }
 
-/// A command's error as the user sees it: a leading field that is one of the command's flags
-/// spelled as the flag (`theta_i_deg = 95` -> `--theta-i-deg = 95`), long echoed text cut and
-/// long numbers compact.
-pub fn user_error(message: &str) -> String {
+/// A command's error as the user sees it: an input error's field that is one of the command's
+/// flags spelled as the flag (`theta_i_deg = 95` -> `--theta-i-deg = 95`), long echoed text cut
+/// and long numbers compact.
+pub fn user_error(e: &commands::CommandError) -> String {
+    use commands::CommandError;
+    match e {
+        CommandError::Input { field, problem } => {
+            let flag = field.replace('_', "-");
+            if !field.starts_with('-') && command_flags().contains(&flag) {
+                commands::tidy(&format!("--{flag}{problem}"))
+            } else {
+                commands::tidy(&e.to_string())
+            }
+        }
+        // Another layer's error is worded by its text, as the layers' own error types are.
+        CommandError::Layer { .. } => message_error(&e.to_string()),
+        _ => commands::tidy(&e.to_string()),
+    }
+}
+
+/// An error of another layer's type as the user sees it: long echoed text cut and long
+/// numbers compact, and a leading field that is one of the command's flags spelled as the
+/// flag, for the errors whose text starts with the field they name (a device's angle).
+pub fn message_error(message: &str) -> String {
     let message = commands::tidy(message);
     let end = message
         .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
@@ -152,13 +172,32 @@ pub fn user_error(message: &str) -> String {
     }
 }
 
-/// An error about a plan file's contents (`plan field ...`, `plan PATH: ...`) names the file.
-pub fn in_plan_file(file: &std::path::Path, e: commands::CommandError) -> commands::CommandError {
-    match e.0.strip_prefix("plan ") {
-        Some(rest) if !rest.starts_with("file ") => {
-            let rest = rest.strip_prefix("field ").unwrap_or(rest);
-            commands::CommandError(format!("plan {}: {rest}", file.display()))
-        }
-        _ => e,
+/// An error as the terminal words it after `error: `.
+pub trait Worded {
+    /// The message.
+    fn worded(&self) -> String;
+}
+
+impl Worded for commands::CommandError {
+    fn worded(&self) -> String {
+        user_error(self)
     }
 }
+
+/// Errors of the layers whose text is the message ([`message_error`]).
+macro_rules! worded_by_text {
+    ($($t:ty),* $(,)?) => {
+        $(impl Worded for $t {
+            fn worded(&self) -> String {
+                message_error(&self.to_string())
+            }
+        })*
+    };
+}
+
+worded_by_text!(
+    polar_cli::calibrate::CalibrateError,
+    polar_cli::devices::DevicesError,
+    polar_cli::study::StudyError,
+    polar_station::StationError,
+);

@@ -143,7 +143,7 @@ impl ModelGroup {
                         Ok(ExitCode::SUCCESS)
                     }
                     Err(e) => {
-                        eprintln!("error: {}", e.0);
+                        eprintln!("error: {}", super::errors::user_error(&e));
                         Ok(ExitCode::from(2))
                     }
                 }

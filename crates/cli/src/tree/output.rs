@@ -1,7 +1,7 @@
 //! How a command's result reaches the user: JSON, text, files or a run's summary on stdout, and
 //! `error: ...` on stderr with the exit status (2 for a refused input, 1 for a failure).
 
-use super::errors::user_error;
+use super::errors::Worded;
 use polar_cli::commands::CommandError;
 use polar_cli::devices;
 use std::io::Write;
@@ -27,7 +27,7 @@ pub fn refused(message: impl std::fmt::Display) -> ExitCode {
 
 /// Prints the files a command wrote, one per line, and returns 0; or prints `error: ...` and
 /// returns 2.
-pub fn print_files<E: std::fmt::Display>(result: Result<Vec<PathBuf>, E>) -> ExitCode {
+pub fn print_files<E: Worded>(result: Result<Vec<PathBuf>, E>) -> ExitCode {
     match result {
         Ok(files) => {
             for f in files {
@@ -35,13 +35,13 @@ pub fn print_files<E: std::fmt::Display>(result: Result<Vec<PathBuf>, E>) -> Exi
             }
             ExitCode::SUCCESS
         }
-        Err(e) => refused(user_error(&e.to_string())),
+        Err(e) => refused(e.worded()),
     }
 }
 
 /// Prints a command's JSON on stdout (and its `warnings` on stderr) and returns exit status 0,
 /// or prints `error: ...` on stderr and returns 2.
-pub fn print_json<E: std::fmt::Display>(result: Result<serde_json::Value, E>) -> ExitCode {
+pub fn print_json<E: Worded>(result: Result<serde_json::Value, E>) -> ExitCode {
     match result {
         Ok(v) => {
             if let Some(w) = v.get("warnings").and_then(|w| w.as_array()) {
@@ -57,7 +57,7 @@ pub fn print_json<E: std::fmt::Display>(result: Result<serde_json::Value, E>) ->
                 ExitCode::FAILURE
             }
         }
-        Err(e) => refused(user_error(&e.to_string())),
+        Err(e) => refused(e.worded()),
     }
 }
 
@@ -68,7 +68,7 @@ pub fn print_text(result: Result<String, CommandError>) -> ExitCode {
             print!("{text}");
             ExitCode::SUCCESS
         }
-        Err(e) => refused(user_error(&e.to_string())),
+        Err(e) => refused(e.worded()),
     }
 }
 
@@ -80,7 +80,7 @@ pub fn print_run(result: Result<(serde_json::Value, i32), CommandError>) -> Exit
             println!("{v}");
             ExitCode::from(u8::try_from(code).unwrap_or(1))
         }
-        Err(e) => refused(user_error(&e.to_string())),
+        Err(e) => refused(e.worded()),
     }
 }
 
@@ -99,6 +99,6 @@ pub fn print_device(
             }
             ExitCode::SUCCESS
         }
-        Err(e) => refused(user_error(&e.to_string())),
+        Err(e) => refused(e.worded()),
     }
 }

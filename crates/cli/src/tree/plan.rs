@@ -5,7 +5,6 @@
 //! writes).
 
 use super::analyze::AptdArgs;
-use super::errors::in_plan_file;
 use super::output::print_json;
 use clap::{Args, Subcommand};
 use polar_cli::plan::{self, PlanAnglesArgs};
@@ -101,7 +100,7 @@ impl CheckArgs {
                 .map(polar_cli::rig::load)
                 .transpose()
                 .and_then(|rig| polar_cli::acquire::plan_check(&file, rig.as_ref()))
-                .map_err(|e| in_plan_file(&file, e)),
+                .map_err(|e| e.in_plan_file(&file)),
         )
     }
 }
