@@ -19,10 +19,6 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-fn err(e: impl std::error::Error + Send + Sync + 'static) -> CommandError {
-    CommandError::of(e)
-}
-
 /// What a caller other than the terminal (the Python package) hears of a run and how it
 /// asks the run to stop: every event, and its interrupts polled every [`HOOK_POLL_MS`] ms in
 /// place of the terminal's Ctrl-C.
@@ -244,7 +240,7 @@ where
     if let Some(b) = bar {
         b.finish_and_clear();
     }
-    outcome.map_err(err)
+    outcome.map_err(CommandError::of)
 }
 
 /// What the `n`th interrupt (from 1) asks of a run: pause at the next safe point, then at
@@ -316,7 +312,7 @@ async fn run_simulated(
     let (rig, engine_rig) =
         SimRig::start_rig(plan, plan_dir, &link_dir, run::noise_stream(run_dir))
             .await
-            .map_err(err)?;
+            .map_err(CommandError::of)?;
     let outcome = drive(plan, engine_rig, run_dir, resume, ui).await?;
     Ok((outcome, rig))
 }
@@ -331,7 +327,7 @@ async fn run_hardware(
 ) -> Result<Outcome, CommandError> {
     let connected = polar_rig::connect_hardware_for(hw, plan)
         .await
-        .map_err(err)?;
+        .map_err(CommandError::of)?;
     let polar_rig::Connected { rig, simulator } = connected;
     let outcome = drive(plan, rig, run_dir, resume, ui).await;
     if let Some(s) = simulator {
@@ -378,17 +374,18 @@ pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandEr
         crate::rig::apply_site(&mut plan, r);
     }
     // What `acquire run --simulate` would refuse, refused here with the same message.
-    polar_rig::SimRig::validate(&plan, &dir).map_err(err)?;
+    polar_rig::SimRig::validate(&plan, &dir).map_err(CommandError::of)?;
     plan.check_frame(plan.simulation.width, plan.simulation.height)
-        .map_err(err)?;
+        .map_err(CommandError::of)?;
     let (scene, mut camera) = forecast_models(&plan, &dir)?;
     if let Some(r) = rig {
         if let Some(c) = crate::rig::camera_model(r)? {
             camera = c;
         }
     }
-    let timing = polar_rig::sim_stage::timing(&plan).map_err(err)?;
-    let f = polar_engine::forecast::forecast(&plan, &scene, &camera, &timing).map_err(err)?;
+    let timing = polar_rig::sim_stage::timing(&plan).map_err(CommandError::of)?;
+    let f = polar_engine::forecast::forecast(&plan, &scene, &camera, &timing)
+        .map_err(CommandError::of)?;
     let store = store_forecast(&plan, &dir, f.frames, f.sets)?;
     let mut v = json!({
         "plan": plan.name, "kind": plan.kind().name(), "forecast": f, "store": store,
@@ -405,7 +402,7 @@ pub fn plan_check(path: &Path, rig: Option<&RigFile>) -> Result<Value, CommandEr
 /// The disk the run's store will take ([`polar_rig::store_forecast`]): `bytes` in all,
 /// `bytes_per_set` (a set's frames and products), the parts, and the raw frames' bytes beside.
 fn store_forecast(plan: &Plan, dir: &Path, frames: u64, sets: u64) -> Result<Value, CommandError> {
-    let b = polar_rig::store_forecast::forecast(plan, dir).map_err(err)?;
+    let b = polar_rig::store_forecast::forecast(plan, dir).map_err(CommandError::of)?;
     let (w, h) = (plan.simulation.width, plan.simulation.height);
     let raw = frames * u64::from(w) * u64::from(h) * 2;
     let total = b.total(frames, sets);
@@ -533,9 +530,9 @@ pub fn resume_cmd(
             0,
         ));
     }
-    let plan = run::plan_of(run_dir).map_err(err)?;
+    let plan = run::plan_of(run_dir).map_err(CommandError::of)?;
     let devices = polar_engine::journal::replay(run_dir)
-        .map_err(err)?
+        .map_err(CommandError::of)?
         .entries
         .iter()
         .find_map(|e| match e {
@@ -626,7 +623,7 @@ fn refuse_changed_devices(run_dir: &Path, differences: &[String]) -> Result<(), 
 /// `acquire check RUN_DIR`: the run's frames and products against its journal; exit status 1 when
 /// something is damaged.
 pub fn check_cmd(run_dir: &Path) -> Result<(Value, i32), CommandError> {
-    let c = polar_engine::check::check_run(run_dir).map_err(err)?;
+    let c = polar_engine::check::check_run(run_dir).map_err(CommandError::of)?;
     let code = if c.ok { 0 } else { 1 };
     Ok((serde_json::to_value(&c).unwrap_or(Value::Null), code))
 }
@@ -634,7 +631,7 @@ pub fn check_cmd(run_dir: &Path) -> Result<(Value, i32), CommandError> {
 /// `acquire export tiff RUN_DIR [--out DIR]`.
 pub fn export_tiff(run_dir: &Path, out: Option<PathBuf>) -> Result<Value, CommandError> {
     let out = out.unwrap_or_else(|| run_dir.join("tiff"));
-    let s = polar_engine::export::export_tiff(run_dir, &out).map_err(err)?;
+    let s = polar_engine::export::export_tiff(run_dir, &out).map_err(CommandError::of)?;
     Ok(json!({ "out": out.display().to_string(), "export": s }))
 }
 
@@ -727,7 +724,7 @@ pub fn demo(out: &Path, ui: Ui) -> Result<String, CommandError> {
 /// [`demo_stages`]), driven through its dialect's real driver over a pseudo-terminal.
 pub fn demo_on_stage(out: &Path, stage: &str, ui: Ui) -> Result<String, CommandError> {
     let t0 = Instant::now();
-    let mut plan = Plan::from_toml_str(DEMO_PLAN).map_err(err)?;
+    let mut plan = Plan::from_toml_str(DEMO_PLAN).map_err(CommandError::of)?;
     plan.simulation.stage = demo_stage(stage)?;
     // Only an earlier demo's run is replaced; any other run in `--out` is refused.
     if !run::run_parts(out).is_empty() {
@@ -755,8 +752,8 @@ pub fn demo_on_stage(out: &Path, stage: &str, ui: Ui) -> Result<String, CommandE
     let (outcome, truth, sensor, camera_model, stage_line) = local.block_on(&rt, async {
         // The exposure from the truth: the brightest pixel at half the full well.
         let link_dir = out.join(".sim");
-        let (probe, cam) =
-            SimRig::start(&plan, Path::new("."), &link_dir.join("probe"), 0).map_err(err)?;
+        let (probe, cam) = SimRig::start(&plan, Path::new("."), &link_dir.join("probe"), 0)
+            .map_err(CommandError::of)?;
         drop(cam);
         let stats = crate::study_aptd::true_stats(
             &probe.scene,
@@ -817,8 +814,8 @@ fn demo_report(
     t0: Instant,
 ) -> Result<String, CommandError> {
     use std::fmt::Write as _;
-    let store = polar_engine::store::RunStore::open(out).map_err(err)?;
-    let attrs = store.attributes().map_err(err)?;
+    let store = polar_engine::store::RunStore::open(out).map_err(CommandError::of)?;
+    let attrs = store.attributes().map_err(CommandError::of)?;
     let decisions = attrs
         .get("decisions")
         .and_then(Value::as_array)
@@ -891,7 +888,7 @@ fn demo_report(
     let slots = summary.sets_accepted;
     if slots > 0 {
         let slot = slots - 1;
-        let img = |n: &str| store.read_product(n, slot).map_err(err);
+        let img = |n: &str| store.read_product(n, slot).map_err(CommandError::of);
         let (s0, s1, s2) = (img("s0")?, img("s1")?, img("s2")?);
         let (e0, e1, e2) = (img("sigma_s0")?, img("sigma_s1")?, img("sigma_s2")?);
         // DN per radiance unit at the plan's exposure (`stats` is at its own, longer one).
@@ -1006,15 +1003,15 @@ fn demo_detection(
         let class = |field, mu: &Vector3<f64>, cov: &nalgebra::Matrix3<f64>| {
             let mut e = Exposure::new(t_int_s, Stokes(*mu));
             e.radiance_cov_w2_m4_sr2 = 0.5 * (cov + cov.transpose());
-            let sig = sensor.signal(&rad, &e).map_err(err)?;
-            ClassStats::new(field, sig.mean_dn, sig.cov_dn).map_err(err)
+            let sig = sensor.signal(&rad, &e).map_err(CommandError::of)?;
+            ClassStats::new(field, sig.mean_dn, sig.cov_dn).map_err(CommandError::of)
         };
         let roc = matched_filter(
             &class("target", &mu_t, &cov_t)?,
             &class("background", &mu_b, &cov_b)?,
             1e-3,
         )
-        .map_err(err)?;
+        .map_err(CommandError::of)?;
         Ok(DemoRow {
             name: name.to_string(),
             angles_deg: angles_deg.to_vec(),
@@ -1022,8 +1019,8 @@ fn demo_detection(
             pd: roc.pd,
         })
     };
-    let contrast =
-        polar_planner::Contrast::from_sensor(sensor, t_int_s, &mu_t, &mu_b, &cov_b).map_err(err)?;
+    let contrast = polar_planner::Contrast::from_sensor(sensor, t_int_s, &mu_t, &mu_b, &cov_b)
+        .map_err(CommandError::of)?;
     let best = polar_planner::optimise(
         &contrast,
         3,
@@ -1033,7 +1030,7 @@ fn demo_detection(
         },
         0.01f64.to_radians(),
     )
-    .map_err(err)?;
+    .map_err(CommandError::of)?;
     let best_deg: Vec<f64> = best.angles_rad.iter().map(|a| a.to_degrees()).collect();
     let mut rows = Vec::new();
     if !final_deg.is_empty() {
@@ -1168,8 +1165,8 @@ pub fn bench_run(sets: u32, exposure_us: f64) -> Result<String, CommandError> {
          exposure_us = [{exposure_us}]\nrepeats = {sets}\n[simulation]\nwidth = 160\nheight = 120\n\
          stage_deg_per_s = 360\n"
     );
-    let plan = Plan::from_toml_str(&text).map_err(err)?;
-    let steps = plan.steps().map_err(err)?;
+    let plan = Plan::from_toml_str(&text).map_err(CommandError::of)?;
+    let steps = plan.steps().map_err(CommandError::of)?;
     let angles: Vec<f64> = steps.iter().map(|s| s.angle_deg).collect();
     let ideal = ideal_s(&angles, exposure_us, &plan);
     let dir = std::env::temp_dir().join(format!("polarimeter-bench-run-{}", std::process::id()));
@@ -1287,11 +1284,11 @@ pub struct Campaign {
 /// DN must be the model's at its measured angle within 6 standard errors of the mean plus 0.5 %
 /// (the stage's encoder noise and backlash, which move the mean by well under that).
 pub fn check_frames_against_truth(run_dir: &Path, plan: &Plan) -> Result<(u64, u64), CommandError> {
-    let store = polar_engine::store::RunStore::open(run_dir).map_err(err)?;
-    let records = store.read_frame_metadata().map_err(err)?;
-    let replay = polar_engine::journal::replay(run_dir).map_err(err)?;
+    let store = polar_engine::store::RunStore::open(run_dir).map_err(CommandError::of)?;
+    let records = store.read_frame_metadata().map_err(CommandError::of)?;
+    let replay = polar_engine::journal::replay(run_dir).map_err(CommandError::of)?;
     let rejected = replay.rejected_frames();
-    let rig = SimRig::world(plan, Path::new(".")).map_err(err)?;
+    let rig = SimRig::world(plan, Path::new(".")).map_err(CommandError::of)?;
     let camera = &rig.camera_model;
     let (mut bad, mut checked) = (0u64, 0u64);
     let mut latest: std::collections::BTreeMap<u64, &polar_engine::FrameRecord> =
@@ -1302,9 +1299,12 @@ pub fn check_frames_against_truth(run_dir: &Path, plan: &Plan) -> Result<(u64, u
         }
     }
     for r in latest.values() {
-        let px = store.read_frame(r.index).map_err(err)?;
+        let px = store.read_frame(r.index).map_err(CommandError::of)?;
         let psi = r.measured_angle_deg.to_radians();
-        let w = rig.sensor.intensities_from_stokes(&[psi]).map_err(err)?;
+        let w = rig
+            .sensor
+            .intensities_from_stokes(&[psi])
+            .map_err(CommandError::of)?;
         let k = camera.gain_dn_per_e;
         let g = rig.sensor.responsivity_e_per_s() * r.exposure_us * 1e-6;
         let n = px.len() as f64;
@@ -1373,7 +1373,7 @@ pub fn campaign(faults: u64, seed: u64, base: &Path) -> Result<Campaign, Command
             seed.wrapping_mul(1000).wrapping_add(run),
             kinds[k].1
         );
-        let plan = Plan::from_toml_str(&text).map_err(err)?;
+        let plan = Plan::from_toml_str(&text).map_err(CommandError::of)?;
         let dir = base.join(format!("run-{run}"));
         let _ = std::fs::remove_dir_all(&dir);
         let before = polar_hil_mocks::faults::faults_fired();
@@ -1388,7 +1388,7 @@ pub fn campaign(faults: u64, seed: u64, base: &Path) -> Result<Campaign, Command
             0
         };
         let fired = polar_hil_mocks::faults::faults_fired() - before + disconnects;
-        let planned = plan.steps().map_err(err)?.len() as u64;
+        let planned = plan.steps().map_err(CommandError::of)?.len() as u64;
         c.lost_frames += planned.saturating_sub(summary.frames_accepted);
         let (bad, checked) = check_frames_against_truth(&dir, &plan)?;
         c.corrupt_frames += bad;

@@ -8,10 +8,6 @@ use polar_engine::plan::Plan;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 
-fn err(e: impl std::error::Error + Send + Sync + 'static) -> CommandError {
-    CommandError::of(e)
-}
-
 /// Reads a plan and resolves its `from_planner` table with the model ([`load_plan_resolved`]).
 pub fn load_plan(path: &Path) -> Result<(Plan, PathBuf), CommandError> {
     load_plan_resolved(path).map(|(plan, dir, _)| (plan, dir))
@@ -22,7 +18,7 @@ pub fn load_plan(path: &Path) -> Result<(Plan, PathBuf), CommandError> {
 /// simulated scene, camera and stage), printing the choice and the limits that bind on stderr;
 /// the choice as JSON, if the planner made one.
 pub fn load_plan_resolved(path: &Path) -> Result<(Plan, PathBuf, Option<Value>), CommandError> {
-    let mut plan = Plan::from_path(path).map_err(err)?;
+    let mut plan = Plan::from_path(path).map_err(CommandError::of)?;
     let dir = path
         .parent()
         .map(Path::to_path_buf)
@@ -32,16 +28,19 @@ pub fn load_plan_resolved(path: &Path) -> Result<(Plan, PathBuf, Option<Value>),
             let (scene, camera) = forecast_models(&plan, &dir)?;
             let (angles, _why) =
                 polar_engine::forecast::planner_angles(&scene, &camera, fp, c.exposure_us[0])
-                    .map_err(err)?;
-            plan.resolve_angles(angles).map_err(err)?;
+                    .map_err(CommandError::of)?;
+            plan.resolve_angles(angles).map_err(CommandError::of)?;
         }
     }
     let mut chosen = None;
     if plan.continuous().is_some_and(|c| c.from_planner.is_some()) {
         use polar_engine::continuous_planner::{describe, resolve, to_json};
         let (scene, camera) = forecast_models(&plan, &dir)?;
-        let stage = polar_rig::sim_stage::stage_limits(&plan.simulation).map_err(err)?;
-        if let Some(choice) = resolve(&mut plan, &scene, &camera, stage).map_err(err)? {
+        let stage =
+            polar_rig::sim_stage::stage_limits(&plan.simulation).map_err(CommandError::of)?;
+        if let Some(choice) =
+            resolve(&mut plan, &scene, &camera, stage).map_err(CommandError::of)?
+        {
             eprintln!("{}", describe(&choice));
             chosen = Some(to_json(&choice));
         }

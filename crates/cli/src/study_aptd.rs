@@ -75,10 +75,6 @@ pub struct Case {
     pub scores: Vec<Score>,
 }
 
-fn err(e: impl std::error::Error + Send + Sync + 'static) -> CommandError {
-    CommandError::of(e)
-}
-
 /// Runs every case.
 pub fn run(args: &StudyArgs) -> Result<Vec<Case>, CommandError> {
     let text = std::fs::read_to_string(&args.scene).map_err(|e| {
@@ -127,7 +123,7 @@ pub fn run(args: &StudyArgs) -> Result<Vec<Case>, CommandError> {
             args.tolerance,
             k as u64 + 1,
         )
-        .map_err(err)?;
+        .map_err(CommandError::of)?;
         let sensor = SensorModel::new(&camera, &spec.band)?;
         for target in &targets {
             cases.push(one_case(
@@ -210,7 +206,7 @@ pub(crate) fn true_stats(
     let e_bg = mu_b[0] / (k * 2.0);
     let noise_var =
         k * k * (e_bg + dark_e + camera.read_noise_e * camera.read_noise_e) + 1.0 / 12.0;
-    let contrast = Contrast::new(mu_t - mu_b, cov_b, noise_var).map_err(err)?;
+    let contrast = Contrast::new(mu_t - mu_b, cov_b, noise_var).map_err(CommandError::of)?;
 
     Ok(TrueStats {
         region,
@@ -289,12 +285,12 @@ fn one_case(
         scr_rel_tol: 0.02,
         frame_budget: 15,
     })
-    .map_err(err)?;
+    .map_err(CommandError::of)?;
     let mut aptd_set = Vec::new();
     while let Step::Acquire(angles) = step {
         aptd_set = angles.clone();
         let frames = render(&angles)?;
-        step = aptd.on_frames(frames).map_err(err)?;
+        step = aptd.on_frames(frames).map_err(CommandError::of)?;
     }
     let aptd_frames = aptd.decisions().last().map(|d| d.frames_used).unwrap_or(0);
 
@@ -312,7 +308,7 @@ fn one_case(
     let best = |n: usize| -> Result<Vec<f64>, CommandError> {
         Ok(
             optimise(&contrast, n, &Constraints::default(), 1e-3f64.to_radians())
-                .map_err(err)?
+                .map_err(CommandError::of)?
                 .angles_rad,
         )
     };
@@ -364,7 +360,7 @@ pub fn draw(cases: &[Case], path: &Path) -> Result<(), CommandError> {
     let font = crate::plot::FONT;
     let cols = 3usize;
     let rows = cases.len().div_ceil(cols).max(1);
-    let root = canvas(path, (1500, 420 * rows as u32)).map_err(err)?;
+    let root = canvas(path, (1500, 420 * rows as u32)).map_err(CommandError::of)?;
     let colors = [
         RGBColor(200, 30, 30),
         RGBColor(31, 119, 180),
@@ -386,14 +382,14 @@ pub fn draw(cases: &[Case], path: &Path) -> Result<(), CommandError> {
             .x_label_area_size(32)
             .y_label_area_size(40)
             .build_cartesian_2d((1e-6f64..1.0f64).log_scale(), 0.0f64..1.0f64)
-            .map_err(err)?;
+            .map_err(CommandError::of)?;
         chart
             .configure_mesh()
             .x_desc("Pfa")
             .y_desc("Pd (matched filter)")
             .x_label_formatter(&|v| format!("{v:.0e}"))
             .draw()
-            .map_err(err)?;
+            .map_err(CommandError::of)?;
         for (s, color) in case.scores.iter().zip(colors) {
             let width = if s.method.starts_with("APTD") { 3 } else { 1 };
             chart
@@ -401,15 +397,15 @@ pub fn draw(cases: &[Case], path: &Path) -> Result<(), CommandError> {
                     s.roc.iter().map(|p| (p[0], p[1])),
                     color.stroke_width(width),
                 ))
-                .map_err(err)?
+                .map_err(CommandError::of)?
                 .label(format!("{} (SCR {:.1})", s.method, s.scr))
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(width))
                 });
         }
-        legend(&mut chart, SeriesLabelPosition::LowerRight, 12).map_err(err)?;
+        legend(&mut chart, SeriesLabelPosition::LowerRight, 12).map_err(CommandError::of)?;
     }
-    root.present().map_err(err)?;
+    root.present().map_err(CommandError::of)?;
     Ok(())
 }
 

@@ -1,7 +1,7 @@
-//! A command's error, typed until the edge words it: the terminal's `error: ...` line and the
-//! Python package's exception both read the variant, so the field the user typed, the file a
-//! plan came from and the error of the layer below stay data and are not parsed back out of
-//! text.
+//! A command's error, typed until the edge words it: the terminal's `error: ...` line reads the
+//! variant, so the field the user typed, the file a plan came from and the error of the layer
+//! below stay data and are not parsed back out of text. (The Python package words it by its
+//! text.)
 
 use super::text::{compact, tidy};
 use polar_engine::forecast::ForecastError;
@@ -15,8 +15,8 @@ use std::path::PathBuf;
 pub type LayerError = Box<dyn std::error::Error + Send + Sync + 'static>;
 
 /// Why a command refused its input or could not finish. Each variant's text is the message the
-/// user reads after `error: `; [`CommandError::field`] names the field of an input error so the
-/// edge can spell it as the flag the user typed (`theta_i_deg` as `--theta-i-deg`).
+/// user reads after `error: `; an input error's `field` lets the edge spell it as the flag the
+/// user typed (`theta_i_deg` as `--theta-i-deg`).
 #[derive(Debug, thiserror::Error)]
 pub enum CommandError {
     /// A value the user gave is refused. `field` is the flag (`--sets`) or the key of a batch
@@ -138,20 +138,6 @@ impl CommandError {
         CommandError::Failed(message.into())
     }
 
-    /// The field of an input error (a flag or a key), if the error is one.
-    pub fn field(&self) -> Option<&str> {
-        match self {
-            CommandError::Input { field, .. } => Some(field),
-            _ => None,
-        }
-    }
-
-    /// Whether the user's input was refused (a value, a plan), as against a failure of the
-    /// command, a file or a layer below.
-    pub fn is_input(&self) -> bool {
-        matches!(self, CommandError::Input { .. } | CommandError::Plan { .. })
-    }
-
     /// The error with the plan's file named, when it is a plan's error (`plan FILE: FIELD =
     /// ...`); any other error as it is.
     pub fn in_plan_file(self, plan: &std::path::Path) -> Self {
@@ -230,7 +216,7 @@ mod tests {
             e.to_string(),
             "plan p.toml: capture.repeats = -1 is out of range: allowed 1..=10000"
         );
-        assert!(e.is_input());
+        assert!(matches!(e, CommandError::Plan { .. }));
     }
 
     /// A model range error keeps its field as data and prints as before.
@@ -241,7 +227,7 @@ mod tests {
             value: 95.0,
             allowed: "[0, 90]",
         });
-        assert_eq!(e.field(), Some("theta_i_deg"));
+        assert!(matches!(&e, CommandError::Input { field, .. } if field == "theta_i_deg"));
         assert_eq!(
             e.to_string(),
             "theta_i_deg = 95 is out of range: allowed [0, 90]"
@@ -270,7 +256,7 @@ mod tests {
             std::io::Error::from(std::io::ErrorKind::NotFound),
         );
         assert!(std::error::Error::source(&e).is_some());
-        assert!(!e.is_input());
+        assert!(matches!(e, CommandError::File { .. }));
         assert!(e.to_string().starts_with("--camera c.toml: cannot read: "));
     }
 }
